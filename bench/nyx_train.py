@@ -1,0 +1,170 @@
+"""Train on shared/data/nyx under a wall-clock budget and record what it reaches.
+
+Held out for validation: four whole parameter settings (interpolation between training settings)
+and four views at every other setting. Records validation PSNR/SSIM against training time,
+iterations per second, peak RSS, checkpoint size and seconds per 256x256 frame.
+
+    .venv/bin/python bench/nyx_train.py --minutes 60
+
+Writes bench/results/nyx_train.json, .md and .png, and the checkpoint to runs/nyx.safetensors.
+"""
+
+import argparse
+import json
+import platform
+import resource
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from visnerf.commands import pick_device
+from visnerf.config import HoldoutConfig, RenderConfig, TrainConfig
+from visnerf.data.holdout import split_holdout
+from visnerf.data.parsers.blender import load_dataset
+from visnerf.evaluation.metrics import psnr, ssim
+from visnerf.inference import load_scene
+from visnerf.training.trainer import Trainer
+
+ROOT = Path(__file__).resolve().parents[1]
+HOLDOUT_SETTINGS = ((0.12, 0.0235, 0.625), (0.1375, 0.0215, 0.775), (0.1375, 0.0225, 0.7), (0.155, 0.0225, 0.625))
+HOLDOUT_VIEWS = (5, 17, 29, 40)
+
+
+def peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+
+
+def final_eval(ckpt: Path, val, n_frames: int) -> dict:
+    """Render ``n_frames`` evenly chosen held-out frames through the public inference API."""
+    scene = load_scene(ckpt, torch.device("cpu"))
+    idx = np.unique(np.linspace(0, val.n_frames - 1, n_frames).round().astype(int))
+    names = [a.name for a in scene.info.params]
+    rows = []
+    for i in idx:
+        params = dict(zip(names, val.params[i].tolist(), strict=True))
+        t0 = time.perf_counter()
+        img = scene.render(val.c2w[i].double().numpy(), val.intrinsics.fov_x_deg, 256, 256, params)
+        seconds = time.perf_counter() - t0
+        pred = img.astype(np.float32) / 255.0
+        gt = val.images[i].numpy().astype(np.float32) / 255.0
+        held_setting = any(np.allclose(val.params[i].numpy(), s, atol=1e-6) for s in HOLDOUT_SETTINGS)
+        rows.append({"frame": int(i), "psnr": psnr(pred, gt), "ssim": ssim(pred, gt), "seconds": seconds,
+                     "held_out": "setting" if held_setting else "view"})
+    return {
+        "frames": len(rows),
+        "psnr": float(np.mean([r["psnr"] for r in rows])),
+        "ssim": float(np.mean([r["ssim"] for r in rows])),
+        "psnr_held_out_settings": float(np.mean([r["psnr"] for r in rows if r["held_out"] == "setting"] or [np.nan])),
+        "psnr_held_out_views": float(np.mean([r["psnr"] for r in rows if r["held_out"] == "view"] or [np.nan])),
+        "seconds_per_frame_256_median": float(np.median([r["seconds"] for r in rows])),
+    }
+
+
+def write_report(result: dict, out_dir: Path) -> None:
+    (out_dir / "nyx_train.json").write_text(json.dumps(result, indent=1))
+    f = result["final"]
+    lines = [
+        "# Nyx training on this CPU",
+        "",
+        f"Command: `{result['command']}`  ",
+        f"Machine: {result['machine']}",
+        "",
+        "| what | value |",
+        "| --- | --- |",
+        f"| training budget | {result['budget_minutes']} min (validation time excluded) |",
+        f"| iterations | {result['iterations']} ({result['iterations_per_second']:.2f} it/s) |",
+        f"| held-out PSNR / SSIM ({f['frames']} frames) | {f['psnr']:.2f} dB / {f['ssim']:.3f} |",
+        f"| PSNR at held-out parameter settings | {f['psnr_held_out_settings']:.2f} dB |",
+        f"| PSNR at held-out views | {f['psnr_held_out_views']:.2f} dB |",
+        f"| peak RSS | {result['peak_rss_mb']:.0f} MB |",
+        f"| checkpoint size | {result['checkpoint_mb']:.2f} MB |",
+        f"| seconds per 256x256 frame (median) | {f['seconds_per_frame_256_median']:.2f} s |",
+        "",
+        "Validation PSNR against training time:",
+        "",
+        "| train s | iteration | train PSNR | val PSNR | val SSIM |",
+        "| --- | --- | --- | --- | --- |",
+    ]
+    for row in result["log"]:
+        lines.append(f"| {row['train_seconds']:.0f} | {row['iteration']} | {row['train_psnr']:.2f} | "
+                     f"{row.get('val_psnr', float('nan')):.2f} | {row.get('val_ssim', float('nan')):.3f} |")
+    lines += ["", "![validation PSNR against training time](nyx_train.png)", ""]
+    (out_dir / "nyx_train.md").write_text("\n".join(lines))
+    try:
+        import matplotlib
+
+        matplotlib.use("Agg")
+        import matplotlib.pyplot as plt
+
+        fig, ax = plt.subplots(figsize=(6, 3.5))
+        log = result["log"]
+        ax.plot([r["train_seconds"] / 60 for r in log], [r.get("val_psnr", np.nan) for r in log], "o-", label="held-out")
+        ax.plot([r["train_seconds"] / 60 for r in log], [r["train_psnr"] for r in log], "--", label="train (EMA)")
+        ax.axhline(28.0, color="gray", lw=0.8, ls=":", label="target 28 dB")
+        ax.set_xlabel("training minutes (2-core CPU)")
+        ax.set_ylabel("PSNR (dB)")
+        ax.legend()
+        ax.grid(alpha=0.3)
+        fig.tight_layout()
+        fig.savefig(out_dir / "nyx_train.png", dpi=110)
+    except ImportError:
+        pass
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", default=str(ROOT.parent / "shared" / "data" / "nyx"))
+    ap.add_argument("--minutes", type=float, default=60.0)
+    ap.add_argument("--batch-rays", type=int, default=4096)
+    ap.add_argument("--resolution", type=int, default=TrainConfig.resolution_final)
+    ap.add_argument("--validate-every", type=float, default=300.0, help="seconds of training")
+    ap.add_argument("--eval-frames", type=int, default=24)
+    ap.add_argument("--out", default=str(ROOT / "runs" / "nyx.safetensors"))
+    ap.add_argument("--results", default=str(ROOT / "bench" / "results"))
+    args = ap.parse_args()
+
+    device = pick_device("cpu")
+    t0 = time.perf_counter()
+    scene = load_dataset(args.data)
+    load_s = time.perf_counter() - t0
+    rss_after_load = peak_rss_mb()
+    train, val = split_holdout(scene, HoldoutConfig(views=HOLDOUT_VIEWS, settings=HOLDOUT_SETTINGS))
+    del scene
+    assert val is not None
+    cfg = TrainConfig(iterations=10**9, time_budget_s=args.minutes * 60, batch_rays=args.batch_rays,
+                      resolution_final=args.resolution, validate_every_s=args.validate_every, validate_max_images=6)
+    trainer = Trainer(train, val, cfg, device, render_cfg=RenderConfig())
+    trainer.run(progress_bar=sys.stderr.isatty(), on_validate=lambda row: print(json.dumps(row), flush=True))
+    ckpt = trainer.save(args.out, dataset="shared/data/nyx")
+    final = final_eval(ckpt, val, args.eval_frames)
+    result = {
+        "command": "python bench/nyx_train.py " + " ".join(sys.argv[1:]),
+        "machine": f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} threads, torch {torch.__version__}",
+        "budget_minutes": args.minutes,
+        "train_frames": train.n_frames,
+        "val_frames": val.n_frames,
+        "holdout_settings": HOLDOUT_SETTINGS,
+        "holdout_views": HOLDOUT_VIEWS,
+        "load_seconds": round(load_s, 1),
+        "rss_after_load_mb": round(rss_after_load, 0),
+        "iterations": trainer.state.iteration,
+        "iterations_per_second": trainer.state.iteration / max(trainer.state.train_seconds, 1e-9),
+        "train_seconds": trainer.state.train_seconds,
+        "peak_rss_mb": peak_rss_mb(),
+        "checkpoint_mb": ckpt.stat().st_size / 1e6,
+        "final_resolution": trainer.field.resolution,
+        "final": final,
+        "log": trainer.state.log,
+    }
+    out_dir = Path(args.results)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    write_report(result, out_dir)
+    print(json.dumps({k: v for k, v in result.items() if k != "log"}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

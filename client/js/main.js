@@ -1,0 +1,445 @@
+// Wiring: scene picker, state, controls, render channels, comparison, URL and alerts.
+
+import * as api from "./api.js";
+import { DiffView } from "./compare.js";
+import { buildParamControls, formatValue } from "./controls.js";
+import { FrameChannel, PreviewSizer, RenderScheduler } from "./frames.js";
+import { attachCameraInput } from "./interaction.js";
+import { defaultResolution, fillExportSize, fillResolutions, fillScenePicker, setupExport, showSceneInfo } from "./panels.js";
+import { roundTo, ViewState } from "./state.js";
+import { AlertBox, FrameStats, FrameView, StatusBar } from "./viewer.js";
+
+const $ = (selector) => document.querySelector(selector);
+
+const state = new ViewState();
+const stats = new FrameStats();
+const alerts = new AlertBox($("#alert"));
+const statusBar = new StatusBar($("#statusbar"));
+const views = {
+  A: new FrameView($("#canvas-a"), { badge: $("#badge-a"), label: "View A" }),
+  B: new FrameView($("#canvas-b"), { badge: $("#badge-b"), label: "View B" }),
+};
+const diff = new DiffView({
+  canvas: $("#canvas-diff"),
+  legend: $("#legend-bar"),
+  ticks: $("#legend-ticks"),
+  summary: $("#diff-summary"),
+  scale: $("#diff-scale"),
+  badge: $("#badge-diff"),
+});
+const sizer = new PreviewSizer();
+const channels = { A: null, B: null };
+const schedulers = { A: null, B: null };
+const controls = { A: null, B: null };
+let sceneList = [];
+let urlTimer = null;
+let openGeneration = 0;
+
+// ---- scenes -----------------------------------------------------------------------------------
+
+async function boot() {
+  const query = new URLSearchParams(location.search);
+  showServerInfo();
+  try {
+    sceneList = await api.listScenes();
+  } catch (err) {
+    alerts.set("scenes", `${err.message}. Retrying in 3 s…`);
+    setTimeout(boot, 3000);
+    return;
+  }
+  alerts.clear("scenes");
+  fillScenePicker($("#scene-select"), sceneList, state.sceneId);
+  if (!sceneList.length) {
+    alerts.set("scenes", "The server has no scenes loaded. Add a checkpoint and reload the page.", "warning");
+    return;
+  }
+  const wanted = query.get("scene");
+  const chosen = sceneList.some((s) => s.id === wanted) ? wanted : sceneList[0].id;
+  if (wanted && wanted !== chosen) {
+    alerts.set("link", `Scene '${wanted}' is not on this server; showing '${chosen}' instead.`, "warning");
+  }
+  await openScene(chosen, wanted === chosen ? query : null);
+}
+
+async function showServerInfo() {
+  try {
+    const health = await api.getHealth();
+    $("#server-info").textContent = `server ${health.version ?? ""} · ${health.scenes ?? "?"} scene(s)`;
+  } catch {
+    $("#server-info").textContent = "";
+  }
+}
+
+async function openScene(sceneId, query = null) {
+  const generation = ++openGeneration;
+  closeChannels();
+  let scene;
+  try {
+    scene = await api.getScene(sceneId);
+  } catch (err) {
+    if (generation !== openGeneration) return;
+    if (err.status === 404) {
+      alerts.set("scene", `Scene '${sceneId}' is no longer available on the server.`);
+      refreshSceneList();
+    } else {
+      alerts.set("scene", `${err.message}. Retrying in 3 s…`);
+      setTimeout(() => generation === openGeneration && openScene(sceneId, query), 3000);
+    }
+    return;
+  }
+  if (generation !== openGeneration) return;
+  alerts.clear("scene");
+  state.setScene(scene);
+  scene = state.scene;
+  state.resolution = defaultResolution(scene);
+  if (query) state.applyQuery(query);
+  fillScenePicker($("#scene-select"), sceneList, scene.id);
+  showSceneInfo($("#scene-kind"), $("#scene-info"), scene);
+  fillResolutions($("#resolution"), state);
+  fillExportSize($("#export-width"), $("#export-height"), scene);
+  controls.A = buildParamControls($("#params-a"), scene.params, {
+    set: "A",
+    onInput: (name, value, o) => state.setParam(name, value, { set: "A", ...o }),
+  });
+  controls.B = buildParamControls($("#params-b"), scene.params, {
+    set: "B",
+    onInput: (name, value, o) => state.setParam(name, value, { set: "B", ...o }),
+  });
+  controls.A.update(state.params);
+  controls.B.update(state.paramsB);
+  views.A.clear();
+  views.B.clear();
+  diff.clear();
+  statusBar.clear();
+  showCamera();
+  applyCompareLayout();
+  openChannel("A");
+  if (state.compare) openChannel("B");
+  writeUrlSoon();
+}
+
+async function refreshSceneList() {
+  try {
+    sceneList = await api.listScenes();
+    fillScenePicker($("#scene-select"), sceneList, state.sceneId);
+  } catch (err) {
+    alerts.set("connection", err.message);
+  }
+}
+
+// ---- render channels --------------------------------------------------------------------------
+
+function requestBuilder(set) {
+  return (quality) => {
+    const size = quality === "full" ? state.frameSize() : sizer.size(state);
+    return {
+      camera: { ...state.camera },
+      fovDeg: state.fovDeg,
+      width: size.width,
+      height: size.height,
+      params: { ...(set === "B" ? state.paramsB : state.params) },
+      quality,
+      format: quality === "full" ? "png" : "jpeg",
+    };
+  };
+}
+
+function openChannel(set) {
+  if (channels[set]) return;
+  const sceneId = state.sceneId;
+  const channel = new FrameChannel({
+    name: set,
+    sceneId,
+    view: views[set],
+    stats,
+    onShown: (frame, req) => onFrameShown(set, frame, req),
+    onError: (err, req) => onRenderError(set, err, req),
+    onConnection: (info) => onConnection(set, info),
+  });
+  const scheduler = new RenderScheduler(channel, requestBuilder(set));
+  channels[set] = channel;
+  schedulers[set] = scheduler;
+  scheduler.start();
+}
+
+function closeChannel(set) {
+  if (!channels[set]) return;
+  schedulers[set].stop();
+  channels[set].close();
+  channels[set] = null;
+  schedulers[set] = null;
+}
+
+function closeChannels() {
+  closeChannel("A");
+  closeChannel("B");
+}
+
+function setOffline(on) {
+  if (on) document.body.dataset.offline = "true";
+  else delete document.body.dataset.offline;
+}
+
+function onFrameShown(set, frame, req) {
+  setOffline(false);
+  alerts.clear("render");
+  alerts.clear("busy");
+  if (!channels[set] || !channels[set].stream.isOpen) {
+    // Frames still arrive over HTTP: the server is up even though the stream is down.
+    if (alerts.has("connection")) alerts.set("connection", "Render stream lost; reconnecting (frames come over HTTP meanwhile).", "warning");
+  }
+  if (req.quality === "preview") {
+    const full = state.frameSize();
+    sizer.observe(frame.renderMs, frame.width * frame.height, full.width * full.height);
+  }
+  if (set === "A") {
+    statusBar.show(frame, stats.fps);
+    views.A.setDescription(describeView(req));
+  }
+  if (state.compare) diff.schedule(views.A, views.B);
+}
+
+function describeView(req) {
+  const params = Object.entries(req.params)
+    .map(([name, v]) => `${name} ${formatValue(v, state.axis(name) || { min: 0, max: 1 })}`)
+    .join(", ");
+  return (
+    `${state.scene.title || state.scene.id} at azimuth ${req.camera.azimuth.toFixed(1)}°, ` +
+    `elevation ${req.camera.elevation.toFixed(1)}°${params ? `, ${params}` : ""} (${req.quality})`
+  );
+}
+
+function onRenderError(set, err, req) {
+  const scheduler = schedulers[set];
+  if (err.status === 503) {
+    const delay = Number.isFinite(err.retryAfterS) && err.retryAfterS !== null ? err.retryAfterS : 1;
+    alerts.set("busy", `Server busy: it asked to retry in ${roundTo(delay, 1)} s. Retrying automatically…`, "warning");
+    if (scheduler) scheduler.retryAfter(delay);
+    return;
+  }
+  if (err.status === 404) {
+    checkSceneStillThere();
+    return;
+  }
+  if (err.status === 0 || err.kind === "unreachable") {
+    alerts.set("connection", "Server unreachable: the render server does not answer. Retrying…");
+    setOffline(true);
+    return;
+  }
+  const what = req ? `${req.quality} frame ${req.width}×${req.height}` : "frame";
+  const text = err.message && err.message.startsWith("Render") ? err.message : `Render refused (HTTP ${err.status}): ${err.message}`;
+  alerts.set("render", `${text} [${what}]`);
+}
+
+let checkingScene = false;
+
+/**
+ * The server said the scene is unknown. A server that has just (re)started answers that for every
+ * scene until it has loaded them (GET /api/ready is 503 meanwhile): wait for it, then ask again;
+ * only a ready server that does not list the scene means it is gone.
+ */
+async function checkSceneStillThere() {
+  if (checkingScene) return;
+  checkingScene = true;
+  const id = state.sceneId;
+  try {
+    for (let attempt = 0; attempt < 120; attempt += 1) {
+      try {
+        await api.getReady();
+        break;
+      } catch (err) {
+        if (err.status === 404) break; // no readiness endpoint: take the answer as it is
+        const wait = err.status === 503 && err.retryAfterS ? err.retryAfterS : 1;
+        alerts.set("connection", err.status === 503 ? "Server starting: loading its scenes…" : err.message, "warning");
+        await new Promise((resolve) => setTimeout(resolve, wait * 1000));
+      }
+      if (state.sceneId !== id) return;
+    }
+    try {
+      await api.getScene(id);
+    } catch (err) {
+      if (err.status === 404 && state.sceneId === id) sceneGone();
+      return;
+    }
+    // Still there: reconnect and carry on.
+    alerts.clear("connection");
+    for (const set of activeSets()) {
+      channels[set]?.stream.reconnectNow();
+      schedulers[set]?.settle({ force: true });
+    }
+  } finally {
+    checkingScene = false;
+  }
+}
+
+function sceneGone() {
+  const id = state.sceneId;
+  closeChannels();
+  alerts.set("scene", `Scene '${id}' is no longer available on the server (404). Choose another scene.`);
+  refreshSceneList();
+}
+
+async function onConnection(set, info) {
+  if (info.state === "open") {
+    if (set === "A") {
+      alerts.clear("connection");
+      setOffline(false);
+    }
+    const channel = channels[set];
+    if (channel && channel.needsResend) {
+      channel.needsResend = false;
+      schedulers[set].settle({ force: true });
+    } else if (channel && channel.openCount > 1) {
+      schedulers[set].settle(); // reconnected: catch up with changes made while the server was away
+    }
+    return;
+  }
+  if (set !== "A") return;
+  if (info.state === "gone") {
+    checkSceneStillThere();
+    return;
+  }
+  const wait = info.retryInS ? ` in ${Math.max(1, Math.round(info.retryInS))} s` : "";
+  try {
+    await api.getHealth();
+    if (channels.A && !channels.A.stream.isOpen) {
+      alerts.set("connection", `Render stream closed; reconnecting${wait}…`, "warning");
+    }
+  } catch {
+    if (channels.A && !channels.A.stream.isOpen) {
+      alerts.set("connection", `Server unreachable: cannot connect to ${location.host}. Reconnecting${wait}…`);
+      setOffline(true);
+    }
+  }
+}
+
+// ---- state changes ----------------------------------------------------------------------------
+
+function activeSets() {
+  return state.compare ? ["A", "B"] : ["A"];
+}
+
+function kick(sets, interactive, inputTime) {
+  const t = Number.isFinite(inputTime) ? inputTime : performance.now();
+  stats.noteInput(t);
+  for (const set of sets) {
+    const scheduler = schedulers[set];
+    if (!scheduler) continue;
+    if (interactive) scheduler.input(t);
+    else scheduler.commit(t);
+  }
+}
+
+function showCamera() {
+  $("#az-value").textContent = state.camera.azimuth.toFixed(1);
+  $("#el-value").textContent = state.camera.elevation.toFixed(1);
+  $("#dist-value").textContent = state.camera.distance.toFixed(3);
+  $("#viewport").setAttribute(
+    "aria-label",
+    `View. Azimuth ${state.camera.azimuth.toFixed(0)} degrees, elevation ${state.camera.elevation.toFixed(0)} degrees. ` +
+      "Use arrow keys to orbit, plus and minus to zoom.",
+  );
+}
+
+function applyCompareLayout() {
+  $("#compare-toggle").checked = state.compare;
+  $("#panes").classList.toggle("compare", state.compare);
+  $("#pane-b").hidden = !state.compare;
+  $("#pane-diff").hidden = !state.compare;
+  $("#pane-legend").hidden = !state.compare;
+  $("#compare-body").hidden = !state.compare;
+  $("#pane-a-caption").textContent = state.compare ? "current parameters" : "";
+  const [w, h] = (state.scene && state.scene.image_size) || [1, 1];
+  $("#panes").style.setProperty("--frame-aspect", String(w / h));
+}
+
+function writeUrlSoon() {
+  clearTimeout(urlTimer);
+  urlTimer = setTimeout(() => state.writeUrl(), 200);
+}
+
+state.addEventListener("change", (event) => {
+  const { type, interactive, inputTime } = event.detail;
+  if (!state.scene) return;
+  switch (type) {
+    case "camera":
+      showCamera();
+      kick(activeSets(), interactive, inputTime);
+      break;
+    case "params":
+      controls.A?.update(state.params);
+      kick(["A"], interactive, inputTime);
+      break;
+    case "paramsB":
+      controls.B?.update(state.paramsB);
+      kick(["B"], interactive, inputTime);
+      break;
+    case "compare":
+      applyCompareLayout();
+      if (state.compare) {
+        openChannel("B");
+      } else {
+        closeChannel("B");
+        views.B.clear();
+        diff.clear();
+      }
+      break;
+    case "resolution":
+      kick(activeSets(), false);
+      break;
+    default:
+      return;
+  }
+  writeUrlSoon();
+});
+
+// ---- page controls ----------------------------------------------------------------------------
+
+$("#scene-select").addEventListener("change", (event) => {
+  const id = event.target.value;
+  alerts.clear("link");
+  if (id && id !== state.sceneId) openScene(id);
+});
+
+$("#reset-view").addEventListener("click", () => state.resetCamera());
+
+$("#resolution").addEventListener("change", (event) => state.setResolution(Number(event.target.value)));
+
+$("#compare-toggle").addEventListener("change", (event) => state.setCompare(event.target.checked));
+
+$("#pin-b").addEventListener("click", () => {
+  state.pinAsB();
+  state.setCompare(true);
+});
+
+$("#swap-ab").addEventListener("click", () => {
+  const a = state.params;
+  state.params = state.paramsB;
+  state.paramsB = a;
+  state.emit("params", { interactive: false });
+  state.emit("paramsB", { interactive: false });
+});
+
+setupExport({
+  state,
+  alerts,
+  width: $("#export-width"),
+  height: $("#export-height"),
+  button: $("#save-png"),
+});
+
+attachCameraInput($("#panes"), state, { onInput: (t) => stats.noteInput(t) });
+
+// A held pointer (dragging the view or a slider thumb) postpones full frames until release.
+const setHeld = (held) => {
+  for (const set of ["A", "B"]) schedulers[set]?.setHeld(held);
+};
+document.addEventListener("pointerdown", () => setHeld(true), true);
+for (const type of ["pointerup", "pointercancel"]) document.addEventListener(type, () => setHeld(false), true);
+window.addEventListener("blur", () => setHeld(false));
+
+window.__visnerfState = state;
+/** For tests and benchmarks: every active view shows the full frame of its newest request. */
+window.__visnerfSettled = () =>
+  activeSets().every((set) => schedulers[set] !== null && schedulers[set].settled);
+boot();

@@ -1,0 +1,220 @@
+// The view state: scene, camera and parameter values (A, and B for comparison), with clamping to
+// the ranges the server declared, change notification, and (de)serialisation to the page URL.
+
+export const ELEVATION_LIMIT = 89.9;
+/** Zoom range, as multiples of the scene's default camera distance. */
+export const DISTANCE_RANGE = [0.3, 4.0];
+
+/** Wrap an angle in degrees into [-180, 180). */
+export function wrapAzimuth(deg) {
+  const wrapped = ((((deg + 180) % 360) + 360) % 360) - 180;
+  return Object.is(wrapped, -0) ? 0 : wrapped;
+}
+
+export function clamp(value, lo, hi) {
+  return Math.min(hi, Math.max(lo, value));
+}
+
+/** Round for display and URLs: enough digits to restore the view, no float noise. */
+export function roundTo(value, digits = 4) {
+  const k = 10 ** digits;
+  return Math.round(value * k) / k;
+}
+
+// Keys of the URL that are not parameter names.
+const RESERVED = new Set(["scene", "az", "el", "dist", "fov", "res", "cmp"]);
+const B_PREFIX = "b.";
+
+export class ViewState extends EventTarget {
+  constructor() {
+    super();
+    this.scene = null; // the scene description from GET /api/scenes/{id}
+    this.camera = { azimuth: 0, elevation: 0, distance: 1 };
+    this.fovDeg = 30;
+    this.params = {}; // A
+    this.paramsB = {}; // B (comparison)
+    this.compare = false;
+    this.resolution = 256; // long side of a full-quality frame, in pixels
+  }
+
+  get sceneId() {
+    return this.scene ? this.scene.id : null;
+  }
+
+  get defaultCamera() {
+    const c = (this.scene && this.scene.camera) || {};
+    return {
+      azimuth: Number.isFinite(c.azimuth) ? c.azimuth : 0,
+      elevation: Number.isFinite(c.elevation) ? c.elevation : 20,
+      distance: Number.isFinite(c.distance) && c.distance > 0 ? c.distance : 4,
+    };
+  }
+
+  get distanceRange() {
+    const d = this.defaultCamera.distance;
+    return [d * DISTANCE_RANGE[0], d * DISTANCE_RANGE[1]];
+  }
+
+  axis(name) {
+    return this.scene ? this.scene.params.find((a) => a.name === name) : undefined;
+  }
+
+  /** Default parameter values of a scene (the declared default, else the range middle). */
+  defaultParams() {
+    const out = {};
+    for (const axis of this.scene ? this.scene.params : []) out[axis.name] = axisDefault(axis);
+    return out;
+  }
+
+  /** Switch to a scene: camera, parameters and B reset to the scene's defaults. */
+  setScene(scene) {
+    this.scene = normalizeScene(scene);
+    this.camera = this.defaultCamera;
+    this.fovDeg = Number.isFinite(scene.camera && scene.camera.fov_deg) ? scene.camera.fov_deg : 30;
+    this.params = this.defaultParams();
+    this.paramsB = this.defaultParams();
+    this.emit("scene", { interactive: false });
+  }
+
+  /** Change the camera (partial), wrapped and clamped. */
+  setCamera(partial, { interactive = true, inputTime } = {}) {
+    const [dMin, dMax] = this.distanceRange;
+    const next = { ...this.camera, ...partial };
+    next.azimuth = wrapAzimuth(next.azimuth);
+    next.elevation = clamp(next.elevation, -ELEVATION_LIMIT, ELEVATION_LIMIT);
+    next.distance = clamp(next.distance, dMin, dMax);
+    const c = this.camera;
+    if (next.azimuth === c.azimuth && next.elevation === c.elevation && next.distance === c.distance) return;
+    this.camera = next;
+    this.emit("camera", { interactive, inputTime });
+  }
+
+  orbit(dAzimuth, dElevation, options) {
+    this.setCamera(
+      { azimuth: this.camera.azimuth + dAzimuth, elevation: this.camera.elevation + dElevation },
+      options,
+    );
+  }
+
+  zoom(factor, options) {
+    this.setCamera({ distance: this.camera.distance * factor }, options);
+  }
+
+  resetCamera() {
+    this.setCamera(this.defaultCamera, { interactive: false });
+  }
+
+  /** Set one parameter of set "A" or "B", clamped to its range. Returns the stored value. */
+  setParam(name, value, { set = "A", interactive = true, inputTime } = {}) {
+    const axis = this.axis(name);
+    if (!axis || !Number.isFinite(value)) return undefined;
+    const target = set === "B" ? this.paramsB : this.params;
+    const v = clamp(value, axis.min, axis.max);
+    if (target[name] === v) return v;
+    target[name] = v;
+    this.emit(set === "B" ? "paramsB" : "params", { interactive, inputTime, name });
+    return v;
+  }
+
+  pinAsB() {
+    this.paramsB = { ...this.params };
+    this.emit("paramsB", { interactive: false });
+  }
+
+  setCompare(on) {
+    if (this.compare === on) return;
+    this.compare = on;
+    this.emit("compare", { interactive: false });
+  }
+
+  setResolution(px) {
+    if (!Number.isFinite(px) || px <= 0 || px === this.resolution) return;
+    this.resolution = px;
+    this.emit("resolution", { interactive: false });
+  }
+
+  /** Full-quality frame size: the long side is `resolution`, the aspect is the training images'. */
+  frameSize(scale = 1) {
+    const [w, h] = (this.scene && this.scene.image_size) || [1, 1];
+    const long = Math.max(16, Math.round(this.resolution * scale));
+    if (w >= h) return { width: long, height: Math.max(16, Math.round((long * h) / w)) };
+    return { width: Math.max(16, Math.round((long * w) / h)), height: long };
+  }
+
+  emit(type, detail) {
+    this.dispatchEvent(new CustomEvent("change", { detail: { type, ...detail } }));
+  }
+
+  // ---- URL ---------------------------------------------------------------------------------
+
+  /** The query string that restores this view. */
+  toQuery() {
+    const q = new URLSearchParams();
+    if (!this.scene) return q;
+    q.set("scene", this.scene.id);
+    q.set("az", String(roundTo(this.camera.azimuth, 2)));
+    q.set("el", String(roundTo(this.camera.elevation, 2)));
+    q.set("dist", String(roundTo(this.camera.distance, 4)));
+    for (const axis of this.scene.params) {
+      if (!RESERVED.has(axis.name)) q.set(axis.name, String(roundTo(this.params[axis.name], 6)));
+    }
+    if (this.compare) {
+      q.set("cmp", "1");
+      for (const axis of this.scene.params) q.set(B_PREFIX + axis.name, String(roundTo(this.paramsB[axis.name], 6)));
+    }
+    q.set("res", String(this.resolution));
+    return q;
+  }
+
+  /** Apply what a query string holds for the current scene (unknown keys are ignored). */
+  applyQuery(query) {
+    const num = (key) => {
+      const raw = query.get(key);
+      if (raw === null || raw.trim() === "") return undefined;
+      const v = Number(raw);
+      return Number.isFinite(v) ? v : undefined;
+    };
+    const [dMin, dMax] = this.distanceRange;
+    const camera = { ...this.camera };
+    if (num("az") !== undefined) camera.azimuth = wrapAzimuth(num("az"));
+    if (num("el") !== undefined) camera.elevation = clamp(num("el"), -ELEVATION_LIMIT, ELEVATION_LIMIT);
+    if (num("dist") !== undefined) camera.distance = clamp(num("dist"), dMin, dMax);
+    this.camera = camera;
+    for (const axis of this.scene ? this.scene.params : []) {
+      const a = num(axis.name);
+      if (a !== undefined && !RESERVED.has(axis.name)) this.params[axis.name] = clamp(a, axis.min, axis.max);
+      const b = num(B_PREFIX + axis.name);
+      if (b !== undefined) this.paramsB[axis.name] = clamp(b, axis.min, axis.max);
+    }
+    if (num("res") !== undefined && num("res") >= 16) this.resolution = Math.round(num("res"));
+    this.compare = query.get("cmp") === "1";
+    this.emit("restore", { interactive: false });
+  }
+
+  /** Write the view into the address bar without adding a history entry. */
+  writeUrl() {
+    const query = this.toQuery().toString();
+    const url = `${location.pathname}${query ? `?${query}` : ""}${location.hash}`;
+    if (url !== `${location.pathname}${location.search}${location.hash}`) history.replaceState(null, "", url);
+  }
+}
+
+export function axisDefault(axis) {
+  if (Number.isFinite(axis.default)) return clamp(axis.default, axis.min, axis.max);
+  return (axis.min + axis.max) / 2;
+}
+
+/**
+ * The scene description with the shapes this client works with: `params` a list, `image_size`
+ * a [width, height] pair (an object {width, height} is accepted too), `camera` an object.
+ */
+export function normalizeScene(scene) {
+  const out = { ...scene };
+  out.params = Array.isArray(scene.params) ? scene.params : [];
+  const size = scene.image_size;
+  if (Array.isArray(size) && size.length >= 2) out.image_size = [Number(size[0]), Number(size[1])];
+  else if (size && typeof size === "object") out.image_size = [Number(size.width), Number(size.height)];
+  if (!(out.image_size && out.image_size[0] > 0 && out.image_size[1] > 0)) out.image_size = [256, 256];
+  out.camera = scene.camera && typeof scene.camera === "object" ? scene.camera : {};
+  return out;
+}

@@ -1,0 +1,215 @@
+"""Checkpoints: one ``.safetensors`` file, tensors only, with a JSON document under ``visnerf``.
+
+Loading validates everything before building a model: the container, the format version, the
+configuration, every tensor's presence, shape and dtype, and that all values are finite. Any
+problem raises ``CheckpointError`` with a message that names it. Saving is atomic.
+"""
+
+import json
+import os
+import struct
+import tempfile
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+from safetensors.torch import load as load_safetensors_bytes
+from safetensors.torch import save as save_safetensors_bytes
+
+from visnerf.config import FieldConfig, RenderConfig
+from visnerf.representation.field import VisNerfField
+
+FORMAT_VERSION = 1
+METADATA_KEY = "visnerf"
+_MAX_HEADER_BYTES = 16 * 1024 * 1024
+
+
+class CheckpointError(ValueError):
+    """A checkpoint could not be read; the message names the problem."""
+
+
+@dataclass(frozen=True)
+class ParamAxis:
+    """One parameter axis: its name, training range and the distinct training values."""
+
+    name: str
+    min: float
+    max: float
+    values: tuple[float, ...]
+    default: float
+
+    def normalize(self, value: float) -> float:
+        """Map [min, max] to [-1, 1]."""
+        span = self.max - self.min
+        return 0.0 if span <= 0 else 2.0 * (value - self.min) / span - 1.0
+
+
+@dataclass(frozen=True)
+class CheckpointMeta:
+    """The JSON document stored in the checkpoint header."""
+
+    field: FieldConfig
+    render: RenderConfig
+    param_axes: tuple[ParamAxis, ...]
+    bbox: tuple[tuple[float, float, float], tuple[float, float, float]]
+    background: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    camera: dict[str, float] = field(default_factory=dict)
+    image_width: int = 0
+    image_height: int = 0
+    title: str = ""
+    kind: str = "dvr"
+    occupancy_resolution: tuple[int, int, int] | None = None
+    provenance: dict[str, Any] = field(default_factory=dict)
+    format_version: int = FORMAT_VERSION
+
+    def to_json(self) -> str:
+        data = asdict(self)
+        data["field"] = self.field.to_dict()
+        data["render"] = self.render.to_dict()
+        return json.dumps(data, allow_nan=False)
+
+    @classmethod
+    def from_json(cls, text: str) -> "CheckpointMeta":
+        try:
+            data = json.loads(text)
+        except json.JSONDecodeError as exc:
+            raise CheckpointError(f"checkpoint metadata is not valid JSON: {exc}") from None
+        if not isinstance(data, dict):
+            raise CheckpointError("checkpoint metadata is not a JSON object")
+        version = data.get("format_version")
+        if version != FORMAT_VERSION:
+            raise CheckpointError(
+                f"unsupported checkpoint format version {version!r} (this build reads {FORMAT_VERSION})"
+            )
+        try:
+            axes = tuple(
+                ParamAxis(str(a["name"]), float(a["min"]), float(a["max"]),
+                          tuple(float(v) for v in a["values"]), float(a["default"]))
+                for a in data["param_axes"]
+            )
+            occ = data.get("occupancy_resolution")
+            meta = cls(
+                field=FieldConfig.from_dict(data["field"]),
+                render=RenderConfig.from_dict(data.get("render", {})),
+                param_axes=axes,
+                bbox=tuple(tuple(float(x) for x in corner) for corner in data["bbox"]),  # type: ignore[arg-type]
+                background=tuple(float(x) for x in data.get("background", (1.0, 1.0, 1.0))),  # type: ignore[arg-type]
+                camera={k: float(v) for k, v in data.get("camera", {}).items()},
+                image_width=int(data.get("image_width", 0)),
+                image_height=int(data.get("image_height", 0)),
+                title=str(data.get("title", "")),
+                kind=str(data.get("kind", "dvr")),
+                occupancy_resolution=None if occ is None else tuple(int(r) for r in occ),  # type: ignore[arg-type]
+                provenance=dict(data.get("provenance", {})),
+            )
+        except (KeyError, TypeError, ValueError) as exc:
+            raise CheckpointError(f"checkpoint metadata is incomplete or malformed: {exc!r}") from None
+        if len(meta.param_axes) != meta.field.n_params:
+            raise CheckpointError(
+                f"metadata names {len(meta.param_axes)} parameter axes but the field has {meta.field.n_params}"
+            )
+        for axis, length in zip(meta.param_axes, meta.field.param_lengths, strict=True):
+            if len(axis.values) != length:
+                raise CheckpointError(f"axis {axis.name!r} lists {len(axis.values)} values, the field {length}")
+        return meta
+
+
+def field_tensors(model: VisNerfField) -> dict[str, torch.Tensor]:
+    """The tensors stored for a field (occupancy as uint8)."""
+    tensors = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
+    if "occupancy" in tensors:
+        tensors["occupancy"] = tensors["occupancy"].to(torch.uint8)
+    return tensors
+
+
+def save_checkpoint(model: VisNerfField, meta: CheckpointMeta, path: str | Path) -> Path:
+    """Write atomically: a temporary file in the same folder, fsynced, then renamed."""
+    path = Path(path)
+    occ = None if model.occupancy is None else tuple(model.occupancy.shape)
+    meta_json = CheckpointMeta(**{**meta.__dict__, "field": model.current_config(), "occupancy_resolution": occ})
+    blob = save_safetensors_bytes(field_tensors(model), metadata={METADATA_KEY: meta_json.to_json()})
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            fh.write(blob)
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def _read_header(blob: bytes) -> dict[str, Any]:
+    if len(blob) < 8:
+        raise CheckpointError("file is too short to be a safetensors checkpoint")
+    (n,) = struct.unpack("<Q", blob[:8])
+    if n > _MAX_HEADER_BYTES or n + 8 > len(blob) or blob[8:9] != b"{":
+        raise CheckpointError("not a safetensors file (bad header; a pickle or another format?)")
+    try:
+        header = json.loads(blob[8 : 8 + n])
+    except (json.JSONDecodeError, UnicodeDecodeError):
+        raise CheckpointError("not a safetensors file (header is not JSON)") from None
+    if not isinstance(header, dict):
+        raise CheckpointError("not a safetensors file (header is not an object)")
+    return header
+
+
+def expected_shapes(meta: CheckpointMeta) -> dict[str, tuple[tuple[int, ...], torch.dtype]]:
+    """Tensor names, shapes and dtypes that a checkpoint with this configuration must hold."""
+    with torch.device("meta"):
+        model = VisNerfField(meta.field, torch.zeros(2, 3))
+    shapes = {k: (tuple(v.shape), v.dtype) for k, v in model.state_dict().items()}
+    if meta.occupancy_resolution is not None:
+        shapes["occupancy"] = (tuple(meta.occupancy_resolution), torch.uint8)
+    return shapes
+
+
+def read_checkpoint(path: str | Path) -> tuple[CheckpointMeta, dict[str, torch.Tensor]]:
+    """Read and validate a checkpoint file; returns metadata and CPU tensors."""
+    path = Path(path)
+    try:
+        blob = path.read_bytes()
+    except OSError as exc:
+        raise CheckpointError(f"cannot read checkpoint {path}: {exc.strerror}") from None
+    header = _read_header(blob)
+    metadata = header.get("__metadata__") or {}
+    if METADATA_KEY not in metadata:
+        raise CheckpointError(f"safetensors file has no {METADATA_KEY!r} metadata: not a ViSNeRF checkpoint")
+    meta = CheckpointMeta.from_json(metadata[METADATA_KEY])
+    try:
+        tensors = load_safetensors_bytes(blob)
+    except Exception as exc:  # safetensors raises its own error types for truncation / corruption
+        raise CheckpointError(f"checkpoint data is corrupt or truncated: {exc}") from None
+    expected = expected_shapes(meta)
+    missing = sorted(set(expected) - set(tensors))
+    extra = sorted(set(tensors) - set(expected))
+    if missing:
+        raise CheckpointError(f"checkpoint is missing tensor(s) {missing}")
+    if extra:
+        raise CheckpointError(f"checkpoint has unexpected tensor(s) {extra}")
+    for name, (shape, dtype) in expected.items():
+        t = tensors[name]
+        if tuple(t.shape) != shape:
+            raise CheckpointError(f"tensor {name!r} has shape {list(t.shape)}, configuration says {list(shape)}")
+        if t.dtype != dtype:
+            raise CheckpointError(f"tensor {name!r} has dtype {t.dtype}, expected {dtype}")
+        if t.is_floating_point() and not bool(torch.isfinite(t).all()):
+            raise CheckpointError(f"tensor {name!r} holds non-finite values (NaN or inf)")
+    aabb = tensors["aabb"]
+    if not bool((aabb[1] > aabb[0]).all()):
+        raise CheckpointError("tensor 'aabb' is not a box with positive extent")
+    return meta, tensors
+
+
+def load_checkpoint(path: str | Path, device: torch.device) -> tuple[VisNerfField, CheckpointMeta]:
+    """Load a validated checkpoint onto ``device``."""
+    meta, tensors = read_checkpoint(path)
+    model = VisNerfField(meta.field, tensors["aabb"])
+    occupancy = tensors.pop("occupancy", None)
+    model.load_state_dict(tensors, strict=True)
+    model.set_occupancy(None if occupancy is None else occupancy.bool())
+    return model.to(device).eval(), meta

@@ -1,0 +1,51 @@
+"""The ``visnerf`` command line: one sub-command per job.
+
+Each area registers its own sub-commands (``register(subparsers)``), so this module only wires them.
+A handler takes the parsed arguments and returns the process exit code.
+"""
+
+import argparse
+import importlib
+import sys
+
+# Modules that contribute sub-commands, in the order they appear in ``visnerf --help``.
+_COMMAND_MODULES = (
+    "visnerf.commands",  # train, render, info
+    "visnerf.scenes.commands",  # make-scene, scenes
+    "visnerf.evaluation.commands",  # eval
+    "visnerf_server.commands",  # serve, submit
+)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="visnerf",
+        description="Learn ViSNeRF models from images of scientific visualizations and explore them.",
+    )
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in _COMMAND_MODULES:
+        try:
+            module = importlib.import_module(name)
+        except ModuleNotFoundError as exc:
+            if exc.name is not None and name.startswith(exc.name):
+                continue  # that part of the distribution is not present
+            raise
+        module.register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if getattr(args, "func", None) is None:
+        parser.print_help()
+        return 2
+    try:
+        return int(args.func(args) or 0)
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,192 @@
+"""Sub-commands ``train``, ``render`` and ``info``."""
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+import torch
+
+from visnerf.checkpoint import CheckpointError, read_checkpoint
+from visnerf.config import HoldoutConfig, RenderConfig, TrainConfig
+from visnerf.data.cameras import orbit_c2w
+
+
+def pick_device(name: str) -> torch.device:
+    """``auto`` takes CUDA when present; thread count is set once, to the machine's cores."""
+    if name == "auto":
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    device = torch.device(name)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise SystemExit("error: --device cuda asked for, but no CUDA device is available")
+    if device.type == "cpu":
+        torch.set_num_threads(max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1))
+    return device
+
+
+def parse_settings(text: str) -> tuple[tuple[float, ...], ...]:
+    """``"0.12,0.0225,0.7;0.155,0.0215,0.55"`` -> settings."""
+    if not text:
+        return ()
+    try:
+        return tuple(tuple(float(v) for v in part.split(",")) for part in text.split(";") if part.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"cannot read parameter settings {text!r}: use 'a,b,c;d,e,f'") from None
+
+
+def parse_views(text: str) -> tuple[int, ...]:
+    try:
+        return tuple(int(v) for v in text.split(",") if v.strip())
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"cannot read view indices {text!r}: use '0,7,21'") from None
+
+
+def _train(args: argparse.Namespace) -> int:
+    from visnerf.data.holdout import split_holdout
+    from visnerf.data.parsers.blender import DatasetError, load_dataset
+    from visnerf.training.trainer import Trainer
+
+    out = Path(args.out)
+    if out.suffix != ".safetensors":
+        print(f"error: --out must end in .safetensors, got {out}", file=sys.stderr)
+        return 2
+    if out.exists() and not args.force and not args.resume:
+        print(f"error: {out} exists; pass --force to overwrite it", file=sys.stderr)
+        return 2
+    device = pick_device(args.device)
+    try:
+        scene = load_dataset(args.data, "train")
+        train, val = split_holdout(scene, HoldoutConfig(views=args.holdout_views, settings=args.holdout_params))
+    except (DatasetError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    if val is None and (Path(args.data) / "transforms_val.json").exists():
+        val = load_dataset(args.data, "val")
+    cfg = TrainConfig(
+        iterations=args.iterations, time_budget_s=args.time_budget * 60 if args.time_budget else None,
+        batch_rays=args.batch_rays, seed=args.seed, resolution_final=args.resolution,
+        validate_every_s=args.validate_every,
+    )
+    init_field, start = None, None
+    if args.resume:
+        from visnerf.checkpoint import load_checkpoint
+        from visnerf.training.trainer import TrainState
+
+        try:
+            init_field, meta = load_checkpoint(args.resume, device)
+        except CheckpointError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
+        prov = meta.provenance
+        start = TrainState(iteration=int(prov.get("iterations", 0)), train_seconds=float(prov.get("train_seconds", 0.0)),
+                           upsamples_done=int(prov.get("upsamples_done", 0)),
+                           occupancy_done=int(prov.get("occupancy_done", 0)))
+    print(f"training on {train.n_frames} frames ({val.n_frames if val else 0} held out), "
+          f"K={train.n_params}, {train.intrinsics.width}x{train.intrinsics.height}, device {device}", file=sys.stderr)
+    trainer = Trainer(train, val, cfg, device, render_cfg=RenderConfig(), init_field=init_field, start=start)
+
+    def report(row: dict) -> None:
+        print("  " + json.dumps(row), file=sys.stderr)
+
+    trainer.run(progress_bar=not args.quiet, on_validate=report)
+    path = trainer.save(out, dataset=str(args.data))
+    print(f"saved {path} ({path.stat().st_size / 1e6:.2f} MB) and its log {path.with_suffix('.log.csv')}")
+    if args.submit:
+        from visnerf_server.client import submit_checkpoint
+
+        return submit_checkpoint(path, args.submit, token=os.environ.get("VISNERF_TOKEN"))
+    return 0
+
+
+def _render(args: argparse.Namespace) -> int:
+    from PIL import Image
+
+    from visnerf.inference import load_scene
+
+    try:
+        width, height = (int(v) for v in args.size.lower().split("x"))
+    except ValueError:
+        print(f"error: --size must be WxH, got {args.size!r}", file=sys.stderr)
+        return 2
+    params = {}
+    for item in args.param:
+        name, _, value = item.partition("=")
+        try:
+            params[name] = float(value)
+        except ValueError:
+            print(f"error: --param {item!r} must be NAME=NUMBER", file=sys.stderr)
+            return 2
+    try:
+        scene = load_scene(args.checkpoint, pick_device(args.device))
+        cam = scene.info.camera
+        distance = args.distance if args.distance is not None else cam.get("distance", 2.0)
+        fov = args.fov if args.fov is not None else cam.get("fov_deg", 30.0)
+        t0 = time.perf_counter()
+        image = scene.render(orbit_c2w(args.azimuth, args.elevation, distance), fov, width, height, params,
+                             args.quality)
+        ms = 1000 * (time.perf_counter() - t0)
+    except (CheckpointError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    Image.fromarray(image).save(args.output)
+    print(f"wrote {args.output} ({width}x{height}, {ms:.0f} ms)")
+    return 0
+
+
+def _info(args: argparse.Namespace) -> int:
+    try:
+        meta, tensors = read_checkpoint(args.checkpoint)
+    except CheckpointError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    n = sum(t.numel() for t in tensors.values())
+    doc = json.loads(meta.to_json())
+    doc["tensors"] = {"count": len(tensors), "values": n, "file_mb": round(Path(args.checkpoint).stat().st_size / 1e6, 3)}
+    print(json.dumps(doc, indent=2))
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("train", help="train a ViSNeRF model on a dataset folder")
+    p.add_argument("data", help="dataset folder with transforms_train.json")
+    p.add_argument("--out", required=True, help="checkpoint to write (.safetensors)")
+    p.add_argument("--iterations", type=int, default=30000, help="maximum iterations (default 30000)")
+    p.add_argument("--time-budget", type=float, default=None, metavar="MINUTES", help="wall-clock training budget")
+    p.add_argument("--batch-rays", type=int, default=4096)
+    p.add_argument("--resolution", type=int, default=TrainConfig.resolution_final,
+                   help="final voxels per axis (cube root of the grid size)")
+    p.add_argument("--holdout-views", type=parse_views, default=(), metavar="I,J,..",
+                   help="view indices held out for validation at every parameter setting")
+    p.add_argument("--holdout-params", type=parse_settings, default=(), metavar="A,B;C,D",
+                   help="parameter settings held out for validation (all their views)")
+    p.add_argument("--validate-every", type=float, default=120.0, metavar="SECONDS")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N")
+    p.add_argument("--resume", default=None, metavar="CKPT", help="continue from this checkpoint's weights")
+    p.add_argument("--submit", default=None, metavar="URL", help="upload the checkpoint to a server when done")
+    p.add_argument("--force", action="store_true", help="overwrite --out")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.set_defaults(func=_train)
+
+    r = sub.add_parser("render", help="render one frame from a checkpoint")
+    r.add_argument("checkpoint")
+    r.add_argument("--azimuth", type=float, default=0.0)
+    r.add_argument("--elevation", type=float, default=0.0)
+    r.add_argument("--distance", type=float, default=None)
+    r.add_argument("--fov", type=float, default=None, help="horizontal field of view in degrees")
+    r.add_argument("--param", action="append", default=[], metavar="NAME=VALUE")
+    r.add_argument("--size", default="256x256", metavar="WxH")
+    r.add_argument("--quality", choices=("full", "preview"), default="full")
+    r.add_argument("--device", default="auto")
+    r.add_argument("-o", "--output", required=True)
+    r.set_defaults(func=_render)
+
+    i = sub.add_parser("info", help="print a checkpoint's metadata")
+    i.add_argument("checkpoint")
+    i.set_defaults(func=_info)
+
+
+__all__ = ["register", "pick_device", "math"]

@@ -1,0 +1,157 @@
+"""Typed configuration of the field, the renderer and the trainer. Configs are never mutated."""
+
+import dataclasses
+from dataclasses import dataclass, field
+from typing import Any
+
+
+@dataclass(frozen=True)
+class FieldConfig:
+    """Shape of a ViSNeRF field. Everything that fixes a tensor shape lives here."""
+
+    resolution: tuple[int, int, int] = (64, 64, 64)
+    """Grid resolution (x, y, z) of the VM planes and lines."""
+    n_density_components: int = 16
+    """VM components per mode of the density grid."""
+    n_appearance_components: int = 48
+    """VM components per mode of the appearance grid."""
+    param_lengths: tuple[int, ...] = ()
+    """One entry per parameter axis: the number of distinct training values (K = len)."""
+    n_param_components: int = 4
+    """Components of each CP parameter-axis vector."""
+    hidden_width: int = 128
+    """Hidden layer width of both decoders."""
+    pos_encoding_freqs: int = 2
+    """Frequencies of the positional encoding of x fed to the density decoder."""
+    sh_degree: int = 3
+    """Spherical-harmonics degree (0..3) of the view-direction encoding."""
+    density_shift: float = -10.0
+    """Added to the raw density before softplus, so a fresh field is nearly empty."""
+    init_scale: float = 0.1
+    """Standard deviation of the initial VM factors."""
+
+    def __post_init__(self) -> None:
+        if len(self.resolution) != 3 or min(self.resolution) < 2:
+            raise ValueError(f"resolution must be three sizes >= 2, got {self.resolution}")
+        if any(n < 1 for n in self.param_lengths):
+            raise ValueError(f"every parameter axis needs at least one value, got {self.param_lengths}")
+        if self.n_density_components % self.n_param_components or (
+            self.n_appearance_components % self.n_param_components
+        ):
+            raise ValueError("component counts must be multiples of n_param_components")
+        if not 0 <= self.sh_degree <= 3:
+            raise ValueError(f"sh_degree must be 0..3, got {self.sh_degree}")
+
+    @property
+    def n_params(self) -> int:
+        return len(self.param_lengths)
+
+    def with_resolution(self, resolution: tuple[int, int, int]) -> "FieldConfig":
+        return dataclasses.replace(self, resolution=tuple(int(r) for r in resolution))
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> "FieldConfig":
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = set(data) - names
+        if unknown:
+            raise ValueError(f"unknown field configuration keys {sorted(unknown)}")
+        values = dict(data)
+        values["resolution"] = tuple(values.get("resolution", cls.resolution))
+        values["param_lengths"] = tuple(values.get("param_lengths", ()))
+        return cls(**values)
+
+
+@dataclass(frozen=True)
+class RenderConfig:
+    """How rays are marched at inference and in training."""
+
+    step_ratio: float = 0.5
+    """Sample spacing as a fraction of the grid's voxel size."""
+    max_samples: int = 1024
+    """Upper bound on samples per ray."""
+    occupancy_threshold: float = 1e-4
+    """Alpha below which an occupancy cell counts as empty."""
+    weight_threshold: float = 1e-4
+    """Samples whose compositing weight is below this skip colour decoding."""
+    early_stop_eps: float = 1e-4
+    """Rays stop once transmittance falls below this (inference)."""
+    chunk_rays: int = 8192
+    """Rays per chunk when rendering whole images."""
+    preview_scale: float = 0.5
+    """Resolution scale of the preview quality."""
+    preview_step_factor: float = 2.0
+    """Step multiplier of the preview quality."""
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> "RenderConfig":
+        names = {f.name for f in dataclasses.fields(cls)}
+        return cls(**{k: v for k, v in data.items() if k in names})
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    """The training recipe. Milestones are fractions of the run (iterations or wall time)."""
+
+    iterations: int = 30_000
+    """Maximum iterations."""
+    time_budget_s: float | None = None
+    """Wall-clock budget; progress is the larger of iteration and time fraction."""
+    batch_rays: int = 4096
+    """Rays per iteration."""
+    lr_factors: float = 0.02
+    """Adam learning rate of grid factors and parameter vectors."""
+    lr_networks: float = 1e-3
+    """Adam learning rate of the decoders."""
+    betas: tuple[float, float] = (0.9, 0.99)
+    lr_decay_ratio: float = 0.1
+    """Learning rates decay exponentially to this fraction at the end of the run."""
+    resolution_init: int = 64
+    """Voxels per axis (cube root of the voxel count) at the start."""
+    resolution_final: int = 120
+    """Voxels per axis at the end: 120^3 keeps the model under 13 MB."""
+    upsample_at: tuple[float, ...] = (0.067, 0.1, 0.133, 0.183, 0.233)
+    """Progress fractions at which planes and lines are upsampled (log-spaced resolutions)."""
+    occupancy_at: tuple[float, ...] = (0.067, 0.133)
+    """Progress fractions at which the occupancy mask is rebuilt (the first also shrinks the box)."""
+    occupancy_resolution: int = 96
+    """Cells per axis of the occupancy grid (at most)."""
+    occupancy_max_settings: int = 64
+    """Parameter settings evaluated for the occupancy union (all training settings if fewer)."""
+    l1_weight_initial: float = 1e-4
+    l1_weight_rest: float = 1e-5
+    l1_switch_iteration: int = 2000
+    """Iteration after which the L1 weight drops to ``l1_weight_rest``."""
+    param_l1_weight: float = 1e-4
+    """L1 pull of the parameter vectors toward 1."""
+    tv_weight_density: float = 0.1
+    tv_weight_appearance: float = 0.01
+    tv_weight_params: float = 0.01
+    importance_from: float = 0.7
+    """Progress fraction after which samples are drawn by importance from a coarse density pass."""
+    importance_samples: int = 64
+    """Samples per ray drawn by importance sampling in the late phase."""
+    validate_every_s: float = 120.0
+    """Seconds of training between validations."""
+    validate_max_images: int = 8
+    seed: int = 0
+    random_background: bool = False
+    """Composite on a random colour per ray in training (useful when content touches the background)."""
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+
+@dataclass(frozen=True)
+class HoldoutConfig:
+    """Which training frames are held out for validation."""
+
+    views: tuple[int, ...] = ()
+    """Indices of views (position in the icosphere order) held out at every parameter setting."""
+    settings: tuple[tuple[float, ...], ...] = field(default_factory=tuple)
+    """Whole parameter settings held out from all views."""

@@ -1,0 +1,155 @@
+"""The public inference API: what the server (and any script) uses to render a trained scene.
+
+    scene = load_scene("checkpoints/vortex_tf.safetensors", torch.device("cpu"))
+    scene.info.params            # parameter axes: name, min, max, training values, default
+    image = scene.render(c2w, fov_deg=30, width=256, height=256, params={"opacity_a": 0.4})
+    image.shape, image.dtype     # (256, 256, 3), uint8
+
+Nothing here reaches into training code.
+"""
+
+import math
+import threading
+from collections.abc import Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import torch
+
+from visnerf.checkpoint import CheckpointError, CheckpointMeta, load_checkpoint
+from visnerf.data.cameras import Intrinsics, check_rigid_c2w
+from visnerf.representation.field import VisNerfField
+from visnerf.rendering.renderer import RenderSettings, render_image
+
+Quality = Literal["preview", "full"]
+
+__all__ = ["CheckpointError", "ParamAxisInfo", "SceneInfo", "SceneRenderer", "load_scene", "Quality"]
+
+
+@dataclass(frozen=True)
+class ParamAxisInfo:
+    """One explorable parameter of a scene."""
+
+    name: str
+    min: float
+    max: float
+    values: tuple[float, ...]
+    """The distinct values the model was trained on."""
+    default: float
+
+
+@dataclass(frozen=True)
+class SceneInfo:
+    """Everything a client needs to know to explore a scene."""
+
+    title: str
+    kind: str
+    """``dvr`` (direct volume rendering) or ``ir`` (isosurface rendering)."""
+    params: tuple[ParamAxisInfo, ...]
+    camera: dict[str, float]
+    """Default camera: azimuth, elevation, distance (orbit degrees), fov_deg."""
+    bbox: tuple[tuple[float, float, float], tuple[float, float, float]]
+    image_size: tuple[int, int]
+    """(width, height) of the training images."""
+    background: tuple[float, float, float]
+    training: dict[str, object]
+    """Provenance: dataset, iterations, train_seconds, val_psnr."""
+
+
+def _scene_info(meta: CheckpointMeta) -> SceneInfo:
+    params = tuple(
+        ParamAxisInfo(a.name, a.min, a.max, tuple(a.values), a.default) for a in meta.param_axes
+    )
+    return SceneInfo(
+        title=meta.title,
+        kind=meta.kind,
+        params=params,
+        camera=dict(meta.camera),
+        bbox=(tuple(meta.bbox[0]), tuple(meta.bbox[1])),  # type: ignore[arg-type]
+        image_size=(meta.image_width, meta.image_height),
+        background=tuple(meta.background),  # type: ignore[arg-type]
+        training=dict(meta.provenance),
+    )
+
+
+class SceneRenderer:
+    """A loaded scene. ``render`` is thread safe (renders are serialised by a lock)."""
+
+    def __init__(self, field: VisNerfField, meta: CheckpointMeta, device: torch.device) -> None:
+        self.field = field.eval()
+        self.meta = meta
+        self.device = device
+        self.info = _scene_info(meta)
+        self._lock = threading.Lock()
+
+    def resolve_params(self, params: Mapping[str, float]) -> list[float]:
+        """Parameter values in axis order; missing names take their default.
+
+        Raises ValueError naming the problem for unknown names, non-finite values or values
+        outside the training range.
+        """
+        known = {a.name for a in self.info.params}
+        unknown = sorted(set(params) - known)
+        if unknown:
+            raise ValueError(f"unknown parameter(s) {unknown}; this scene has {sorted(known)}")
+        values = []
+        for axis in self.info.params:
+            value = float(params.get(axis.name, axis.default))
+            if not math.isfinite(value):
+                raise ValueError(f"parameter {axis.name!r} must be finite, got {value}")
+            span = axis.max - axis.min
+            tol = 1e-9 * max(1.0, abs(span))
+            if value < axis.min - tol or value > axis.max + tol:
+                raise ValueError(
+                    f"parameter {axis.name!r}={value} is outside its range [{axis.min}, {axis.max}]"
+                )
+            values.append(min(max(value, axis.min), axis.max))
+        return values
+
+    def render(
+        self,
+        c2w: np.ndarray,
+        fov_deg: float,
+        width: int,
+        height: int,
+        params: Mapping[str, float] | None = None,
+        quality: Quality = "full",
+    ) -> np.ndarray:
+        """Render one frame: uint8 array [height, width, 3].
+
+        ``c2w`` is a 4x4 camera-to-world matrix in OpenGL axes; ``fov_deg`` the horizontal field of
+        view. ``preview`` renders at half resolution with twice the step and upsamples.
+        Raises ValueError for any invalid input (nothing is rendered then).
+        """
+        m = check_rigid_c2w(c2w)
+        if not (math.isfinite(fov_deg) and 0.0 < fov_deg < 180.0):
+            raise ValueError(f"fov_deg must be in (0, 180), got {fov_deg}")
+        if width < 1 or height < 1:
+            raise ValueError(f"image size must be positive, got {width}x{height}")
+        if quality not in ("preview", "full"):
+            raise ValueError(f"quality must be 'preview' or 'full', got {quality!r}")
+        values = self.resolve_params(params or {})
+        settings = RenderSettings.from_meta(self.meta, quality)
+        scale = settings.resolution_scale
+        w_r, h_r = max(1, round(width * scale)), max(1, round(height * scale))
+        intrinsics = Intrinsics.from_fov(w_r, h_r, math.radians(fov_deg))
+        c2w_t = torch.as_tensor(m, dtype=torch.float32, device=self.device)
+        normalized = [axis.normalize(v) for axis, v in zip(self.meta.param_axes, values, strict=True)]
+        params_t = torch.tensor(normalized, dtype=torch.float32, device=self.device)
+        with self._lock, torch.inference_mode():
+            rgb = render_image(self.field, c2w_t, intrinsics, params_t, settings)  # [h, w, 3]
+            if (w_r, h_r) != (width, height):
+                rgb = torch.nn.functional.interpolate(
+                    rgb.permute(2, 0, 1)[None], size=(height, width), mode="bilinear", align_corners=False
+                )[0].permute(1, 2, 0)
+            out = (rgb.clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
+        return out
+
+
+def load_scene(path: str | Path, device: torch.device | None = None) -> SceneRenderer:
+    """Load and fully validate a checkpoint; raises CheckpointError naming the problem."""
+    device = device or torch.device("cpu")
+    field, meta = load_checkpoint(path, device)
+    return SceneRenderer(field, meta, device)

@@ -1,0 +1,89 @@
+"""Occupancy grid: which cells of the box can hold content, for empty-space skipping.
+
+The grid is the union over the parameter space: a cell is occupied when the density there is
+visible at ANY of the evaluated parameter settings (all training settings, or a capped subset
+that always includes the corners of the parameter box), then dilated by one cell.
+"""
+
+import itertools
+
+import torch
+import torch.nn.functional as F
+from jaxtyping import Bool, Float
+from torch import Tensor
+
+from visnerf.representation.field import VisNerfField
+
+
+def query_occupancy(
+    grid: Bool[Tensor, "x y z"], aabb: Float[Tensor, "2 3"], points: Float[Tensor, "n 3"]
+) -> Bool[Tensor, " n"]:
+    """Occupancy of the cells holding ``points``; points outside the box are empty."""
+    res = torch.tensor(grid.shape, device=points.device, dtype=points.dtype)
+    rel = (points - aabb[0]) / (aabb[1] - aabb[0]).clamp_min(torch.finfo(points.dtype).eps)  # [n, 3]
+    inside = ((rel >= 0) & (rel <= 1)).all(dim=-1)
+    idx = (rel * res).long().clamp(min=0)
+    idx = torch.minimum(idx, (res - 1).long())
+    flat = (idx[:, 0] * grid.shape[1] + idx[:, 1]) * grid.shape[2] + idx[:, 2]
+    return inside & grid.reshape(-1)[flat]
+
+
+def cell_centres(aabb: Float[Tensor, "2 3"], resolution: tuple[int, int, int]) -> Float[Tensor, "x y z 3"]:
+    axes = [
+        aabb[0, i] + (torch.arange(r, device=aabb.device, dtype=aabb.dtype) + 0.5) / r * (aabb[1, i] - aabb[0, i])
+        for i, r in enumerate(resolution)
+    ]
+    return torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1)
+
+
+def parameter_settings(
+    knots: list[Float[Tensor, " m"]], max_settings: int, generator: torch.Generator | None = None
+) -> Float[Tensor, "s k"]:
+    """Normalised parameter settings to evaluate: all knot combinations, or the corners plus a
+    random subset when there are more than ``max_settings``. ``[1, 0]`` for K = 0."""
+    if not knots:
+        return torch.zeros(1, 0)
+    combos = torch.tensor(list(itertools.product(*[k.tolist() for k in knots])), dtype=torch.float32)
+    if combos.shape[0] <= max_settings:
+        return combos
+    corners = torch.tensor(list(itertools.product(*[[k[0].item(), k[-1].item()] for k in knots])))
+    perm = torch.randperm(combos.shape[0], generator=generator)[: max(0, max_settings - corners.shape[0])]
+    return torch.cat([corners.float(), combos[perm]], dim=0)
+
+
+@torch.no_grad()
+def build_occupancy(
+    field: VisNerfField,
+    resolution: tuple[int, int, int],
+    settings: Float[Tensor, "s k"],
+    step: float,
+    threshold: float,
+    chunk: int = 65536,
+) -> Bool[Tensor, "x y z"]:
+    """Union over ``settings`` of ``alpha(cell centre) > threshold``, dilated by one cell."""
+    pts = cell_centres(field.aabb, resolution).reshape(-1, 3)  # [x*y*z, 3]
+    occupied = torch.zeros(pts.shape[0], dtype=torch.bool, device=pts.device)
+    settings = settings.to(pts.device)
+    for setting in settings:
+        q_d, _ = field.param_features(setting[None])
+        for start in range(0, pts.shape[0], chunk):
+            part = pts[start : start + chunk]
+            sigma = field.density(part, q_d.expand(part.shape[0], -1))
+            alpha = -torch.expm1(-sigma * step)
+            occupied[start : start + chunk] |= alpha > threshold
+    grid = occupied.reshape(resolution).float()[None, None]
+    return F.max_pool3d(grid, kernel_size=3, stride=1, padding=1)[0, 0] > 0
+
+
+def occupied_bounds(
+    grid: Bool[Tensor, "x y z"], aabb: Float[Tensor, "2 3"]
+) -> Float[Tensor, "2 3"] | None:
+    """World box of the occupied cells (None if nothing is occupied)."""
+    idx = grid.nonzero()
+    if idx.numel() == 0:
+        return None
+    res = torch.tensor(grid.shape, device=aabb.device, dtype=aabb.dtype)
+    lo = idx.amin(0).to(aabb.dtype) / res
+    hi = (idx.amax(0).to(aabb.dtype) + 1) / res
+    extent = aabb[1] - aabb[0]
+    return torch.stack([aabb[0] + lo * extent, aabb[0] + hi * extent])

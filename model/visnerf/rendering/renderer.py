@@ -1,0 +1,249 @@
+"""Wires sampler, field and compositing: rays in, colours out.
+
+``render_rays`` is the training path (one differentiable pass, stratified samples, optional
+importance sampling). ``render_image`` is the inference path: deterministic samples marched in
+segments, with empty-space skipping through the occupancy grid and early ray termination.
+"""
+
+import math
+from dataclasses import dataclass, replace
+from typing import TYPE_CHECKING
+
+import torch
+from jaxtyping import Bool, Float
+from torch import Tensor
+
+from visnerf.config import RenderConfig
+from visnerf.data.cameras import Intrinsics, image_rays
+from visnerf.rendering.aabb import intersect_aabb
+from visnerf.rendering.occupancy import query_occupancy
+from visnerf.rendering.sampling import deltas_from_samples, sample_pdf, uniform_samples
+from visnerf.rendering.volume import render_alpha_from_density
+from visnerf.representation.field import VisNerfField
+
+if TYPE_CHECKING:
+    from visnerf.checkpoint import CheckpointMeta
+
+
+@dataclass(frozen=True)
+class RenderSettings:
+    """Settings of one render call (derived from the checkpoint's RenderConfig and a quality)."""
+
+    step_ratio: float = 0.5
+    max_samples: int = 1024
+    weight_threshold: float = 1e-4
+    early_stop_eps: float = 1e-4
+    chunk_rays: int = 8192
+    segment_samples: int = 64
+    """Samples marched per segment before finished rays are dropped (inference)."""
+    resolution_scale: float = 1.0
+    background: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    use_occupancy: bool = True
+    early_termination: bool = True
+
+    @classmethod
+    def from_config(
+        cls, cfg: RenderConfig, background: tuple[float, float, float], quality: str = "full"
+    ) -> "RenderSettings":
+        settings = cls(
+            step_ratio=cfg.step_ratio,
+            max_samples=cfg.max_samples,
+            weight_threshold=cfg.weight_threshold,
+            early_stop_eps=cfg.early_stop_eps,
+            chunk_rays=cfg.chunk_rays,
+            background=background,
+        )
+        if quality == "preview":
+            settings = replace(
+                settings,
+                step_ratio=cfg.step_ratio * cfg.preview_step_factor,
+                resolution_scale=cfg.preview_scale,
+            )
+        return settings
+
+    @classmethod
+    def from_meta(cls, meta: "CheckpointMeta", quality: str = "full") -> "RenderSettings":
+        return cls.from_config(meta.render, tuple(meta.background), quality)  # type: ignore[arg-type]
+
+
+def _shade_samples(
+    field: VisNerfField,
+    rays_d: Float[Tensor, "n 3"],
+    points: Float[Tensor, "n s 3"],
+    deltas: Float[Tensor, "n s"],
+    valid: Bool[Tensor, "n s"],
+    q_density: Float[Tensor, "n c"],
+    q_appearance: Float[Tensor, "n c"],
+    tau_before: Float[Tensor, " n"],
+    weight_threshold: float,
+) -> tuple[Float[Tensor, "n 3"], Float[Tensor, " n"], Float[Tensor, "n s"]]:
+    """Density at valid samples, log-space transmittance, colour where the weight matters.
+
+    Returns (colour contribution, optical depth of this segment, weights). ``tau_before`` is the
+    optical depth accumulated by earlier segments of the same rays.
+    """
+    n, s = valid.shape
+    ray_idx = valid.nonzero()[:, 0]  # [m]
+    sigmas = torch.zeros(n, s, dtype=points.dtype, device=points.device)
+    if ray_idx.numel() > 0:
+        sigmas = sigmas.masked_scatter(valid, field.density(points[valid], q_density[ray_idx]))
+    tau = sigmas * deltas.clamp_min(0.0)  # [n, s]
+    exclusive = torch.cumsum(tau, dim=-1) - tau + tau_before[:, None]
+    weights = torch.exp(-exclusive) * render_alpha_from_density(sigmas, deltas)  # [n, s]
+    shade = valid & (weights > weight_threshold)
+    rgb = torch.zeros(n, 3, dtype=points.dtype, device=points.device)
+    shade_rays = shade.nonzero()[:, 0]
+    if shade_rays.numel() > 0:
+        colors = field.color(points[shade], rays_d[shade_rays], q_appearance[shade_rays])  # [m, 3]
+        rgb = rgb.index_add(0, shade_rays, weights[shade][:, None] * colors)
+    return rgb, tau.sum(dim=-1), weights
+
+
+def render_rays(
+    field: VisNerfField,
+    rays_o: Float[Tensor, "n 3"],
+    rays_d: Float[Tensor, "n 3"],
+    params: Float[Tensor, "n k"],
+    background: Float[Tensor, "n 3"],
+    step: float,
+    max_samples: int,
+    occupancy: Bool[Tensor, "x y z"] | None,
+    weight_threshold: float = 1e-4,
+    generator: torch.Generator | None = None,
+    importance_samples: int = 0,
+) -> dict[str, Tensor]:
+    """Differentiable render of a batch of rays (training and tests).
+
+    Stratified sample positions when ``generator`` is given. With ``importance_samples > 0`` a
+    no-grad coarse pass at twice the step places that many samples per ray by importance.
+    Returns ``rgb`` [n, 3], ``opacity`` [n] and ``n_samples`` (valid samples evaluated).
+    """
+    t_near, t_far, hit = intersect_aabb(rays_o, rays_d, field.aabb)
+    span = float((t_far - t_near).max()) if hit.any() else 0.0
+    q_d, q_a = field.param_features(params)
+    if importance_samples > 0 and span > 0:
+        t, deltas, valid = _importance_positions(
+            field, rays_o, rays_d, t_near, t_far, hit, q_d, 2.0 * step, max_samples,
+            occupancy, importance_samples, generator,
+        )
+    else:
+        n_samples = max(1, min(max_samples, math.ceil(span / step)))
+        jitter = None
+        if generator is not None:
+            jitter = torch.rand(rays_o.shape[0], generator=generator, device=rays_o.device)
+        t = uniform_samples(t_near, n_samples, step, jitter)  # [n, s]
+        deltas = torch.full_like(t, step)
+        valid = (t < t_far[:, None]) & hit[:, None]
+    points = rays_o[:, None, :] + rays_d[:, None, :] * t[..., None]  # [n, s, 3]
+    if occupancy is not None:
+        valid = valid.masked_scatter(valid, query_occupancy(occupancy, field.aabb, points[valid]))
+    tau0 = torch.zeros_like(t_near)
+    rgb, tau, _ = _shade_samples(field, rays_d, points, deltas, valid, q_d, q_a, tau0, weight_threshold)
+    opacity = -torch.expm1(-tau)
+    return {
+        "rgb": rgb + background * (1.0 - opacity)[:, None],
+        "opacity": opacity,
+        "n_samples": valid.sum(),
+    }
+
+
+@torch.no_grad()
+def _importance_positions(
+    field: VisNerfField,
+    rays_o: Tensor,
+    rays_d: Tensor,
+    t_near: Tensor,
+    t_far: Tensor,
+    hit: Tensor,
+    q_d: Tensor,
+    coarse_step: float,
+    max_samples: int,
+    occupancy: Tensor | None,
+    n_fine: int,
+    generator: torch.Generator | None,
+) -> tuple[Tensor, Tensor, Tensor]:
+    """Positions, interval lengths and validity of importance samples from a coarse density pass."""
+    span = float((t_far - t_near).max())
+    n_coarse = max(1, min(max_samples, math.ceil(span / coarse_step)))
+    edges = t_near[:, None] + coarse_step * torch.arange(n_coarse + 1, device=t_near.device)[None]  # [n, c+1]
+    edges = torch.minimum(edges, t_far[:, None])
+    mids = 0.5 * (edges[:, 1:] + edges[:, :-1])
+    lengths = edges[:, 1:] - edges[:, :-1]
+    valid = (lengths > 0) & hit[:, None]
+    points = rays_o[:, None, :] + rays_d[:, None, :] * mids[..., None]
+    if occupancy is not None:
+        valid = valid.masked_scatter(valid, query_occupancy(occupancy, field.aabb, points[valid]))
+    sigmas = torch.zeros_like(mids)
+    ray_idx = valid.nonzero()[:, 0]
+    if ray_idx.numel() > 0:
+        sigmas[valid] = field.density(points[valid], q_d[ray_idx])
+    tau = sigmas * lengths
+    weights = torch.exp(-(torch.cumsum(tau, -1) - tau)) * -torch.expm1(-tau)
+    # Keep a floor of uniform mass inside occupied space so thin, faint structure is still sampled.
+    weights = weights + 1e-3 * valid.to(weights.dtype) * weights.sum(-1, keepdim=True).clamp_min(1e-6)
+    t = sample_pdf(edges, weights, n_fine, generator)
+    deltas = deltas_from_samples(t, t_far)
+    valid_t = hit[:, None] & (t < t_far[:, None]) & (weights.sum(-1, keepdim=True) > 0)
+    return t, deltas, valid_t
+
+
+def render_image(
+    field: VisNerfField,
+    c2w: Float[Tensor, "4 4"],
+    intrinsics: Intrinsics,
+    params: Float[Tensor, " k"],
+    settings: RenderSettings,
+) -> Float[Tensor, "h w 3"]:
+    """Render one image at normalised parameters (inference; call under ``torch.inference_mode``)."""
+    rays_o, rays_d = image_rays(c2w, intrinsics)
+    rays_o, rays_d = rays_o.reshape(-1, 3), rays_d.reshape(-1, 3)
+    background = torch.tensor(settings.background, dtype=rays_o.dtype, device=rays_o.device)
+    occupancy = field.occupancy if settings.use_occupancy else None
+    q_d, q_a = field.param_features(params[None].to(rays_o.dtype))  # [1, c] each
+    out = torch.empty_like(rays_o)
+    for start in range(0, rays_o.shape[0], settings.chunk_rays):
+        sl = slice(start, start + settings.chunk_rays)
+        out[sl] = march_rays(field, rays_o[sl], rays_d[sl], q_d, q_a, background, settings, occupancy)
+    return out.reshape(intrinsics.height, intrinsics.width, 3)
+
+
+def march_rays(
+    field: VisNerfField,
+    rays_o: Float[Tensor, "n 3"],
+    rays_d: Float[Tensor, "n 3"],
+    q_density: Float[Tensor, "1 c"],
+    q_appearance: Float[Tensor, "1 c"],
+    background: Float[Tensor, " 3"],
+    settings: RenderSettings,
+    occupancy: Bool[Tensor, "x y z"] | None,
+) -> Float[Tensor, "n 3"]:
+    """March rays in segments, dropping rays that left the box or became opaque."""
+    n = rays_o.shape[0]
+    step = field.voxel_size() * settings.step_ratio
+    t_near, t_far, hit = intersect_aabb(rays_o, rays_d, field.aabb)
+    rgb = torch.zeros(n, 3, dtype=rays_o.dtype, device=rays_o.device)
+    tau_total = torch.zeros(n, dtype=rays_o.dtype, device=rays_o.device)
+    n_total = min(settings.max_samples, math.ceil(float((t_far - t_near).max()) / step)) if hit.any() else 0
+    seg = settings.segment_samples if settings.early_termination else max(n_total, 1)
+    active = hit.nonzero()[:, 0]
+    tau_stop = -math.log(settings.early_stop_eps) if settings.early_termination else math.inf
+    for s0 in range(0, n_total, seg):
+        if active.numel() == 0:
+            break
+        s = min(seg, n_total - s0)
+        t = t_near[active, None] + step * (torch.arange(s0, s0 + s, device=rays_o.device) + 0.5)[None]
+        valid = t < t_far[active, None]  # [a, s]
+        points = rays_o[active, None, :] + rays_d[active, None, :] * t[..., None]
+        if occupancy is not None:
+            valid = valid.masked_scatter(valid, query_occupancy(occupancy, field.aabb, points[valid]))
+        a = active.numel()
+        seg_rgb, seg_tau, _ = _shade_samples(
+            field, rays_d[active], points, torch.full_like(t, step), valid,
+            q_density.expand(a, -1), q_appearance.expand(a, -1), tau_total[active], settings.weight_threshold,
+        )
+        rgb[active] += seg_rgb
+        tau_total[active] += seg_tau
+        keep = (tau_total[active] < tau_stop) & (t[:, -1] + step < t_far[active])
+        active = active[keep]
+    opacity = -torch.expm1(-tau_total)
+    return rgb + background[None] * (1.0 - opacity)[:, None]

@@ -1,0 +1,134 @@
+"""The ViSNeRF field: density and colour at (x, view direction, simulation parameters).
+
+Spatial features come from two VM grids (density, appearance); parameter features from the CP
+parameter axes of each branch. The ``n_param_components`` parameter features scale interleaved
+groups of the spatial features (channel ``c`` by component ``c % n_param_components``) and are also
+appended to the decoder input, so parameter vectors of ones leave the spatial features unchanged.
+
+Coordinates: world points are mapped to grid coordinates in [-1, 1]^3 over ``aabb``.
+"""
+
+import torch
+import torch.nn.functional as F
+from jaxtyping import Float
+from torch import Tensor, nn
+
+from visnerf.config import FieldConfig
+from visnerf.representation.decoders import (
+    Decoder,
+    encode_position,
+    encode_sh,
+    positional_encoding_dim,
+    sh_dim,
+)
+from visnerf.representation.param_axes import ParamAxes
+from visnerf.representation.vm import VMGrid
+
+
+def modulate(spatial: Float[Tensor, "n f"], param_feats: Float[Tensor, "n c"]) -> Float[Tensor, "n f"]:
+    """Scale channel ``i`` of ``spatial`` by ``param_feats[:, i % c]``."""
+    repeats = spatial.shape[1] // param_feats.shape[1]
+    return spatial * param_feats.repeat(1, repeats)
+
+
+class VisNerfField(nn.Module):
+    """Density and colour of a parameterised scene. Buffers: ``aabb`` [2, 3] (world box)."""
+
+    def __init__(self, cfg: FieldConfig, aabb: Float[Tensor, "2 3"]) -> None:
+        super().__init__()
+        self.cfg = cfg
+        self.register_buffer("aabb", aabb.detach().clone().float())
+        self.occupancy: Tensor | None
+        self.register_buffer("occupancy", None)  # bool [x, y, z] over aabb, set after training warm-up
+        self.density_grid = VMGrid(cfg.n_density_components, cfg.resolution, cfg.init_scale)
+        self.appearance_grid = VMGrid(cfg.n_appearance_components, cfg.resolution, cfg.init_scale)
+        self.density_params = ParamAxes(cfg.param_lengths, cfg.n_param_components)
+        self.appearance_params = ParamAxes(cfg.param_lengths, cfg.n_param_components)
+        pc = cfg.n_param_components
+        self.density_decoder = Decoder(
+            3 * cfg.n_density_components + pc + positional_encoding_dim(cfg.pos_encoding_freqs),
+            cfg.hidden_width,
+            1,
+        )
+        self.color_decoder = Decoder(
+            3 * cfg.n_appearance_components + pc + sh_dim(cfg.sh_degree), cfg.hidden_width, 3
+        )
+
+    @property
+    def device(self) -> torch.device:
+        return self.aabb.device
+
+    @property
+    def resolution(self) -> tuple[int, int, int]:
+        return self.density_grid.resolution
+
+    def current_config(self) -> FieldConfig:
+        """The configuration that matches the current tensor shapes (after upsampling)."""
+        return self.cfg.with_resolution(self.resolution)
+
+    def voxel_size(self) -> float:
+        """Mean world-space size of one grid cell."""
+        extent = self.aabb[1] - self.aabb[0]
+        res = torch.tensor(self.resolution, dtype=extent.dtype, device=extent.device)
+        return float((extent / (res - 1)).mean())
+
+    def to_grid(self, points: Float[Tensor, "n 3"]) -> Float[Tensor, "n 3"]:
+        """World points -> grid coordinates in [-1, 1] (outside the box maps outside [-1, 1])."""
+        extent = (self.aabb[1] - self.aabb[0]).clamp_min(torch.finfo(points.dtype).eps)
+        return (points - self.aabb[0]) / extent * 2.0 - 1.0
+
+    def param_features(
+        self, params: Float[Tensor, "n k"]
+    ) -> tuple[Float[Tensor, "n c"], Float[Tensor, "n c"]]:
+        """(density, appearance) parameter features at normalised parameter values."""
+        return self.density_params.sample(params), self.appearance_params.sample(params)
+
+    def density_from_features(
+        self, coords: Float[Tensor, "n 3"], spatial: Float[Tensor, "n f"], q: Float[Tensor, "n c"]
+    ) -> Float[Tensor, " n"]:
+        pe = encode_position(coords, self.cfg.pos_encoding_freqs)
+        raw = self.density_decoder(torch.cat([modulate(spatial, q), q, pe], dim=-1))[:, 0]
+        return F.softplus(raw + self.cfg.density_shift)
+
+    def density(self, points: Float[Tensor, "n 3"], q_density: Float[Tensor, "n c"]) -> Float[Tensor, " n"]:
+        """Non-negative density (per world unit) at world points. Differentiable."""
+        coords = self.to_grid(points)
+        return self.density_from_features(coords, self.density_grid.sample(coords), q_density)
+
+    def color(
+        self,
+        points: Float[Tensor, "n 3"],
+        directions: Float[Tensor, "n 3"],
+        q_appearance: Float[Tensor, "n c"],
+    ) -> Float[Tensor, "n 3"]:
+        """RGB in [0, 1] at world points seen along unit ``directions``. Differentiable."""
+        coords = self.to_grid(points)
+        spatial = self.appearance_grid.sample(coords)
+        sh = encode_sh(directions, self.cfg.sh_degree)
+        raw = self.color_decoder(torch.cat([modulate(spatial, q_appearance), q_appearance, sh], dim=-1))
+        return torch.sigmoid(raw)
+
+    @torch.no_grad()
+    def set_occupancy(self, grid: Tensor | None) -> None:
+        """Install (or clear) the occupancy grid used for empty-space skipping."""
+        self.occupancy = None if grid is None else grid.to(device=self.device, dtype=torch.bool)
+
+    @torch.no_grad()
+    def set_param_knots(self, knots: list[Tensor]) -> None:
+        """Place both branches' parameter vectors at the normalised training values."""
+        for k, kn in enumerate(knots):
+            self.density_params.set_knots(k, kn.to(self.device))
+            self.appearance_params.set_knots(k, kn.to(self.device))
+
+    @torch.no_grad()
+    def resample(self, resolution: tuple[int, int, int], new_aabb: Tensor | None = None) -> None:
+        """Upsample the grids and/or shrink them to ``new_aabb``; the optimizer must be rebuilt."""
+        lower = upper = None
+        if new_aabb is not None:
+            lower = self.to_grid(new_aabb[0:1])[0]
+            upper = self.to_grid(new_aabb[1:2])[0]
+        self.density_grid.resample(resolution, lower, upper)
+        self.appearance_grid.resample(resolution, lower, upper)
+        if new_aabb is not None:
+            self.aabb.copy_(new_aabb)
+            self.occupancy = None  # its cells referred to the old box

@@ -1,0 +1,283 @@
+"""The training loop: the paper's recipe, scheduled by progress (iterations or wall time).
+
+Progress is ``max(iteration / iterations, train_seconds / time_budget)``. Learning rates decay
+exponentially with progress; grid upsampling, occupancy updates (the first also shrinks the box to
+the content) and importance sampling switch on at progress fractions of the config. Validation
+time is not counted as training time.
+"""
+
+import csv
+import json
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from visnerf.checkpoint import CheckpointMeta, save_checkpoint
+from visnerf.config import FieldConfig, RenderConfig, TrainConfig
+from visnerf.data.parsers.blender import estimate_bbox
+from visnerf.data.ray_batches import RayBatchSampler
+from visnerf.data.scene import SceneData
+from visnerf.evaluation.metrics import mse_to_psnr, psnr, ssim
+from visnerf.rendering.occupancy import build_occupancy, occupied_bounds, parameter_settings
+from visnerf.rendering.renderer import RenderSettings, render_image, render_rays
+from visnerf.representation.field import VisNerfField
+from visnerf.training.losses import photometric_mse
+from visnerf.training.regularizers import RegularizerWeights, regularization
+
+
+def resolution_for_box(extent: torch.Tensor, voxels_per_axis: float) -> tuple[int, int, int]:
+    """Per-axis grid sizes with ``voxels_per_axis^3`` cells in all, cells as cubic as the box allows."""
+    volume = float(torch.prod(extent))
+    size = (volume / voxels_per_axis**3) ** (1.0 / 3.0)
+    return tuple(max(2, int(round(float(e) / size))) for e in extent)  # type: ignore[return-value]
+
+
+def upsample_resolutions(cfg: TrainConfig) -> list[float]:
+    """Voxels per axis after each upsampling milestone, log-spaced from initial to final."""
+    n = len(cfg.upsample_at)
+    lo, hi = math.log(cfg.resolution_init), math.log(cfg.resolution_final)
+    return [math.exp(lo + (hi - lo) * (i + 1) / n) for i in range(n)]
+
+
+@dataclass
+class TrainState:
+    iteration: int = 0
+    train_seconds: float = 0.0
+    upsamples_done: int = 0
+    occupancy_done: int = 0
+    log: list[dict[str, float]] = field(default_factory=list)
+
+
+def make_optimizer(field_: VisNerfField, cfg: TrainConfig, scale: float) -> torch.optim.Adam:
+    factors = [*field_.density_grid.parameters(), *field_.appearance_grid.parameters(),
+               *field_.density_params.parameters(), *field_.appearance_params.parameters()]
+    networks = [*field_.density_decoder.parameters(), *field_.color_decoder.parameters()]
+    return torch.optim.Adam(
+        [{"params": factors, "lr": cfg.lr_factors * scale, "base_lr": cfg.lr_factors},
+         {"params": networks, "lr": cfg.lr_networks * scale, "base_lr": cfg.lr_networks}],
+        betas=cfg.betas,
+    )
+
+
+@torch.no_grad()
+def validate(
+    field_: VisNerfField, scene: SceneData, render_cfg: RenderConfig, max_images: int
+) -> dict[str, float]:
+    """Mean PSNR / SSIM over up to ``max_images`` evenly chosen frames of ``scene``."""
+    idx = np.linspace(0, scene.n_frames - 1, min(max_images, scene.n_frames)).round().astype(int)
+    settings = RenderSettings.from_config(render_cfg, scene.background)
+    params = scene.normalized_params()
+    psnrs, ssims, ms = [], [], []
+    field_.eval()
+    for i in np.unique(idx):
+        t0 = time.perf_counter()
+        with torch.inference_mode():
+            img = render_image(field_, scene.c2w[i].to(field_.device), scene.intrinsics,
+                               params[i].to(field_.device), settings)
+        ms.append(1000 * (time.perf_counter() - t0))
+        pred = img.clamp(0, 1).cpu().numpy()
+        gt = scene.images[i].numpy().astype(np.float32) / 255.0
+        psnrs.append(psnr(pred, gt))
+        ssims.append(ssim(pred, gt))
+    field_.train()
+    return {"val_psnr": float(np.mean(psnrs)), "val_ssim": float(np.mean(ssims)), "val_ms_per_frame": float(np.median(ms))}
+
+
+class Trainer:
+    """Owns the field, the optimizer, the schedule and the log."""
+
+    def __init__(
+        self,
+        train_scene: SceneData,
+        val_scene: SceneData | None,
+        cfg: TrainConfig,
+        device: torch.device,
+        field_cfg: FieldConfig | None = None,
+        render_cfg: RenderConfig | None = None,
+        init_field: VisNerfField | None = None,
+        start: TrainState | None = None,
+    ) -> None:
+        self.scene, self.val_scene, self.cfg, self.device = train_scene, val_scene, cfg, device
+        self.render_cfg = render_cfg or RenderConfig()
+        torch.manual_seed(cfg.seed)
+        self.generator = torch.Generator().manual_seed(cfg.seed)
+        if init_field is None:
+            aabb = estimate_bbox(train_scene)
+            base = field_cfg or FieldConfig()
+            resolution = resolution_for_box(aabb[1] - aabb[0], cfg.resolution_init)
+            fcfg = FieldConfig(**{**base.to_dict(), "resolution": resolution,
+                                  "param_lengths": tuple(len(a.values) for a in train_scene.param_axes)})
+            init_field = VisNerfField(fcfg, aabb)
+            init_field.set_param_knots(train_scene.knots())
+        self.field = init_field.to(device).train()
+        self.state = start or TrainState()
+        self.sampler = RayBatchSampler(train_scene, device, self.generator)
+        self.sampler.set_aabb(self.field.aabb)
+        self.optimizer = make_optimizer(self.field, cfg, 1.0)
+        self.settings_all = parameter_settings(train_scene.knots(), cfg.occupancy_max_settings, self.generator)
+
+    def progress(self) -> float:
+        p = self.state.iteration / max(1, self.cfg.iterations)
+        if self.cfg.time_budget_s:
+            p = max(p, self.state.train_seconds / self.cfg.time_budget_s)
+        return p
+
+    def _rebuild_optimizer(self) -> None:
+        self.optimizer = make_optimizer(self.field, self.cfg, self.cfg.lr_decay_ratio ** min(1.0, self.progress()))
+
+    def step_size(self) -> float:
+        return self.field.voxel_size() * self.render_cfg.step_ratio
+
+    @torch.no_grad()
+    def update_occupancy(self, shrink: bool) -> None:
+        res = tuple(min(r, self.cfg.occupancy_resolution) for r in self.field.resolution)
+        grid = build_occupancy(self.field, res, self.settings_all, self.step_size(),
+                               self.render_cfg.occupancy_threshold)
+        if not bool(grid.any()):
+            return  # nothing is visible yet: skipping all space would stop training
+        if shrink:
+            bounds = occupied_bounds(grid, self.field.aabb)
+            if bounds is not None:
+                margin = 0.02 * (bounds[1] - bounds[0]).max()
+                bounds = torch.stack([torch.maximum(bounds[0] - margin, self.field.aabb[0]),
+                                      torch.minimum(bounds[1] + margin, self.field.aabb[1])])
+                voxels = float(np.prod(self.field.resolution)) ** (1 / 3)
+                self.field.resample(resolution_for_box(bounds[1] - bounds[0], voxels), bounds)
+                self.sampler.set_aabb(self.field.aabb)
+                res = tuple(min(r, self.cfg.occupancy_resolution) for r in self.field.resolution)
+                grid = build_occupancy(self.field, res, self.settings_all, self.step_size(),
+                                       self.render_cfg.occupancy_threshold)
+                self._rebuild_optimizer()
+        self.field.set_occupancy(grid)
+
+    def _milestones(self) -> None:
+        p = self.progress()
+        targets = upsample_resolutions(self.cfg)
+        while self.state.upsamples_done < len(self.cfg.upsample_at) and p >= self.cfg.upsample_at[self.state.upsamples_done]:
+            voxels = targets[self.state.upsamples_done]
+            self.field.resample(resolution_for_box(self.field.aabb[1] - self.field.aabb[0], voxels))
+            self.state.upsamples_done += 1
+            self._rebuild_optimizer()
+        while self.state.occupancy_done < len(self.cfg.occupancy_at) and p >= self.cfg.occupancy_at[self.state.occupancy_done]:
+            self.update_occupancy(shrink=self.state.occupancy_done == 0)
+            self.state.occupancy_done += 1
+
+    def _weights(self) -> RegularizerWeights:
+        l1 = self.cfg.l1_weight_initial if self.state.iteration < self.cfg.l1_switch_iteration else self.cfg.l1_weight_rest
+        return RegularizerWeights(l1, self.cfg.param_l1_weight, self.cfg.tv_weight_density,
+                                  self.cfg.tv_weight_appearance, self.cfg.tv_weight_params)
+
+    def train_step(self) -> dict[str, float]:
+        cfg = self.cfg
+        scale = cfg.lr_decay_ratio ** min(1.0, self.progress())
+        for group in self.optimizer.param_groups:
+            group["lr"] = group["base_lr"] * scale
+        batch = self.sampler.sample(cfg.batch_rays)
+        if cfg.random_background:
+            bg = torch.rand(batch.rgb.shape, generator=self.generator).to(self.device)
+        else:
+            bg = torch.tensor(self.scene.background, device=self.device).expand_as(batch.rgb)
+        importance = cfg.importance_samples if self.progress() >= cfg.importance_from else 0
+        out = render_rays(self.field, batch.rays_o, batch.rays_d, batch.params, bg, self.step_size(),
+                          self.render_cfg.max_samples, self.field.occupancy, self.render_cfg.weight_threshold,
+                          self.generator, importance)
+        target = batch.rgb
+        if cfg.random_background:
+            # Target pixels of background colour stand for empty space: re-composite them on bg.
+            is_bg = (batch.rgb - torch.tensor(self.scene.background, device=self.device)).abs().amax(-1) < 1e-3
+            target = torch.where(is_bg[:, None], bg, batch.rgb)
+        mse = photometric_mse(out["rgb"], target)
+        terms = regularization(self.field, self._weights())
+        loss = mse + sum(terms.values())
+        if not torch.isfinite(loss):
+            raise FloatingPointError(f"non-finite loss at iteration {self.state.iteration}")
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        self.optimizer.step()
+        return {"mse": float(mse.detach()), "loss": float(loss.detach()), "samples": float(out["n_samples"])}
+
+    def run(
+        self,
+        progress_bar: bool = True,
+        on_validate: Callable[[dict[str, float]], None] | None = None,
+    ) -> list[dict[str, float]]:
+        """Train until the iteration count or the time budget is reached; returns the log."""
+        cfg = self.cfg
+        wall0 = time.perf_counter()
+        last_val = self.state.train_seconds
+        bar = tqdm(total=cfg.iterations, initial=self.state.iteration, disable=not progress_bar,
+                   dynamic_ncols=True, desc="train")
+        ema_mse = None
+        while self.progress() < 1.0:
+            self._milestones()
+            t0 = time.perf_counter()
+            stats = self.train_step()
+            dt = time.perf_counter() - t0
+            self.state.iteration += 1
+            self.state.train_seconds += dt
+            ema_mse = stats["mse"] if ema_mse is None else 0.95 * ema_mse + 0.05 * stats["mse"]
+            bar.update(1)
+            if self.state.iteration % 10 == 0:
+                bar.set_postfix(loss=f"{stats['loss']:.4f}", psnr=f"{mse_to_psnr(ema_mse):.2f}",
+                                res=str(self.field.resolution[0]), refresh=False)
+            if self.val_scene is not None and self.state.train_seconds - last_val >= cfg.validate_every_s:
+                last_val = self.state.train_seconds
+                self._record(mse_to_psnr(ema_mse), wall0, on_validate)
+        bar.close()
+        self.update_occupancy(shrink=False)  # final grid, for fast inference
+        self._record(mse_to_psnr(ema_mse) if ema_mse else float("nan"), wall0, on_validate)
+        return self.state.log
+
+    def _record(self, train_psnr: float, wall0: float, on_validate: Callable | None) -> None:
+        row = {"iteration": self.state.iteration, "train_seconds": round(self.state.train_seconds, 2),
+               "wall_seconds": round(time.perf_counter() - wall0, 2), "train_psnr": round(train_psnr, 3),
+               "resolution": self.field.resolution[0]}
+        if self.val_scene is not None:
+            row.update({k: round(v, 4) for k, v in validate(self.field, self.val_scene, self.render_cfg,
+                                                              self.cfg.validate_max_images).items()})
+        self.state.log.append(row)
+        if on_validate is not None:
+            on_validate(row)
+
+    def save(self, path: str | Path, dataset: str = "") -> Path:
+        """Checkpoint plus the training log (``<stem>.log.csv`` and ``.json``) beside it."""
+        path = Path(path)
+        s = self.scene
+        last = self.state.log[-1] if self.state.log else {}
+        meta = CheckpointMeta(
+            field=self.field.current_config(),
+            render=self.render_cfg,
+            param_axes=s.param_axes,
+            bbox=tuple(tuple(float(x) for x in c) for c in self.field.aabb.cpu()),  # type: ignore[arg-type]
+            background=s.background,
+            camera=s.default_camera(),
+            image_width=s.intrinsics.width,
+            image_height=s.intrinsics.height,
+            title=s.title,
+            kind=s.kind,
+            provenance={"dataset": dataset or s.source, "iterations": self.state.iteration,
+                        "train_seconds": round(self.state.train_seconds, 1),
+                        "val_psnr": last.get("val_psnr"), "val_ssim": last.get("val_ssim"),
+                        "seed": self.cfg.seed, "upsamples_done": self.state.upsamples_done,
+                        "occupancy_done": self.state.occupancy_done},
+        )
+        save_checkpoint(self.field, meta, path)
+        write_log(self.state.log, path.with_suffix(".log.csv"))
+        return path
+
+
+def write_log(rows: list[dict[str, float]], path: Path) -> None:
+    if not rows:
+        return
+    keys = list(dict.fromkeys(k for row in rows for k in row))
+    with path.open("w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=keys)
+        writer.writeheader()
+        writer.writerows(rows)
+    path.with_suffix(".json").write_text(json.dumps(rows, indent=1))

@@ -1,0 +1,68 @@
+"""The upload/delete token: configured (``VISNERF_TOKEN``, ``VISNERF_TOKEN_FILE``) or generated once.
+
+A generated token lives in ``<state_dir>/token`` with 0600 permissions; only its path is logged.
+"""
+
+import logging
+import os
+import secrets
+import stat
+from pathlib import Path
+
+from fastapi import HTTPException, status
+
+from visnerf_server.settings import Settings
+
+logger = logging.getLogger(__name__)
+
+TOKEN_FILE_NAME = "token"
+
+
+def _read_token_file(path: Path) -> str:
+    try:
+        token = path.read_text(encoding="utf-8").strip()
+    except OSError as exc:
+        raise RuntimeError(f"cannot read the upload token file {path}: {exc.strerror}") from None
+    if not token:
+        raise RuntimeError(f"the upload token file {path} is empty")
+    return token
+
+
+def _create_token_file(path: Path) -> str:
+    path.parent.mkdir(mode=0o700, parents=True, exist_ok=True)
+    token = secrets.token_urlsafe(32)
+    try:
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_EXCL, 0o600)
+    except FileExistsError:  # another process created it first
+        return _read_token_file(path)
+    with os.fdopen(fd, "w", encoding="utf-8") as f:
+        f.write(token + "\n")
+    logger.warning("created a new upload token in %s (read it from there; it is not logged)", path)
+    return token
+
+
+def resolve_token(settings: Settings) -> str:
+    """The token uploads and deletes need: from the settings, the token file, or a generated one."""
+    if settings.token is not None and settings.token.get_secret_value().strip():
+        return settings.token.get_secret_value().strip()
+    if settings.token_file is not None:
+        return _read_token_file(settings.token_file)
+    path = settings.state_dir / TOKEN_FILE_NAME
+    if path.exists():
+        mode = stat.S_IMODE(path.stat().st_mode)
+        if mode & 0o077:
+            logger.warning("upload token file %s is readable by others (mode %o); use chmod 600", path, mode)
+        return _read_token_file(path)
+    return _create_token_file(path)
+
+
+def check_bearer(authorization: str | None, expected: str) -> None:
+    """401 for a missing or malformed ``Authorization`` header, 403 for a wrong token."""
+    challenge = {"WWW-Authenticate": "Bearer"}
+    if not authorization:
+        raise HTTPException(status.HTTP_401_UNAUTHORIZED, "missing Authorization: Bearer <token>", challenge)
+    scheme, _, presented = authorization.strip().partition(" ")
+    if scheme.lower() != "bearer" or not presented.strip():
+        raise HTTPException(status.HTTP_401_UNAUTHORIZED, "Authorization must be 'Bearer <token>'", challenge)
+    if not secrets.compare_digest(presented.strip().encode("utf-8"), expected.encode("utf-8")):
+        raise HTTPException(status.HTTP_403_FORBIDDEN, "wrong token")

@@ -1,0 +1,166 @@
+"""``visnerf serve`` and ``visnerf submit``, registered into the ``visnerf`` command line."""
+
+import argparse
+import logging
+import os
+import signal
+import sys
+from pathlib import Path
+from typing import Any
+
+from visnerf_server.registry import SCENE_ID_PATTERN, is_valid_scene_id
+
+LOOPBACK_HOSTS = {"127.0.0.1", "::1", "localhost"}
+
+
+def register(subparsers: Any) -> None:
+    serve = subparsers.add_parser(
+        "serve", help="serve trained scenes over HTTP and WebSocket", description="Run the render server."
+    )
+    serve.add_argument("--host", default="127.0.0.1", help="interface to listen on (default: loopback only)")
+    serve.add_argument("--port", type=int, default=8000)
+    serve.add_argument(
+        "--checkpoints",
+        type=Path,
+        default=None,
+        metavar="DIR",
+        help="folder of <id>.safetensors (default: the bundled checkpoints/)",
+    )
+    serve.add_argument("--device", default=None, help="torch device for the scenes, e.g. cpu or cuda:0")
+    serve.add_argument("--no-client", action="store_true", help="serve the API only, not the web client")
+    serve.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"])
+    serve.set_defaults(func=serve_command)
+
+    submit = subparsers.add_parser(
+        "submit",
+        help="upload a finished checkpoint to a running server",
+        description="Upload CKPT to the server at URL (e.g. http://host:8000). The token comes from --token, "
+        "VISNERF_TOKEN, VISNERF_TOKEN_FILE or the server's generated token file on this machine.",
+    )
+    submit.add_argument("checkpoint", type=Path, metavar="CKPT")
+    submit.add_argument("url", metavar="URL")
+    submit.add_argument("--id", default=None, help="scene id (default: the file stem)")
+    submit.add_argument("--token", default=None, help="upload token (default: $VISNERF_TOKEN)")
+    submit.add_argument("--timeout", type=float, default=300.0, help="seconds to wait for the server")
+    submit.set_defaults(func=submit_command)
+
+
+class _JsonFormatter(logging.Formatter):
+    """Access-log lines are already JSON; other records become JSON objects too."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        if record.name == "visnerf_server.access":
+            return record.getMessage()
+        import json
+
+        entry = {"level": record.levelname.lower(), "logger": record.name, "message": record.getMessage()}
+        if record.exc_info:
+            entry["exception"] = self.formatException(record.exc_info)
+        return json.dumps(entry)
+
+
+def configure_logging(level: str, log_format: str) -> None:
+    handler = logging.StreamHandler(sys.stderr)
+    if log_format == "json":
+        handler.setFormatter(_JsonFormatter())
+    else:
+        handler.setFormatter(logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    root = logging.getLogger()
+    root.handlers[:] = [handler]
+    root.setLevel(level.upper())
+
+
+def serve_command(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    from visnerf_server.app import create_app
+    from visnerf_server.settings import Settings
+
+    overrides: dict[str, Any] = {}
+    if args.checkpoints is not None:
+        overrides["checkpoints_dir"] = args.checkpoints.resolve()
+    if args.device is not None:
+        overrides["device"] = args.device
+    if args.no_client:
+        overrides["client_dir"] = None
+    settings = Settings(**overrides)
+    configure_logging(args.log_level, settings.log_format)
+    log = logging.getLogger("visnerf_server")
+    if args.host not in LOOPBACK_HOSTS:
+        log.warning("listening on %s: the server is reachable from other machines", args.host)
+    log.info("checkpoints: %s", settings.checkpoints_dir)
+    app = create_app(settings)
+    # uvicorn shuts down gracefully on SIGTERM, then re-raises the signal; a no-op handler here makes
+    # that re-raise harmless so a clean shutdown exits with status 0.
+    signal.signal(signal.SIGTERM, lambda signum, frame: None)
+    uvicorn.run(
+        app,
+        host=args.host,
+        port=args.port,
+        log_config=None,
+        log_level=args.log_level,
+        access_log=False,
+        timeout_graceful_shutdown=5,
+    )
+    return 0
+
+
+def _find_token(explicit: str | None) -> str | None:
+    if explicit:
+        return explicit
+    if os.environ.get("VISNERF_TOKEN"):
+        return os.environ["VISNERF_TOKEN"].strip()
+    candidates = []
+    if os.environ.get("VISNERF_TOKEN_FILE"):
+        candidates.append(Path(os.environ["VISNERF_TOKEN_FILE"]))
+    state_dir = os.environ.get("VISNERF_STATE_DIR")
+    candidates.append((Path(state_dir) if state_dir else Path.home() / ".config" / "visnerf") / "token")
+    for path in candidates:
+        if path.is_file():
+            return path.read_text(encoding="utf-8").strip() or None
+    return None
+
+
+def submit_command(args: argparse.Namespace) -> int:
+    import httpx
+
+    path: Path = args.checkpoint
+    if not path.is_file():
+        print(f"error: {path} is not a file", file=sys.stderr)
+        return 2
+    scene_id = args.id if args.id is not None else path.name.removesuffix(".safetensors")
+    if not is_valid_scene_id(scene_id):
+        print(f"error: scene id {scene_id!r} must match {SCENE_ID_PATTERN} (use --id)", file=sys.stderr)
+        return 2
+    token = _find_token(args.token)
+    if not token:
+        print("error: no token: pass --token or set VISNERF_TOKEN", file=sys.stderr)
+        return 2
+    url = f"{args.url.rstrip('/')}/api/scenes/{scene_id}"
+    size = path.stat().st_size
+
+    def chunks():
+        with path.open("rb") as f:
+            while chunk := f.read(1 << 20):
+                yield chunk
+
+    headers = {
+        "Authorization": f"Bearer {token}",
+        "Content-Type": "application/octet-stream",
+        "Content-Length": str(size),
+    }
+    try:
+        response = httpx.put(url, content=chunks(), headers=headers, timeout=args.timeout)
+    except httpx.HTTPError as exc:
+        print(f"error: upload to {url} failed: {exc}", file=sys.stderr)
+        return 1
+    if response.status_code in (200, 201):
+        action = "created" if response.status_code == 201 else "replaced"
+        print(f"{action} scene {scene_id!r} ({size} bytes) at {url}")
+        return 0
+    try:
+        detail = response.json().get("detail")
+    except ValueError:
+        detail = response.text[:500]
+    print(f"error: server answered {response.status_code}: {detail}", file=sys.stderr)
+    return 1

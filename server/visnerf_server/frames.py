@@ -1,0 +1,174 @@
+"""Turning a render request into an encoded frame: validation against the scene, the frame cache,
+the bounded render queue and image encoding. Shared by the HTTP render routes and the stream."""
+
+import hashlib
+import io
+import time
+from dataclasses import dataclass
+
+import numpy as np
+from PIL import Image
+from visnerf.data.cameras import orbit_c2w
+
+from visnerf_server.frame_cache import CachedFrame, FrameCache
+from visnerf_server.metrics import Metrics
+from visnerf_server.registry import Scene, default_view
+from visnerf_server.render_queue import RenderQueue
+from visnerf_server.schemas import MEDIA_TYPES, MatrixCamera, RenderRequest
+
+
+@dataclass(frozen=True)
+class FrameJob:
+    """A fully validated render request."""
+
+    scene: Scene
+    c2w: np.ndarray
+    fov_deg: float
+    width: int
+    height: int
+    params: dict[str, float]
+    """Every parameter of the scene, by name, defaults filled in."""
+    quality: str
+    format: str
+
+    def key(self) -> tuple:
+        """Identical requests (same scene version) give identical keys; starts with the scene id."""
+        return (
+            self.scene.id,
+            self.scene.version,
+            tuple(round(float(x), 9) for x in self.c2w.reshape(-1)),
+            round(self.fov_deg, 9),
+            self.width,
+            self.height,
+            tuple(sorted(self.params.items())),
+            self.quality,
+            self.format,
+        )
+
+    def etag(self) -> str:
+        return '"' + hashlib.sha256(repr(self.key()).encode()).hexdigest()[:32] + '"'
+
+
+@dataclass(frozen=True)
+class Frame:
+    data: bytes
+    media_type: str
+    width: int
+    height: int
+    render_ms: float
+    """Render time of this request (0 for cache hits)."""
+    encode_ms: float
+    queue_ms: float
+    cache_hit: bool
+
+    def timing_headers(self) -> dict[str, str]:
+        if self.cache_hit:
+            timing = "cache;desc=hit;dur=0"
+        else:
+            phases = (("queue", self.queue_ms), ("render", self.render_ms), ("encode", self.encode_ms))
+            timing = ", ".join(f"{name};dur={ms:.1f}" for name, ms in phases)
+        return {
+            "X-Render-Time-Ms": f"{self.render_ms:.1f}",
+            "Server-Timing": timing,
+            "X-Cache": "hit" if self.cache_hit else "miss",
+        }
+
+
+def prepare_frame(scene: Scene, request: RenderRequest, max_image_size: int) -> FrameJob:
+    """Check a request against the scene and the server's limits; ValueError names the problem."""
+    default_c2w, default_fov = default_view(scene.renderer)
+    trained_w, trained_h = scene.renderer.info.image_size
+    width = request.width if request.width is not None else min(max(trained_w, 8), max_image_size)
+    height = request.height if request.height is not None else min(max(trained_h, 8), max_image_size)
+    for name, value in (("width", width), ("height", height)):
+        if value > max_image_size:
+            raise ValueError(f"{name} {value} exceeds this server's limit of {max_image_size} pixels")
+    camera = request.camera
+    if camera is None:
+        c2w = default_c2w
+    elif isinstance(camera, MatrixCamera):
+        c2w = np.asarray(camera.c2w, dtype=np.float64)
+    else:
+        c2w = orbit_c2w(camera.azimuth, camera.elevation, camera.distance)
+    fov_deg = request.fov_deg if request.fov_deg is not None else default_fov
+    values = scene.renderer.resolve_params(request.params)
+    params = {axis.name: v for axis, v in zip(scene.renderer.info.params, values, strict=True)}
+    return FrameJob(scene, c2w, float(fov_deg), width, height, params, request.quality, request.format)
+
+
+def encode_image(image: np.ndarray, fmt: str, quality: int) -> bytes:
+    buffer = io.BytesIO()
+    pil = Image.fromarray(np.ascontiguousarray(image))
+    if fmt == "png":
+        pil.save(buffer, format="PNG", compress_level=1)
+    elif fmt == "jpeg":
+        pil.save(buffer, format="JPEG", quality=quality)
+    elif fmt == "webp":
+        pil.save(buffer, format="WEBP", quality=quality, method=2)
+    else:
+        raise ValueError(f"unknown image format {fmt!r}; use png, jpeg or webp")
+    return buffer.getvalue()
+
+
+@dataclass
+class FrameRenderer:
+    """Renders ``FrameJob``s through the cache and the bounded queue."""
+
+    queue: RenderQueue
+    cache: FrameCache
+    metrics: Metrics
+    timeout_s: float
+    jpeg_quality: int
+
+    def _lookup(self, job: FrameJob) -> Frame | None:
+        cached = self.cache.get(job.key())
+        if cached is None:
+            self.metrics.cache_misses.inc()
+            return None
+        self.metrics.cache_hits.inc()
+        return Frame(cached.data, cached.media_type, cached.width, cached.height, 0.0, 0.0, 0.0, True)
+
+    def _work(self, job: FrameJob, submitted: float):
+        def run() -> Frame:
+            started = time.perf_counter()
+            image = job.scene.renderer.render(
+                job.c2w,
+                job.fov_deg,
+                job.width,
+                job.height,
+                job.params,
+                job.quality,  # type: ignore[arg-type]
+            )
+            rendered = time.perf_counter()
+            data = encode_image(image, job.format, self.jpeg_quality)
+            done = time.perf_counter()
+            self.metrics.render_seconds.labels(job.quality).observe(done - started)
+            frame = Frame(
+                data,
+                MEDIA_TYPES[job.format],
+                image.shape[1],
+                image.shape[0],
+                (rendered - started) * 1e3,
+                (done - rendered) * 1e3,
+                (started - submitted) * 1e3,
+                False,
+            )
+            self.cache.put(
+                job.key(), CachedFrame(data, frame.media_type, frame.width, frame.height, frame.render_ms)
+            )
+            return frame
+
+        return run
+
+    def render(self, job: FrameJob) -> Frame:
+        """Blocking; raises QueueFullError, RenderTimeoutError or ValueError."""
+        hit = self._lookup(job)
+        if hit is not None:
+            return hit
+        return self.queue.run(self._work(job, time.perf_counter()), self.timeout_s)
+
+    async def render_async(self, job: FrameJob) -> Frame:
+        hit = self._lookup(job)
+        if hit is not None:
+            return hit
+        return await self.queue.run_async(self._work(job, time.perf_counter()), self.timeout_s)

@@ -1,0 +1,43 @@
+"""Prometheus metrics on a per-app registry (never the global default one, so many apps can coexist)."""
+
+from dataclasses import dataclass, field
+
+from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
+
+_LATENCY_BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0, 60.0)
+
+
+@dataclass
+class Metrics:
+    """The server's metrics; ``render()`` gives the exposition text for ``/metrics``."""
+
+    registry: CollectorRegistry = field(default_factory=lambda: CollectorRegistry(auto_describe=True))
+
+    def __post_init__(self) -> None:
+        r = self.registry
+        self.render_seconds = Histogram(
+            "visnerf_render_seconds",
+            "Time to render and encode one frame",
+            ["quality"],
+            buckets=_LATENCY_BUCKETS,
+            registry=r,
+        )
+        self.queue_depth = Gauge("visnerf_render_queue_depth", "Renders waiting for a worker", registry=r)
+        self.in_flight = Gauge("visnerf_renders_in_flight", "Renders running now", registry=r)
+        self.rejected = Counter(
+            "visnerf_render_rejected", "Renders refused because the queue was full", registry=r
+        )
+        self.dropped_frames = Counter(
+            "visnerf_stream_dropped_frames", "Stale stream requests replaced before rendering", registry=r
+        )
+        self.cache_hits = Counter("visnerf_frame_cache_hits", "Frames served from the cache", registry=r)
+        self.cache_misses = Counter(
+            "visnerf_frame_cache_misses", "Frames that had to be rendered", registry=r
+        )
+        self.responses = Counter(
+            "visnerf_http_responses", "HTTP responses by status code", ["status"], registry=r
+        )
+        self.scenes = Gauge("visnerf_scenes_loaded", "Scenes available", registry=r)
+
+    def render(self) -> bytes:
+        return generate_latest(self.registry)

@@ -1,0 +1,34 @@
+"""Liveness, readiness and metrics."""
+
+from fastapi import APIRouter, Response
+from fastapi.responses import JSONResponse
+from prometheus_client import CONTENT_TYPE_LATEST
+
+from visnerf_server.dependencies import MetricsDep, ServerDep
+from visnerf_server.schemas import Health, Readiness
+from visnerf_server.version import server_version
+
+router = APIRouter(prefix="/api", tags=["health"])
+
+
+@router.get("/health", response_model=Health)
+def health(server: ServerDep) -> Health:
+    """Liveness: answers as soon as the process serves HTTP."""
+    return Health(version=server_version(), scenes=len(server.registry), ready=server.ready)
+
+
+@router.get("/ready", response_model=Readiness, responses={503: {"model": Readiness}})
+def ready(server: ServerDep) -> JSONResponse:
+    """Readiness: 503 until every scene is loaded and has rendered one tiny warm-up frame."""
+    body = Readiness(ready=server.ready, scenes=len(server.registry), failed=server.load_errors)
+    headers = None if server.ready else {"Retry-After": "1"}
+    return JSONResponse(body.model_dump(), status_code=200 if server.ready else 503, headers=headers)
+
+
+metrics_router = APIRouter(tags=["metrics"])
+
+
+@metrics_router.get("/metrics", include_in_schema=False)
+def metrics(metrics: MetricsDep) -> Response:
+    """Prometheus exposition format."""
+    return Response(metrics.render(), media_type=CONTENT_TYPE_LATEST)

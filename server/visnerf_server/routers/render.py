@@ -1,0 +1,154 @@
+"""Single frames: POST with a JSON body, or GET with query parameters (so ``<img src>`` and HTTP
+caches work). Render handlers are sync ``def``: FastAPI runs them in its threadpool, and they wait
+on the bounded render queue."""
+
+from typing import Annotated, Any
+
+from fastapi import APIRouter, HTTPException, Query, Request, Response
+from fastapi.exceptions import RequestValidationError
+from pydantic import ValidationError
+
+from visnerf_server.dependencies import FrameRendererDep, RegistryDep, SettingsDep
+from visnerf_server.frames import FrameJob, FrameRenderer, prepare_frame
+from visnerf_server.render_queue import QueueFullError, RenderTimeoutError
+from visnerf_server.routers.scenes import ERRORS, SceneIdPath, find_scene
+from visnerf_server.schemas import MEDIA_TYPES, ImageFormat, Quality, RenderRequest
+from visnerf_server.settings import Settings
+
+router = APIRouter(prefix="/api/scenes/{scene_id}/render", tags=["render"])
+
+IMAGE_RESPONSES: dict[int | str, dict[str, Any]] = {
+    200: {
+        "content": {media: {} for media in MEDIA_TYPES.values()},
+        "description": "The frame. Headers: X-Render-Time-Ms, Server-Timing, X-Cache (hit or miss).",
+    },
+    **ERRORS,
+    504: {"description": "The render took longer than the per-request limit"},
+}
+RESERVED_QUERY = {
+    "azimuth",
+    "elevation",
+    "distance",
+    "c2w",
+    "fov_deg",
+    "width",
+    "height",
+    "quality",
+    "format",
+}
+
+
+def render_response(
+    job: FrameJob,
+    frames: FrameRenderer,
+    settings: Settings,
+    cache_control: str,
+    if_none_match: str | None = None,
+) -> Response:
+    """Render (or reuse) one frame and map queue trouble to 503/504."""
+    etag = job.etag()
+    if if_none_match is not None and etag in {t.strip() for t in if_none_match.split(",")}:
+        return Response(status_code=304, headers={"ETag": etag, "Cache-Control": cache_control})
+    retry = {"Retry-After": str(settings.retry_after_s)}
+    try:
+        frame = frames.render(job)
+    except QueueFullError as exc:
+        raise HTTPException(503, f"{exc}; retry shortly", retry) from None
+    except RenderTimeoutError as exc:
+        if exc.started:
+            raise HTTPException(
+                504, f"render took longer than the limit of {settings.render_timeout_s} s"
+            ) from None
+        raise HTTPException(
+            503, f"render waited in the queue longer than the limit of {settings.render_timeout_s} s", retry
+        ) from None
+    except ValueError as exc:
+        raise HTTPException(422, str(exc)) from None
+    headers = {**frame.timing_headers(), "ETag": etag, "Cache-Control": cache_control}
+    return Response(frame.data, media_type=frame.media_type, headers=headers)
+
+
+def _prepare(scene_id: str, body: RenderRequest, registry: RegistryDep, settings: Settings) -> FrameJob:
+    scene = find_scene(registry, scene_id)
+    try:
+        return prepare_frame(scene, body, settings.max_image_size)
+    except ValueError as exc:
+        raise HTTPException(422, str(exc)) from None
+
+
+@router.post("", response_class=Response, responses=IMAGE_RESPONSES)
+def render_post(
+    scene_id: SceneIdPath,
+    body: RenderRequest,
+    registry: RegistryDep,
+    frames: FrameRendererDep,
+    settings: SettingsDep,
+) -> Response:
+    """Render one frame described by a JSON body."""
+    job = _prepare(scene_id, body, registry, settings)
+    return render_response(job, frames, settings, "no-store")
+
+
+def _query_error(name: str, message: str, kind: str = "value_error") -> RequestValidationError:
+    return RequestValidationError([{"loc": ("query", name), "msg": message, "type": kind}])
+
+
+def _parse_c2w(text: str) -> list[list[float]]:
+    try:
+        values = [float(v) for v in text.replace(";", ",").split(",")]
+    except ValueError:
+        raise _query_error("c2w", "c2w must be 16 comma-separated numbers (row-major 4x4)") from None
+    if len(values) != 16:
+        raise _query_error(
+            "c2w", f"c2w must be 16 comma-separated numbers (row-major 4x4), got {len(values)}"
+        )
+    return [values[i : i + 4] for i in range(0, 16, 4)]
+
+
+@router.get("", response_class=Response, responses=IMAGE_RESPONSES)
+def render_get(
+    scene_id: SceneIdPath,
+    request: Request,
+    registry: RegistryDep,
+    frames: FrameRendererDep,
+    settings: SettingsDep,
+    azimuth: Annotated[float | None, Query(description="Orbit azimuth, degrees")] = None,
+    elevation: Annotated[float | None, Query(description="Orbit elevation, degrees")] = None,
+    distance: Annotated[float | None, Query(description="Orbit distance to the centre")] = None,
+    c2w: Annotated[str | None, Query(description="Instead of the orbit: 16 numbers, row-major 4x4")] = None,
+    fov_deg: Annotated[float | None, Query(description="Horizontal field of view, degrees")] = None,
+    width: Annotated[int | None, Query()] = None,
+    height: Annotated[int | None, Query()] = None,
+    quality: Annotated[Quality, Query()] = "full",
+    format: Annotated[ImageFormat, Query()] = "png",
+) -> Response:
+    """The POST route through query parameters; every other query parameter is a scene parameter
+    by its own name (``?azimuth=30&isovalue=0.4``). Orbit values left out take the scene's default."""
+    scene = find_scene(registry, scene_id)
+    params: dict[str, float] = {}
+    for name in {k for k, _ in request.query_params.multi_items()} - RESERVED_QUERY:
+        given = request.query_params.getlist(name)
+        if len(given) != 1:
+            raise _query_error(name, f"parameter {name!r} is given {len(given)} times")
+        try:
+            params[name] = float(given[0])
+        except ValueError:
+            raise _query_error(
+                name, f"parameter {name!r} must be a number, got {given[0]!r}", "float_parsing"
+            ) from None
+    body: dict[str, Any] = {"fov_deg": fov_deg, "width": width, "height": height, "params": params}
+    body.update(quality=quality, format=format)
+    orbit = {"azimuth": azimuth, "elevation": elevation, "distance": distance}
+    if c2w is not None:
+        if any(v is not None for v in orbit.values()):
+            raise _query_error("c2w", "give either c2w or azimuth/elevation/distance, not both")
+        body["camera"] = {"c2w": _parse_c2w(c2w)}
+    elif any(v is not None for v in orbit.values()):
+        defaults = scene.renderer.info.camera
+        body["camera"] = {k: (v if v is not None else defaults.get(k)) for k, v in orbit.items()}
+    try:
+        request_model = RenderRequest.model_validate(body)
+    except ValidationError as exc:
+        raise RequestValidationError(exc.errors()) from None
+    job = _prepare(scene_id, request_model, registry, settings)
+    return render_response(job, frames, settings, "no-cache", request.headers.get("if-none-match"))

@@ -1,0 +1,101 @@
+"""Scene listing, details, uploads and deletion."""
+
+from typing import Annotated
+
+from fastapi import APIRouter, HTTPException, Path, Request, Response
+
+from visnerf_server.dependencies import RegistryDep, ServerDep, TokenDep
+from visnerf_server.registry import SCENE_ID_PATTERN, Scene, SceneRegistry
+from visnerf_server.schemas import (
+    CameraDefaults,
+    ErrorDetail,
+    ParamAxis,
+    SceneDetail,
+    SceneSummary,
+    json_safe,
+)
+from visnerf_server.uploads import delete_scene, receive_checkpoint
+
+router = APIRouter(prefix="/api/scenes", tags=["scenes"])
+
+SceneIdPath = Annotated[
+    str,
+    Path(pattern=SCENE_ID_PATTERN, description="File stem of `<id>.safetensors` in the checkpoints folder"),
+]
+ERRORS = {code: {"model": ErrorDetail} for code in (401, 403, 404, 413, 422, 503)}
+
+
+def find_scene(registry: SceneRegistry, scene_id: str) -> Scene:
+    scene = registry.get(scene_id)
+    if scene is None:
+        raise HTTPException(404, f"unknown scene {scene_id!r}")
+    return scene
+
+
+def scene_summary(scene: Scene) -> SceneSummary:
+    info = scene.renderer.info
+    params = [
+        ParamAxis(name=a.name, min=a.min, max=a.max, values=list(a.values), default=a.default)
+        for a in info.params
+    ]
+    return SceneSummary(id=scene.id, title=info.title, kind=info.kind, params=params)
+
+
+def scene_detail(scene: Scene) -> SceneDetail:
+    info = scene.renderer.info
+    camera = info.camera
+    return SceneDetail(
+        **scene_summary(scene).model_dump(),
+        camera=CameraDefaults(
+            azimuth=float(camera.get("azimuth", 0.0)),
+            elevation=float(camera.get("elevation", 0.0)),
+            distance=float(camera.get("distance", 4.0)),
+            fov_deg=float(camera.get("fov_deg", 40.0)),
+        ),
+        bbox=[list(map(float, corner)) for corner in info.bbox],
+        image_size=(int(info.image_size[0]), int(info.image_size[1])),
+        background=list(map(float, info.background)),
+        training=json_safe(dict(info.training)),
+        version=scene.version[:16],
+    )
+
+
+@router.get("", response_model=list[SceneSummary])
+def list_scenes(registry: RegistryDep) -> list[SceneSummary]:
+    return [scene_summary(scene) for scene in registry.list()]
+
+
+@router.get("/{scene_id}", response_model=SceneDetail, responses=ERRORS)
+def get_scene(scene_id: SceneIdPath, registry: RegistryDep) -> SceneDetail:
+    return scene_detail(find_scene(registry, scene_id))
+
+
+@router.put(
+    "/{scene_id}",
+    response_model=SceneDetail,
+    responses={**ERRORS, 201: {"model": SceneDetail, "description": "Created"}},
+    dependencies=[TokenDep],
+    openapi_extra={
+        "requestBody": {
+            "required": True,
+            "content": {"application/octet-stream": {"schema": {"type": "string", "format": "binary"}}},
+        }
+    },
+)
+async def upload_scene(
+    scene_id: SceneIdPath, request: Request, response: Response, server: ServerDep
+) -> SceneDetail:
+    """Upload a ``.safetensors`` checkpoint as the raw body. 201 when new, 200 when it replaced one.
+
+    The scene becomes visible only after every check passed; the swap is atomic."""
+    scene, replaced = await receive_checkpoint(request, server, scene_id)
+    if not replaced:
+        response.status_code = 201
+        response.headers["Location"] = f"/api/scenes/{scene_id}"
+    return scene_detail(scene)
+
+
+@router.delete("/{scene_id}", status_code=204, responses=ERRORS, dependencies=[TokenDep])
+def remove_scene(scene_id: SceneIdPath, server: ServerDep) -> Response:
+    delete_scene(server, scene_id)
+    return Response(status_code=204)

@@ -1,0 +1,147 @@
+"""Request and response models. Every number a client sends is finite and bounded here; parameter
+values are then checked against the scene's training ranges by ``SceneRenderer.resolve_params``."""
+
+import math
+from typing import Annotated, Any, Literal
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, field_validator
+from visnerf.data.cameras import check_rigid_c2w
+
+FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
+Quality = Literal["preview", "full"]
+ImageFormat = Literal["png", "jpeg", "webp"]
+
+MIN_IMAGE_SIZE = 8
+ABSOLUTE_MAX_IMAGE_SIZE = 8192
+"""Schema bound; the server's own limit (``Settings.max_image_size``) is checked on top."""
+
+MEDIA_TYPES: dict[str, str] = {"png": "image/png", "jpeg": "image/jpeg", "webp": "image/webp"}
+
+
+class OrbitCamera(BaseModel):
+    """A camera orbiting the scene centre, in degrees (azimuth -180..180, elevation -90..90)."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    azimuth: float = Field(ge=-360.0, le=360.0)
+    elevation: float = Field(ge=-90.0, le=90.0)
+    distance: float = Field(gt=0.0, le=1e6)
+
+
+Row4 = Annotated[list[FiniteFloat], Field(min_length=4, max_length=4)]
+
+
+class MatrixCamera(BaseModel):
+    """A camera given by its 4x4 camera-to-world matrix (OpenGL axes, as in the data format)."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    c2w: Annotated[list[Row4], Field(min_length=4, max_length=4)]
+
+    @field_validator("c2w")
+    @classmethod
+    def _rigid(cls, value: list[list[float]]) -> list[list[float]]:
+        check_rigid_c2w(np.asarray(value, dtype=np.float64))  # ValueError -> 422 naming the problem
+        return value
+
+
+def _camera_kind(value: Any) -> str:
+    if isinstance(value, dict):
+        return "c2w" if "c2w" in value else "orbit"
+    return "c2w" if isinstance(value, MatrixCamera) else "orbit"
+
+
+Camera = Annotated[
+    Annotated[OrbitCamera, Tag("orbit")] | Annotated[MatrixCamera, Tag("c2w")],
+    Discriminator(_camera_kind),
+]
+
+
+class RenderRequest(BaseModel):
+    """One frame. Missing fields take the scene's defaults (camera, fov, trained image size,
+    parameter defaults)."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    camera: Camera | None = None
+    fov_deg: float | None = Field(default=None, gt=0.0, lt=180.0)
+    """Horizontal field of view in degrees."""
+    width: int | None = Field(default=None, ge=MIN_IMAGE_SIZE, le=ABSOLUTE_MAX_IMAGE_SIZE)
+    height: int | None = Field(default=None, ge=MIN_IMAGE_SIZE, le=ABSOLUTE_MAX_IMAGE_SIZE)
+    params: dict[str, FiniteFloat] = Field(default_factory=dict, max_length=64)
+    """Parameter values by name; missing ones take their default."""
+    quality: Quality = "full"
+    format: ImageFormat = "png"
+
+
+class StreamRequest(RenderRequest):
+    """One message of the interactive stream; ``seq`` is echoed in the frame header."""
+
+    seq: int = Field(ge=-(2**53), le=2**53)
+    format: ImageFormat = "jpeg"
+
+
+class ParamAxis(BaseModel):
+    name: str
+    min: float
+    max: float
+    values: list[float]
+    """The training values of this parameter."""
+    default: float
+
+
+class CameraDefaults(BaseModel):
+    azimuth: float
+    elevation: float
+    distance: float
+    fov_deg: float
+
+
+class SceneSummary(BaseModel):
+    id: str
+    title: str
+    kind: str
+    params: list[ParamAxis]
+
+
+class SceneDetail(SceneSummary):
+    camera: CameraDefaults
+    bbox: list[list[float]]
+    image_size: tuple[int, int]
+    """(width, height) of the images the scene was trained on."""
+    background: list[float]
+    training: dict[str, Any]
+    version: str
+    """Content hash of the checkpoint; changes when the scene is replaced."""
+
+
+class Health(BaseModel):
+    status: Literal["ok"] = "ok"
+    version: str
+    scenes: int
+    ready: bool
+
+
+class Readiness(BaseModel):
+    ready: bool
+    scenes: int
+    failed: dict[str, str] = Field(default_factory=dict)
+    """Checkpoints in the folder that could not be loaded, with the reason."""
+
+
+class ErrorDetail(BaseModel):
+    detail: Any
+
+
+def json_safe(value: Any) -> Any:
+    """Replace non-finite floats (not representable in JSON) by None, recursively."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {str(k): json_safe(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [json_safe(v) for v in value]
+    if isinstance(value, str | int | bool) or value is None:
+        return value
+    return str(value)

@@ -1,0 +1,112 @@
+// Unit checks of client/js/state.js (camera limits, parameter ranges, URL round trip).
+import assert from "node:assert/strict";
+import { test } from "node:test";
+
+import { ELEVATION_LIMIT, ViewState, wrapAzimuth } from "../../client/js/state.js";
+
+const SCENE = {
+  id: "tiny",
+  title: "Tiny",
+  kind: "dvr",
+  params: [
+    { name: "time", min: 0, max: 1, values: [0, 0.5, 1], default: 0.5 },
+    { name: "isovalue", min: 0.2, max: 0.8, values: [0.2, 0.8], default: 0.2 },
+  ],
+  camera: { azimuth: 30, elevation: 20, distance: 2.5, fov_deg: 30 },
+  image_size: [64, 32],
+};
+
+function fresh() {
+  const state = new ViewState();
+  state.setScene(structuredClone(SCENE));
+  return state;
+}
+
+test("azimuth wraps into [-180, 180)", () => {
+  assert.equal(wrapAzimuth(0), 0);
+  assert.equal(wrapAzimuth(180), -180);
+  assert.equal(wrapAzimuth(-180), -180);
+  assert.equal(wrapAzimuth(190), -170);
+  assert.equal(wrapAzimuth(-190), 170);
+  assert.equal(wrapAzimuth(720 + 45), 45);
+});
+
+test("scene defaults: camera and parameters", () => {
+  const s = fresh();
+  assert.deepEqual(s.camera, { azimuth: 30, elevation: 20, distance: 2.5 });
+  assert.equal(s.fovDeg, 30);
+  assert.deepEqual(s.params, { time: 0.5, isovalue: 0.2 });
+});
+
+test("orbit clamps the elevation at the poles and zoom to [0.3, 4] x default", () => {
+  const s = fresh();
+  s.orbit(0, 500);
+  assert.equal(s.camera.elevation, ELEVATION_LIMIT);
+  s.orbit(0, -1000);
+  assert.equal(s.camera.elevation, -ELEVATION_LIMIT);
+  s.orbit(200, 0);
+  assert.equal(s.camera.azimuth, -130);
+  s.zoom(100);
+  assert.equal(s.camera.distance, 10);
+  s.zoom(1e-6);
+  assert.equal(s.camera.distance, 0.75);
+  s.resetCamera();
+  assert.deepEqual(s.camera, { azimuth: 30, elevation: 20, distance: 2.5 });
+});
+
+test("parameters stay inside their ranges; unknown names are ignored", () => {
+  const s = fresh();
+  assert.equal(s.setParam("time", 3), 1);
+  assert.equal(s.setParam("isovalue", -1), 0.2);
+  assert.equal(s.setParam("nope", 0.5), undefined);
+  assert.equal(s.setParam("time", Number.NaN), undefined);
+  assert.deepEqual(s.params, { time: 1, isovalue: 0.2 });
+});
+
+test("change events say what changed and whether it is interactive", () => {
+  const s = fresh();
+  const seen = [];
+  s.addEventListener("change", (e) => seen.push([e.detail.type, e.detail.interactive]));
+  s.orbit(1, 0);
+  s.setParam("time", 0.7, { interactive: false });
+  s.setParam("time", 0.7); // unchanged: no event
+  s.setParam("isovalue", 0.5, { set: "B" });
+  assert.deepEqual(seen, [
+    ["camera", true],
+    ["params", false],
+    ["paramsB", true],
+  ]);
+});
+
+test("URL round trip restores camera, parameters and comparison", () => {
+  const s = fresh();
+  s.setCamera({ azimuth: -120.25, elevation: 45.5, distance: 3 });
+  s.setParam("time", 0.25);
+  s.setParam("isovalue", 0.6125);
+  s.setParam("time", 0.75, { set: "B" });
+  s.setCompare(true);
+  s.setResolution(384);
+  const query = s.toQuery();
+  assert.equal(query.get("scene"), "tiny");
+  const t = fresh();
+  t.applyQuery(new URLSearchParams(query.toString()));
+  assert.deepEqual(t.camera, s.camera);
+  assert.deepEqual(t.params, s.params);
+  assert.deepEqual(t.paramsB, s.paramsB);
+  assert.equal(t.compare, true);
+  assert.equal(t.resolution, 384);
+});
+
+test("URL values out of range are clamped; junk is ignored", () => {
+  const s = fresh();
+  s.applyQuery(new URLSearchParams("az=270&el=-100&dist=99&time=abc&isovalue=9"));
+  assert.deepEqual(s.camera, { azimuth: -90, elevation: -ELEVATION_LIMIT, distance: 10 });
+  assert.deepEqual(s.params, { time: 0.5, isovalue: 0.8 });
+});
+
+test("frame size keeps the training aspect", () => {
+  const s = fresh();
+  s.setResolution(256);
+  assert.deepEqual(s.frameSize(), { width: 256, height: 128 });
+  assert.deepEqual(s.frameSize(0.5), { width: 128, height: 64 });
+});

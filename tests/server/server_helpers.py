@@ -1,0 +1,102 @@
+"""Helpers shared by the server tests (constants, image checks, bad checkpoints, a slow scene)."""
+
+import io
+import pickle
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from fastapi.testclient import TestClient
+from PIL import Image
+from safetensors import safe_open
+from safetensors.torch import save_file
+from visnerf.inference import SceneRenderer
+from visnerf_server.settings import Settings
+
+TOKEN = "test-token-0123456789"
+AUTH = {"Authorization": f"Bearer {TOKEN}"}
+ORBIT = {"azimuth": 30.0, "elevation": 20.0, "distance": 2.5}
+
+
+def make_settings(ckpt_dir: Path, state_dir: Path, **overrides: object) -> Settings:
+    values: dict[str, object] = {
+        "checkpoints_dir": ckpt_dir,
+        "state_dir": state_dir,
+        "token": TOKEN,
+        "client_dir": None,
+        "background_load": False,
+    }
+    values.update(overrides)
+    return Settings(**values)  # type: ignore[arg-type]
+
+
+def image_size(data: bytes) -> tuple[str, int, int]:
+    """(format, width, height) of an encoded image; fails if it does not decode."""
+    with Image.open(io.BytesIO(data)) as image:
+        image.load()
+        return image.format, image.width, image.height
+
+
+def listing(folder: Path) -> list[str]:
+    """Every entry of a folder, hidden ones included."""
+    return sorted(p.name for p in folder.iterdir())
+
+
+def scene_ids(client: TestClient) -> list[str]:
+    return [s["id"] for s in client.get("/api/scenes").json()]
+
+
+# --- bad checkpoints -------------------------------------------------------------------------
+
+
+def _tensors_and_meta(path: Path) -> tuple[dict[str, torch.Tensor], dict[str, str]]:
+    with safe_open(str(path), "pt") as f:
+        return {k: f.get_tensor(k) for k in f.keys()}, dict(f.metadata())
+
+
+def pickle_checkpoint(path: Path) -> Path:
+    """A pickle (what torch.save writes) renamed to .safetensors."""
+    with path.open("wb") as f:
+        pickle.dump({"density": torch.zeros(4)}, f)
+    return path
+
+
+def truncated_checkpoint(good: Path, path: Path) -> Path:
+    data = good.read_bytes()
+    path.write_bytes(data[: len(data) * 2 // 3])
+    return path
+
+
+def wrong_shape_checkpoint(good: Path, path: Path) -> Path:
+    tensors, meta = _tensors_and_meta(good)
+    tensors["density_grid.planes.0"] = torch.zeros(4, 9, 9)
+    save_file(tensors, str(path), metadata=meta)
+    return path
+
+
+def nan_checkpoint(good: Path, path: Path) -> Path:
+    tensors, meta = _tensors_and_meta(good)
+    broken = tensors["color_decoder.hidden.weight"].clone()
+    broken[0, 0] = float("nan")
+    tensors["color_decoder.hidden.weight"] = broken
+    save_file(tensors, str(path), metadata=meta)
+    return path
+
+
+class SlowRenderer:
+    """Wraps a real scene; every render first sleeps (to make queues and stale frames observable)."""
+
+    def __init__(self, inner: SceneRenderer, delay_s: float) -> None:
+        self.inner = inner
+        self.info = inner.info
+        self.delay_s = delay_s
+        self.calls = 0
+
+    def resolve_params(self, params):  # noqa: ANN001, ANN201
+        return self.inner.resolve_params(params)
+
+    def render(self, *args, **kwargs) -> np.ndarray:  # noqa: ANN002, ANN003
+        self.calls += 1
+        time.sleep(self.delay_s)
+        return self.inner.render(*args, **kwargs)

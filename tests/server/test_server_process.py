@@ -1,0 +1,135 @@
+"""The real thing: ``visnerf serve`` in a subprocess on a free loopback port; a frame over HTTP, one
+over the WebSocket, an upload with ``visnerf submit``, then SIGTERM and a clean exit (status 0)."""
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import httpx
+import pytest
+from server_helpers import ORBIT, TOKEN, image_size
+from websockets.exceptions import ConnectionClosed
+from websockets.sync.client import connect
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture
+def server(ckpt_dir: Path, tmp_path: Path) -> Iterator[tuple[subprocess.Popen, str, Path]]:
+    port = free_port()
+    log_path = tmp_path / "server.log"
+    env = {**os.environ, "VISNERF_TOKEN": TOKEN, "VISNERF_STATE_DIR": str(tmp_path / "state")}
+    with log_path.open("wb") as log:
+        proc = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "visnerf.cli",
+                "serve",
+                "--port",
+                str(port),
+                "--checkpoints",
+                str(ckpt_dir),
+                "--no-client",
+            ],
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            env=env,
+        )
+    url = f"http://127.0.0.1:{port}"
+    try:
+        deadline = time.monotonic() + 60
+        while True:
+            assert proc.poll() is None, log_path.read_text()
+            try:
+                if httpx.get(f"{url}/api/ready", timeout=2).status_code == 200:
+                    break
+            except httpx.TransportError:
+                pass
+            assert time.monotonic() < deadline, "server did not become ready:\n" + log_path.read_text()
+            time.sleep(0.1)
+        yield proc, url, log_path
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(10)
+
+
+def test_serve_http_websocket_submit_and_sigterm(server, templates, tmp_path: Path) -> None:  # noqa: ANN001
+    proc, url, log_path = server
+    health = httpx.get(f"{url}/api/health").json()
+    assert health == {"status": "ok", "version": "0.1.0", "scenes": 2, "ready": True}
+
+    frame = httpx.get(f"{url}/api/scenes/tiny/render", params={**ORBIT, "width": 16, "height": 16, "a": 0.3})
+    assert frame.status_code == 200
+    assert image_size(frame.content) == ("PNG", 16, 16)
+    assert float(frame.headers["x-render-time-ms"]) > 0
+
+    ws_url = url.replace("http://", "ws://")
+    with connect(f"{ws_url}/api/scenes/tiny/stream") as ws:
+        ws.send(
+            json.dumps(
+                {
+                    "seq": 1,
+                    "camera": ORBIT,
+                    "fov_deg": 30,
+                    "width": 16,
+                    "height": 16,
+                    "params": {"a": 0.3},
+                    "quality": "preview",
+                    "format": "jpeg",
+                }
+            )
+        )
+        header = json.loads(ws.recv(timeout=30))
+        assert header["type"] == "frame" and header["seq"] == 1
+        data = ws.recv(timeout=30)
+        assert isinstance(data, bytes)
+        assert image_size(data) == ("JPEG", 16, 16)
+
+    submit = subprocess.run(
+        [sys.executable, "-m", "visnerf.cli", "submit", str(templates["still"]), url, "--id", "submitted"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env={**os.environ, "VISNERF_TOKEN": TOKEN},
+    )
+    assert submit.returncode == 0, submit.stderr
+    assert "created scene 'submitted'" in submit.stdout
+    assert httpx.get(f"{url}/api/scenes/submitted").json()["title"] == "Still"
+    refused = subprocess.run(
+        [sys.executable, "-m", "visnerf.cli", "submit", str(templates["still"]), url, "--token", "wrong"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert refused.returncode == 1
+    assert "403" in refused.stderr and "wrong token" in refused.stderr
+
+    # SIGTERM with a stream still open: graceful shutdown, exit status 0, within a few seconds.
+    with connect(f"{ws_url}/api/scenes/tiny/stream") as ws:
+        started = time.monotonic()
+        proc.send_signal(signal.SIGTERM)
+        assert proc.wait(timeout=15) == 0, log_path.read_text()
+        assert time.monotonic() - started < 10
+        with pytest.raises(ConnectionClosed):
+            ws.recv(timeout=5)
+
+    log = log_path.read_text()
+    access = [json.loads(line) for line in log.splitlines() if line.startswith('{"method"')]
+    assert {"method": "GET", "path": "/api/scenes/tiny/render", "status": 200} in [
+        {k: e[k] for k in ("method", "path", "status")} for e in access
+    ]
+    assert TOKEN not in log
+    assert "render queue shut down" in log
+    assert not list((tmp_path / "checkpoints").glob(".upload-*"))
