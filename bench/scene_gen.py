@@ -22,6 +22,7 @@ import time
 from pathlib import Path
 
 import torch
+
 from visnerf.scenes.catalog import scene_catalog
 from visnerf.scenes.contact_sheet import make_contact_sheet
 from visnerf.scenes.writer import DatasetOptions, write_scene

@@ -20,8 +20,8 @@ import torch
 
 from visnerf.checkpoint import CheckpointError, CheckpointMeta, load_checkpoint
 from visnerf.data.cameras import Intrinsics, check_rigid_c2w
-from visnerf.representation.field import VisNerfField
 from visnerf.rendering.renderer import RenderSettings, render_image
+from visnerf.representation.field import VisNerfField
 
 Quality = Literal["preview", "full"]
 

@@ -8,8 +8,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from PIL import Image
-from visnerf.data.cameras import orbit_c2w
 
+from visnerf.data.cameras import orbit_c2w
 from visnerf_server.frame_cache import CachedFrame, FrameCache
 from visnerf_server.metrics import Metrics
 from visnerf_server.registry import Scene, default_view

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+
 from visnerf.data.cameras import orbit_c2w
 from visnerf.inference import SceneRenderer, load_scene
 

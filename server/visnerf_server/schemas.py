@@ -6,6 +6,7 @@ from typing import Annotated, Any, Literal
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, field_validator
+
 from visnerf.data.cameras import check_rigid_c2w
 
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]

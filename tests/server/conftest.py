@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 from fastapi.testclient import TestClient
 from server_helpers import make_settings
+
 from visnerf.testing import make_tiny_checkpoint
 from visnerf_server.app import create_app
 from visnerf_server.settings import Settings

@@ -11,6 +11,7 @@ from fastapi.testclient import TestClient
 from PIL import Image
 from safetensors import safe_open
 from safetensors.torch import save_file
+
 from visnerf.inference import SceneRenderer
 from visnerf_server.settings import Settings
 

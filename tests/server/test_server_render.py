@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 from server_helpers import ORBIT, SlowRenderer, image_size, make_settings
+
 from visnerf.data.cameras import orbit_c2w
 from visnerf_server.app import create_app
 from visnerf_server.dependencies import get_frame_renderer, get_render_queue

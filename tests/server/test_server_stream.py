@@ -8,6 +8,7 @@ import pytest
 from fastapi.testclient import TestClient
 from server_helpers import AUTH, ORBIT, SlowRenderer, image_size
 from starlette.websockets import WebSocketDisconnect
+
 from visnerf.data.cameras import orbit_c2w
 from visnerf_server.dependencies import get_frame_renderer
 from visnerf_server.frame_cache import FrameCache

@@ -21,6 +21,7 @@ from server_helpers import (
     truncated_checkpoint,
     wrong_shape_checkpoint,
 )
+
 from visnerf_server.app import create_app
 
 SMALL = {"camera": ORBIT, "width": 16, "height": 16}

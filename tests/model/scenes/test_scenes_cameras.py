@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 from PIL import Image
+
 from visnerf.data.cameras import Intrinsics, project_points, rays_from_pixels
 from visnerf.scenes.catalog import SceneSpec
 from visnerf.scenes.fields import RadialDistanceField

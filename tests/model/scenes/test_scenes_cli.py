@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 import torch
 from PIL import Image
+
 from visnerf.scenes import commands
 from visnerf.scenes.catalog import get_scene, scene_catalog
 from visnerf.scenes.writer import DatasetOptions, write_scene

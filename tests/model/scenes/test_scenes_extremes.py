@@ -4,6 +4,7 @@ import math
 
 import pytest
 import torch
+
 from visnerf.data.cameras import Intrinsics, orbit_c2w
 from visnerf.scenes.catalog import scene_catalog
 from visnerf.scenes.fields import TangleField, VortexField

@@ -5,6 +5,7 @@ import math
 import numpy as np
 import pytest
 import torch
+
 from visnerf.data.cameras import orbit_c2w
 from visnerf.scenes.catalog import get_scene, scene_catalog
 from visnerf.scenes.fields import CosmicWebField, TangleField, radial_window

@@ -6,6 +6,7 @@ import math
 import numpy as np
 import pytest
 import torch
+
 from visnerf.data.cameras import Intrinsics, image_rays, orbit_c2w
 from visnerf.scenes.fields import ConstantField, LinearRampField, RadialDistanceField
 from visnerf.scenes.reference_renderer import DvrVolume, IsoVolume, RenderConfig, render_image, render_rays

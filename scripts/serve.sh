@@ -1,0 +1,8 @@
+#!/usr/bin/env bash
+# Set up .venv if needed and start the server with the bundled checkpoints on http://127.0.0.1:8000/
+set -euo pipefail
+cd "$(dirname "$0")/.."
+if [ ! -x .venv/bin/python ]; then python3 -m venv .venv; fi
+.venv/bin/python -c "import visnerf, visnerf_server" 2>/dev/null || {
+  .venv/bin/python -m pip install -q torch==2.13.0 && .venv/bin/python -m pip install -q -e .; }
+exec .venv/bin/visnerf serve --host 127.0.0.1 --port "${PORT:-8000}" --checkpoints checkpoints "$@"
