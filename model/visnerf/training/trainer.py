@@ -31,7 +31,7 @@ from visnerf.training.losses import photometric_mse
 from visnerf.training.regularizers import RegularizerWeights, regularization
 
 
-def resolution_for_box(extent: torch.Tensor, voxels_per_axis: float) -> tuple[int, int, int]:
+def resolution_for_box(extent: torch.Tensor, voxels_per_axis: int | float) -> tuple[int, int, int]:
     """Per-axis grid sizes with ``voxels_per_axis^3`` cells in all, cells as cubic as the box allows."""
     volume = float(torch.prod(extent))
     size = (volume / voxels_per_axis**3) ** (1.0 / 3.0)
@@ -51,7 +51,7 @@ class TrainState:
     train_seconds: float = 0.0
     upsamples_done: int = 0
     occupancy_done: int = 0
-    log: list[dict[str, float]] = field(default_factory=list)
+    log: list[dict] = field(default_factory=list)
 
 
 def make_optimizer(field_: VisNerfField, cfg: TrainConfig, scale: float) -> torch.optim.Adam:
@@ -206,7 +206,7 @@ class Trainer:
         self,
         progress_bar: bool = True,
         on_validate: Callable[[dict[str, float]], None] | None = None,
-    ) -> list[dict[str, float]]:
+    ) -> list[dict]:
         """Train until the iteration count or the time budget is reached; returns the log."""
         cfg = self.cfg
         wall0 = time.perf_counter()
@@ -272,7 +272,7 @@ class Trainer:
         return path
 
 
-def write_log(rows: list[dict[str, float]], path: Path) -> None:
+def write_log(rows: list[dict], path: Path) -> None:
     if not rows:
         return
     keys = list(dict.fromkeys(k for row in rows for k in row))
