@@ -221,7 +221,11 @@ def test_upload_limit_is_checked_while_streaming(client: TestClient, ckpt_dir: P
         "server": ("testserver", 80),
     }
     before = listing(ckpt_dir)
-    asyncio.run(app(scope, receive, send))
+    # A fresh thread has no event loop, even when another test (Playwright's sync API) left one here.
+    import concurrent.futures
+
+    with concurrent.futures.ThreadPoolExecutor(1) as pool:
+        pool.submit(asyncio.run, app(scope, receive, send)).result()
     assert messages[0]["type"] == "http.response.start" and messages[0]["status"] == 413
     assert consumed == limit // len(chunk) + 1
     assert listing(ckpt_dir) == before
