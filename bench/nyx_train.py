@@ -11,6 +11,7 @@ Writes bench/results/nyx_train.json, .md and .png, and the checkpoint to runs/ny
 
 import argparse
 import json
+import os
 import platform
 import resource
 import sys
@@ -74,7 +75,8 @@ def write_report(result: dict, out_dir: Path) -> None:
         "",
         "| what | value |",
         "| --- | --- |",
-        f"| training budget | {result['budget_minutes']} min (validation time excluded) |",
+        f"| training budget | {result['budget_minutes']} min, space carving ({result['carve_seconds']} s) included, validation excluded |",
+        f"| 1-min load average before / after | {result['load_average_before_after'][0]} / {result['load_average_before_after'][1]} |",
         f"| iterations | {result['iterations']} ({result['iterations_per_second']:.2f} it/s) |",
         f"| held-out PSNR / SSIM ({f['frames']} frames) | {f['psnr']:.2f} dB / {f['ssim']:.3f} |",
         f"| PSNR at held-out parameter settings | {f['psnr_held_out_settings']:.2f} dB |",
@@ -122,11 +124,15 @@ def main() -> int:
     ap.add_argument("--resolution", type=int, default=TrainConfig.resolution_final)
     ap.add_argument("--validate-every", type=float, default=300.0, help="seconds of training")
     ap.add_argument("--eval-frames", type=int, default=24)
+    ap.add_argument("--threads", type=int, default=None, help="torch threads (default: all cores)")
     ap.add_argument("--out", default=str(ROOT / "runs" / "nyx.safetensors"))
     ap.add_argument("--results", default=str(ROOT / "bench" / "results"))
     args = ap.parse_args()
 
     device = pick_device("cpu")
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    load_before = os.getloadavg()
     t0 = time.perf_counter()
     scene = load_dataset(args.data)
     load_s = time.perf_counter() - t0
@@ -148,6 +154,9 @@ def main() -> int:
         "val_frames": val.n_frames,
         "holdout_settings": HOLDOUT_SETTINGS,
         "holdout_views": HOLDOUT_VIEWS,
+        "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+        "load_average_before_after": [round(load_before[0], 2), round(os.getloadavg()[0], 2)],
+        "carve_seconds": round(trainer.setup_seconds, 1),
         "load_seconds": round(load_s, 1),
         "rss_after_load_mb": round(rss_after_load, 0),
         "iterations": trainer.state.iteration,

@@ -13,6 +13,7 @@ import torch
 from visnerf.checkpoint import CheckpointError, read_checkpoint
 from visnerf.config import HoldoutConfig, RenderConfig, TrainConfig
 from visnerf.data.cameras import orbit_c2w
+from visnerf.runtime import configure
 
 
 def pick_device(name: str) -> torch.device:
@@ -23,7 +24,7 @@ def pick_device(name: str) -> torch.device:
     if device.type == "cuda" and not torch.cuda.is_available():
         raise SystemExit("error: --device cuda asked for, but no CUDA device is available")
     if device.type == "cpu":
-        torch.set_num_threads(max(1, len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1))
+        configure()
     return device
 
 

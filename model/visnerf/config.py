@@ -123,6 +123,15 @@ class TrainConfig:
     """Cells per axis of the occupancy grid (at most)."""
     occupancy_max_settings: int = 64
     """Parameter settings evaluated for the occupancy union (all training settings if fewer)."""
+    carve: bool = True
+    """Carve empty space from the training images before the first iteration (see data/carving.py):
+    the box shrinks to the visual hull and samples are taken only inside it from the start."""
+    carve_resolution: int = 64
+    """Cells per axis of the carved grid."""
+    carve_tolerance: int = 2
+    """Largest channel difference (0-255) from the background that still counts as background."""
+    mixed_precision: bool = True
+    """Decoder matrix products in bfloat16 where the device supports it (weights stay float32)."""
     l1_weight_initial: float = 1e-4
     l1_weight_rest: float = 1e-5
     l1_switch_iteration: int = 2000

@@ -58,10 +58,20 @@ def build_occupancy(
     settings: Float[Tensor, "s k"],
     step: float,
     threshold: float,
+    candidates: Bool[Tensor, "x y z"] | None = None,
     chunk: int = 65536,
 ) -> Bool[Tensor, "x y z"]:
-    """Union over ``settings`` of ``alpha(cell centre) > threshold``, dilated by one cell."""
-    pts = cell_centres(field.aabb, resolution).reshape(-1, 3)  # [x*y*z, 3]
+    """Union over ``settings`` of ``alpha(cell centre) > threshold``, dilated by one cell.
+
+    Only ``candidates`` cells are evaluated when given (the rest count as empty before dilation).
+    """
+    all_pts = cell_centres(field.aabb, resolution).reshape(-1, 3)  # [x*y*z, 3]
+    cand = (
+        torch.arange(all_pts.shape[0], device=all_pts.device)
+        if candidates is None
+        else candidates.reshape(-1).nonzero()[:, 0].to(all_pts.device)
+    )
+    pts = all_pts[cand]
     occupied = torch.zeros(pts.shape[0], dtype=torch.bool, device=pts.device)
     settings = settings.to(pts.device)
     for setting in settings:
@@ -71,7 +81,9 @@ def build_occupancy(
             sigma = field.density(part, q_d.expand(part.shape[0], -1))
             alpha = -torch.expm1(-sigma * step)
             occupied[start : start + chunk] |= alpha > threshold
-    grid = occupied.reshape(resolution).float()[None, None]
+    full = torch.zeros(all_pts.shape[0], dtype=torch.bool, device=all_pts.device)
+    full[cand] = occupied
+    grid = full.reshape(resolution).float()[None, None]
     return F.max_pool3d(grid, kernel_size=3, stride=1, padding=1)[0, 0] > 0
 
 

@@ -56,12 +56,21 @@ def encode_position(points: Float[Tensor, "n 3"], n_freqs: int) -> Float[Tensor,
 
 
 class Decoder(nn.Module):
-    """One hidden layer MLP: ``in -> hidden -> out`` with ReLU."""
+    """One hidden layer MLP: ``in -> hidden -> out`` with ReLU.
+
+    With ``bf16 = True`` the two matrix products run in bfloat16 (AMX / tensor cores) while the
+    weights, the input and the returned output stay float32; everything downstream (softplus,
+    transmittance, compositing) is float32.
+    """
 
     def __init__(self, n_in: int, n_hidden: int, n_out: int) -> None:
         super().__init__()
         self.hidden = nn.Linear(n_in, n_hidden)
         self.out = nn.Linear(n_hidden, n_out)
+        self.bf16 = False
 
     def forward(self, x: Float[Tensor, "n i"]) -> Float[Tensor, "n o"]:
+        if self.bf16 and x.device.type in ("cpu", "cuda"):
+            with torch.autocast(x.device.type, dtype=torch.bfloat16):
+                return self.out(torch.relu(self.hidden(x))).float()
         return self.out(torch.relu(self.hidden(x)))

@@ -16,15 +16,23 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from torch import Tensor
 from tqdm import tqdm
 
 from visnerf.checkpoint import CheckpointMeta, save_checkpoint
 from visnerf.config import FieldConfig, RenderConfig, TrainConfig
+from visnerf.data.carving import carve_occupancy
 from visnerf.data.parsers.blender import estimate_bbox
 from visnerf.data.ray_batches import RayBatchSampler
 from visnerf.data.scene import SceneData
 from visnerf.evaluation.metrics import mse_to_psnr, psnr, ssim
-from visnerf.rendering.occupancy import build_occupancy, occupied_bounds, parameter_settings
+from visnerf.rendering.occupancy import (
+    build_occupancy,
+    cell_centres,
+    occupied_bounds,
+    parameter_settings,
+    query_occupancy,
+)
 from visnerf.rendering.renderer import RenderSettings, render_image, render_rays
 from visnerf.representation.field import VisNerfField
 from visnerf.training.losses import photometric_mse
@@ -107,8 +115,18 @@ class Trainer:
         self.render_cfg = render_cfg or RenderConfig()
         torch.manual_seed(cfg.seed)
         self.generator = torch.Generator().manual_seed(cfg.seed)
+        self.setup_seconds = 0.0
+        self.carved: tuple[Tensor, Tensor] | None = None  # (grid, its world box)
         if init_field is None:
             aabb = estimate_bbox(train_scene)
+            if cfg.carve:
+                t0 = time.perf_counter()
+                grid = carve_occupancy(train_scene, aabb, (cfg.carve_resolution,) * 3, cfg.carve_tolerance)
+                self.setup_seconds = time.perf_counter() - t0
+                bounds = occupied_bounds(grid, aabb)
+                if bounds is not None:
+                    self.carved = (grid, aabb.clone())
+                    aabb = bounds
             base = field_cfg or FieldConfig()
             resolution = resolution_for_box(aabb[1] - aabb[0], cfg.resolution_init)
             fcfg = FieldConfig(**{**base.to_dict(), "resolution": resolution,
@@ -116,7 +134,10 @@ class Trainer:
             init_field = VisNerfField(fcfg, aabb)
             init_field.set_param_knots(train_scene.knots())
         self.field = init_field.to(device).train()
-        self.state = start or TrainState()
+        set_mixed_precision(self.field, cfg.mixed_precision)
+        if self.carved is not None:
+            self.field.set_occupancy(self._carved_on(self._occupancy_resolution()))
+        self.state = start or TrainState(train_seconds=self.setup_seconds)  # carving counts as training
         self.sampler = RayBatchSampler(train_scene, device, self.generator)
         self.sampler.set_aabb(self.field.aabb)
         self.optimizer = make_optimizer(self.field, cfg, 1.0)
@@ -134,11 +155,28 @@ class Trainer:
     def step_size(self) -> float:
         return self.field.voxel_size() * self.render_cfg.step_ratio
 
+    def _occupancy_resolution(self) -> tuple[int, int, int]:
+        return tuple(min(r, self.cfg.occupancy_resolution) for r in self.field.resolution)  # type: ignore[return-value]
+
+    def _carved_on(self, res: tuple[int, int, int]) -> Tensor:
+        """The carved grid resampled (nearest cell) onto the field's box at ``res``."""
+        assert self.carved is not None
+        grid, box = self.carved
+        centres = cell_centres(self.field.aabb.cpu(), res).reshape(-1, 3)
+        return query_occupancy(grid, box, centres).reshape(res).to(self.device)
+
+    @torch.no_grad()
+    def _occupancy(self, res: tuple[int, int, int]) -> Tensor:
+        """Density occupancy (union over settings), inside the carved hull when there is one."""
+        grid = build_occupancy(self.field, res, self.settings_all, self.step_size(),
+                               self.render_cfg.occupancy_threshold,
+                               None if self.carved is None else self._carved_on(res))
+        return grid
+
     @torch.no_grad()
     def update_occupancy(self, shrink: bool) -> None:
-        res = tuple(min(r, self.cfg.occupancy_resolution) for r in self.field.resolution)
-        grid = build_occupancy(self.field, res, self.settings_all, self.step_size(),
-                               self.render_cfg.occupancy_threshold)
+        res = self._occupancy_resolution()
+        grid = self._occupancy(res)
         if not bool(grid.any()):
             return  # nothing is visible yet: skipping all space would stop training
         if shrink:
@@ -150,9 +188,8 @@ class Trainer:
                 voxels = float(np.prod(self.field.resolution)) ** (1 / 3)
                 self.field.resample(resolution_for_box(bounds[1] - bounds[0], voxels), bounds)
                 self.sampler.set_aabb(self.field.aabb)
-                res = tuple(min(r, self.cfg.occupancy_resolution) for r in self.field.resolution)
-                grid = build_occupancy(self.field, res, self.settings_all, self.step_size(),
-                                       self.render_cfg.occupancy_threshold)
+                res = self._occupancy_resolution()
+                grid = self._occupancy(res)
                 self._rebuild_optimizer()
         self.field.set_occupancy(grid)
 
@@ -164,6 +201,8 @@ class Trainer:
             self.field.resample(resolution_for_box(self.field.aabb[1] - self.field.aabb[0], voxels))
             self.state.upsamples_done += 1
             self._rebuild_optimizer()
+            if self.field.occupancy is None and self.carved is not None:
+                self.field.set_occupancy(self._carved_on(self._occupancy_resolution()))
         while self.state.occupancy_done < len(self.cfg.occupancy_at) and p >= self.cfg.occupancy_at[self.state.occupancy_done]:
             self.update_occupancy(shrink=self.state.occupancy_done == 0)
             self.state.occupancy_done += 1
@@ -270,6 +309,22 @@ class Trainer:
         save_checkpoint(self.field, meta, path)
         write_log(self.state.log, path.with_suffix(".log.csv"))
         return path
+
+
+def set_mixed_precision(field_: VisNerfField, enabled: bool) -> bool:
+    """Run the decoders' matrix products in bfloat16 if asked and the device does it natively."""
+    use = enabled and bf16_native(field_.device)
+    field_.density_decoder.bf16 = field_.color_decoder.bf16 = use
+    return use
+
+
+def bf16_native(device: torch.device) -> bool:
+    """Whether ``device`` has bfloat16 matrix units (AMX / AVX512-BF16 on CPU, Ampere+ on CUDA)."""
+    if device.type == "cuda":
+        return torch.cuda.is_bf16_supported()
+    if device.type == "cpu":
+        return bool(torch.backends.mkldnn.is_available() and torch.ops.mkldnn._is_mkldnn_bf16_supported())
+    return False
 
 
 def write_log(rows: list[dict], path: Path) -> None:
