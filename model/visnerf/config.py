@@ -78,8 +78,9 @@ class RenderConfig:
     """Samples whose compositing weight is below this skip colour decoding."""
     early_stop_eps: float = 1e-4
     """Rays stop once transmittance falls below this (inference)."""
-    chunk_rays: int = 8192
-    """Rays per chunk when rendering whole images."""
+    chunk_rays: int = 2048
+    """Rays per chunk when rendering whole images (measured on Nyx: 2048 renders a 256x256
+    frame in half the time of 8192, whose tensors no longer fit the allocator's reuse)."""
     preview_scale: float = 0.5
     """Resolution scale of the preview quality."""
     preview_step_factor: float = 2.0
@@ -104,6 +105,11 @@ class TrainConfig:
     """Wall-clock budget; progress is the larger of iteration and time fraction."""
     batch_rays: int = 4096
     """Rays per iteration."""
+    micro_batch_rays: int = 1024
+    """Rays rendered and back-propagated together within an iteration (bounds activation memory;
+    the step is the same for any value)."""
+    trim_every: int = 25
+    """Iterations between returns of freed heap memory to the system (bounds resident memory)."""
     lr_factors: float = 0.02
     """Adam learning rate of grid factors and parameter vectors."""
     lr_networks: float = 1e-3

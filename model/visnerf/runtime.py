@@ -1,4 +1,4 @@
-"""Process-wide settings that make the CPU path fast: allocator behaviour and thread count."""
+"""Process-wide settings: thread count, and handing freed memory back to the system."""
 
 import ctypes
 import ctypes.util
@@ -7,34 +7,27 @@ import sys
 
 import torch
 
-_M_TRIM_THRESHOLD = -1
-_M_MMAP_THRESHOLD = -3
-_done = False
+_libc: ctypes.CDLL | None = None
 
 
-def keep_freed_memory(threshold_bytes: int = 1 << 30) -> bool:
-    """Ask glibc to keep freed blocks of up to ``threshold_bytes`` for reuse.
+def release_free_memory() -> bool:
+    """Return the allocator's free pages to the system (glibc ``malloc_trim``).
 
-    Training and rendering allocate tensors of hundreds of MB every step. By default glibc maps
-    each one fresh from the kernel and unmaps it when freed, so every step pays page faults on
-    memory it just gave back (measured: an element-wise op on 66M floats took 130 ms into a fresh
-    tensor against 25 ms into a reused one). Peak memory is unchanged; freed blocks are reused.
-    Returns whether the setting took effect (False off glibc).
+    Training allocates tensors of varying size every step; glibc keeps the freed blocks in its
+    heap, so resident memory creeps up to several times what is live (measured on Nyx: 2.8 GB
+    resident against 1.4 GB live after 100 steps). Trimming between steps keeps resident memory
+    near what is live. Returns False where there is no glibc.
     """
-    global _done
-    if _done:
-        return True
+    global _libc
     if not sys.platform.startswith("linux"):
         return False
     try:
-        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        ok = bool(libc.mallopt(_M_MMAP_THRESHOLD, threshold_bytes)) and bool(
-            libc.mallopt(_M_TRIM_THRESHOLD, 2 * threshold_bytes)
-        )
+        if _libc is None:
+            _libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        _libc.malloc_trim(0)
     except (OSError, AttributeError):
         return False
-    _done = ok
-    return ok
+    return True
 
 
 def default_threads() -> int:
@@ -49,6 +42,5 @@ def default_threads() -> int:
 
 
 def configure(threads: int | None = None) -> None:
-    """Allocator and thread settings, once per process, before heavy work."""
-    keep_freed_memory()
+    """Thread settings, once per process, before heavy work."""
     torch.set_num_threads(threads or default_threads())

@@ -20,6 +20,7 @@ from visnerf.rendering.occupancy import query_occupancy
 from visnerf.rendering.sampling import deltas_from_samples, sample_pdf, uniform_samples
 from visnerf.rendering.volume import render_alpha_from_density
 from visnerf.representation.field import VisNerfField
+from visnerf.representation.frame_field import FrameField
 
 if TYPE_CHECKING:
     from visnerf.checkpoint import CheckpointMeta
@@ -97,6 +98,36 @@ def _shade_samples(
         colors = field.color(points[shade], rays_d[shade_rays], q_appearance[shade_rays])  # [m, 3]
         rgb = rgb.index_add(0, shade_rays, weights[shade][:, None] * colors)
     return rgb, tau.sum(dim=-1), weights
+
+
+def _shade_frame_samples(
+    frame: FrameField,
+    ray_terms: Float[Tensor, "n h"],
+    points: Float[Tensor, "n s 3"],
+    step: float,
+    valid: Bool[Tensor, "n s"],
+    tau_before: Float[Tensor, " n"],
+    weight_threshold: float,
+) -> tuple[Float[Tensor, "n 3"], Float[Tensor, " n"]]:
+    """Inference twin of ``_shade_samples`` at one parameter tuple, equal spacing ``step``.
+
+    Returns (colour contribution, optical depth of this segment).
+    """
+    n, s = valid.shape
+    sigmas = torch.zeros(n, s, dtype=points.dtype, device=points.device)
+    if bool(valid.any()):
+        sigmas = sigmas.masked_scatter(valid, frame.density(points[valid]))
+    tau = sigmas * step  # [n, s]
+    exclusive = torch.cumsum(tau, dim=-1) - tau + tau_before[:, None]
+    weights = torch.exp(-exclusive) * -torch.expm1(-tau)  # [n, s]
+    shade = valid & (weights > weight_threshold)
+    rgb = torch.zeros(n, 3, dtype=points.dtype, device=points.device)
+    shade_idx = shade.nonzero()  # [m, 2]
+    if shade_idx.shape[0] > 0:
+        ray_idx = shade_idx[:, 0]
+        colors = frame.color(points[shade], ray_terms[ray_idx])  # [m, 3]
+        rgb = rgb.index_add(0, ray_idx, weights[shade][:, None] * colors)
+    return rgb, tau.sum(dim=-1)
 
 
 def render_rays(
@@ -200,10 +231,11 @@ def render_image(
     background = torch.tensor(settings.background, dtype=rays_o.dtype, device=rays_o.device)
     occupancy = field.occupancy if settings.use_occupancy else None
     q_d, q_a = field.param_features(params[None].to(rays_o.dtype))  # [1, c] each
+    frame = FrameField(field, q_d, q_a)
     out = torch.empty_like(rays_o)
     for start in range(0, rays_o.shape[0], settings.chunk_rays):
         sl = slice(start, start + settings.chunk_rays)
-        out[sl] = march_rays(field, rays_o[sl], rays_d[sl], q_d, q_a, background, settings, occupancy)
+        out[sl] = march_rays(field, rays_o[sl], rays_d[sl], frame, background, settings, occupancy)
     return out.reshape(intrinsics.height, intrinsics.width, 3)
 
 
@@ -211,8 +243,7 @@ def march_rays(
     field: VisNerfField,
     rays_o: Float[Tensor, "n 3"],
     rays_d: Float[Tensor, "n 3"],
-    q_density: Float[Tensor, "1 c"],
-    q_appearance: Float[Tensor, "1 c"],
+    frame: FrameField,
     background: Float[Tensor, " 3"],
     settings: RenderSettings,
     occupancy: Bool[Tensor, "x y z"] | None,
@@ -226,6 +257,7 @@ def march_rays(
     n_total = min(settings.max_samples, math.ceil(float((t_far - t_near).max()) / step)) if hit.any() else 0
     seg = settings.segment_samples if settings.early_termination else max(n_total, 1)
     active = hit.nonzero()[:, 0]
+    ray_terms = frame.direction_terms(rays_d)  # [n, h], once per ray
     tau_stop = -math.log(settings.early_stop_eps) if settings.early_termination else math.inf
     for s0 in range(0, n_total, seg):
         if active.numel() == 0:
@@ -236,10 +268,8 @@ def march_rays(
         points = rays_o[active, None, :] + rays_d[active, None, :] * t[..., None]
         if occupancy is not None:
             valid = valid.masked_scatter(valid, query_occupancy(occupancy, field.aabb, points[valid]))
-        a = active.numel()
-        seg_rgb, seg_tau, _ = _shade_samples(
-            field, rays_d[active], points, torch.full_like(t, step), valid,
-            q_density.expand(a, -1), q_appearance.expand(a, -1), tau_total[active], settings.weight_threshold,
+        seg_rgb, seg_tau = _shade_frame_samples(
+            frame, ray_terms[active], points, step, valid, tau_total[active], settings.weight_threshold,
         )
         rgb[active] += seg_rgb
         tau_total[active] += seg_tau

@@ -35,7 +35,7 @@ from visnerf.rendering.occupancy import (
 )
 from visnerf.rendering.renderer import RenderSettings, render_image, render_rays
 from visnerf.representation.field import VisNerfField
-from visnerf.training.losses import photometric_mse
+from visnerf.runtime import release_free_memory
 from visnerf.training.regularizers import RegularizerWeights, regularization
 
 
@@ -213,33 +213,52 @@ class Trainer:
                                   self.cfg.tv_weight_appearance, self.cfg.tv_weight_params)
 
     def train_step(self) -> dict[str, float]:
+        """One optimizer step over ``batch_rays`` rays, rendered and back-propagated in chunks.
+
+        The photometric loss is a mean over the whole batch, so each chunk's squared error is
+        divided by the batch size and its gradient accumulated: the step is the same as one pass
+        over the batch, with activation memory bounded by ``micro_batch_rays``.
+        """
         cfg = self.cfg
         scale = cfg.lr_decay_ratio ** min(1.0, self.progress())
         for group in self.optimizer.param_groups:
             group["lr"] = group["base_lr"] * scale
         batch = self.sampler.sample(cfg.batch_rays)
+        n = batch.rgb.shape[0]
         if cfg.random_background:
             bg = torch.rand(batch.rgb.shape, generator=self.generator).to(self.device)
         else:
             bg = torch.tensor(self.scene.background, device=self.device).expand_as(batch.rgb)
-        importance = cfg.importance_samples if self.progress() >= cfg.importance_from else 0
-        out = render_rays(self.field, batch.rays_o, batch.rays_d, batch.params, bg, self.step_size(),
-                          self.render_cfg.max_samples, self.field.occupancy, self.render_cfg.weight_threshold,
-                          self.generator, importance)
         target = batch.rgb
         if cfg.random_background:
             # Target pixels of background colour stand for empty space: re-composite them on bg.
             is_bg = (batch.rgb - torch.tensor(self.scene.background, device=self.device)).abs().amax(-1) < 1e-3
             target = torch.where(is_bg[:, None], bg, batch.rgb)
-        mse = photometric_mse(out["rgb"], target)
-        terms = regularization(self.field, self._weights())
-        loss = mse + sum(terms.values())
-        if not torch.isfinite(loss):
-            raise FloatingPointError(f"non-finite loss at iteration {self.state.iteration}")
+        importance = cfg.importance_samples if self.progress() >= cfg.importance_from else 0
         self.optimizer.zero_grad(set_to_none=True)
-        loss.backward()
+        sq_error = 0.0
+        samples = 0
+        chunk = max(1, cfg.micro_batch_rays)
+        for lo in range(0, n, chunk):
+            sl = slice(lo, min(n, lo + chunk))
+            out = render_rays(self.field, batch.rays_o[sl], batch.rays_d[sl], batch.params[sl], bg[sl],
+                              self.step_size(), self.render_cfg.max_samples, self.field.occupancy,
+                              self.render_cfg.weight_threshold, self.generator, importance)
+            part = ((out["rgb"] - target[sl]) ** 2).sum() / (3 * n)  # this chunk's share of the batch mean
+            if not torch.isfinite(part):
+                raise FloatingPointError(f"non-finite loss at iteration {self.state.iteration}")
+            part.backward()
+            sq_error += float(part.detach())
+            samples += int(out["n_samples"])
+        terms = regularization(self.field, self._weights())
+        reg = sum(terms.values())
+        if isinstance(reg, Tensor):
+            if not torch.isfinite(reg):
+                raise FloatingPointError(f"non-finite regularization at iteration {self.state.iteration}")
+            reg.backward()
         self.optimizer.step()
-        return {"mse": float(mse.detach()), "loss": float(loss.detach()), "samples": float(out["n_samples"])}
+        reg_value = float(reg.detach()) if isinstance(reg, Tensor) else float(reg)
+        return {"mse": sq_error, "loss": sq_error + reg_value, "samples": float(samples)}
 
     def run(
         self,
@@ -260,6 +279,8 @@ class Trainer:
             dt = time.perf_counter() - t0
             self.state.iteration += 1
             self.state.train_seconds += dt
+            if self.state.iteration % self.cfg.trim_every == 0:
+                release_free_memory()
             ema_mse = stats["mse"] if ema_mse is None else 0.95 * ema_mse + 0.05 * stats["mse"]
             bar.update(1)
             if self.state.iteration % 10 == 0:

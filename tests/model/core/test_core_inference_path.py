@@ -1,0 +1,79 @@
+"""The inference path (folded decoders, channel-first VM lookups, segment marching) against the
+training path, which evaluates the field sample by sample with no shortcuts."""
+
+import math
+from dataclasses import replace
+
+import pytest
+import torch
+
+from visnerf.data.cameras import Intrinsics, image_rays, orbit_c2w
+from visnerf.rendering.renderer import RenderSettings, render_image, render_rays
+from visnerf.representation.frame_field import FrameField
+from visnerf.testing import make_tiny_field
+
+
+@pytest.fixture()
+def field():
+    f, _ = make_tiny_field([("a", [0.0, 0.5, 1.0]), ("b", [0.0, 1.0])], seed=3, resolution=12)
+    return f.eval()
+
+
+def test_channel_first_modes_equal_the_concatenated_features(field) -> None:
+    coords = torch.rand(500, 3, generator=torch.Generator().manual_seed(0)) * 2.2 - 1.1  # some outside
+    grid = field.appearance_grid
+    expected = grid.sample(coords)  # [n, 3c]
+    modes = grid.sample_modes(coords)
+    assert torch.allclose(torch.cat([m.t() for m in modes], dim=1), expected, atol=1e-6)
+
+
+@pytest.mark.parametrize("params", [(-1.0, -1.0), (0.3, -0.2), (1.0, 1.0)])
+def test_folded_decoders_equal_the_field(field, params) -> None:
+    g = torch.Generator().manual_seed(1)
+    points = torch.rand(400, 3, generator=g) - 0.5
+    dirs = torch.nn.functional.normalize(torch.randn(400, 3, generator=g), dim=-1)
+    p = torch.tensor([params])
+    q_d, q_a = field.param_features(p)
+    frame = FrameField(field, q_d, q_a)
+    with torch.no_grad():
+        assert torch.allclose(frame.density(points), field.density(points, q_d.expand(400, -1)), rtol=1e-5, atol=1e-6)
+        colour = frame.color(points, frame.direction_terms(dirs))
+        assert torch.allclose(colour, field.color(points, dirs, q_a.expand(400, -1)), atol=1e-6)
+
+
+def _both_renders(field, settings: RenderSettings, size: int = 24):
+    intr = Intrinsics.from_fov(size, size, math.radians(40.0))
+    c2w = torch.from_numpy(orbit_c2w(35.0, 25.0, 2.2)).float()
+    params = torch.tensor([0.2, -0.4])
+    with torch.no_grad():
+        fast = render_image(field, c2w, intr, params, settings)
+        rays_o, rays_d = image_rays(c2w, intr)
+        rays_o, rays_d = rays_o.reshape(-1, 3), rays_d.reshape(-1, 3)
+        bg = torch.tensor(settings.background).expand(rays_o.shape[0], 3)
+        slow = render_rays(field, rays_o, rays_d, params.expand(rays_o.shape[0], 2), bg,
+                           field.voxel_size() * settings.step_ratio, settings.max_samples, None, 0.0)
+    return fast.reshape(-1, 3), slow["rgb"]
+
+
+def test_exhaustive_settings_reproduce_the_training_renderer(field) -> None:
+    settings = RenderSettings(use_occupancy=False, early_termination=False, weight_threshold=0.0, chunk_rays=97)
+    fast, slow = _both_renders(field, settings)
+    assert torch.allclose(fast, slow, atol=2e-5)
+
+
+@pytest.mark.parametrize("density_scale", [1e-3, 1.0, 1e4])
+def test_early_termination_error_is_bounded_by_its_threshold(field, density_scale) -> None:
+    """A nearly transparent medium, a typical one and a stiff, nearly opaque one."""
+    with torch.no_grad():
+        field.density_decoder.out.bias.add_(math.log(density_scale))
+    try:
+        base = RenderSettings(use_occupancy=False, early_termination=False, weight_threshold=0.0, segment_samples=4)
+        fast_settings = replace(base, early_termination=True, early_stop_eps=1e-4, weight_threshold=1e-5)
+        exhaustive, _ = _both_renders(field, base)
+        fast, _ = _both_renders(field, fast_settings)
+        assert torch.isfinite(fast).all()
+        # Dropped light is at most the transmittance left (1e-4) plus the skipped weights.
+        assert (fast - exhaustive).abs().max() < 5e-4
+    finally:
+        with torch.no_grad():
+            field.density_decoder.out.bias.sub_(math.log(density_scale))
