@@ -86,6 +86,8 @@ class SceneRegistry:
         self.mutation_lock = threading.Lock()
         self._scenes: dict[str, Scene] = {}
         self._lock = threading.Lock()
+        self.loading = True
+        """True until the first ``load_all`` has finished: an unknown id may still be on its way."""
 
     def path_for(self, scene_id: str) -> Path:
         if not is_valid_scene_id(scene_id):
@@ -124,7 +126,14 @@ class SceneRegistry:
                 if path.exists() and scene_id not in self._scenes:  # not deleted/replaced meanwhile
                     self.install(Scene(scene_id, renderer, path, version))
             logger.info("scene %r loaded from %s", scene_id, path)
+        self.loading = False
         return errors
+
+    def pending(self, scene_id: str) -> bool:
+        """Whether ``scene_id`` is unknown only because the folder has not been loaded yet."""
+        if not self.loading or scene_id in self._scenes or not is_valid_scene_id(scene_id):
+            return False
+        return self.path_for(scene_id).is_file()
 
     def get(self, scene_id: str) -> Scene | None:
         return self._scenes.get(scene_id)

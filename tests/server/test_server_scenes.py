@@ -9,6 +9,7 @@ from pathlib import Path
 import pytest
 from fastapi.testclient import TestClient
 from server_helpers import ORBIT, make_settings
+from starlette.websockets import WebSocketDisconnect
 
 from visnerf_server.app import create_app
 from visnerf_server.registry import SceneRegistry
@@ -49,6 +50,18 @@ def test_ready_is_503_until_scenes_are_loaded(settings: Settings, monkeypatch: p
         health = client.get("/api/health")
         assert health.status_code == 200  # alive while loading
         assert health.json()["ready"] is False
+        # A scene whose file is there but not loaded yet: 503 with Retry-After, not 404.
+        loading = client.get("/api/scenes/tiny")
+        assert loading.status_code == 503 and loading.headers["retry-after"] == "1"
+        assert "still loading" in loading.json()["detail"]
+        assert client.get("/api/scenes/tiny/render?width=8&height=8").status_code == 503
+        assert client.get("/api/scenes/no_such_scene").status_code == 404
+        with client.websocket_connect("/api/scenes/tiny/stream") as ws:
+            error = ws.receive_json()
+            assert error["status"] == 503 and error["retry_after"] == 1
+            with pytest.raises(WebSocketDisconnect) as closed:
+                ws.receive_text()
+            assert closed.value.code == 1013
         release.set()
         for _ in range(200):
             if client.get("/api/ready").status_code == 200:

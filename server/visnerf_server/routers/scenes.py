@@ -22,12 +22,16 @@ SceneIdPath = Annotated[
     str,
     Path(pattern=SCENE_ID_PATTERN, description="File stem of `<id>.safetensors` in the checkpoints folder"),
 ]
+LOADING_RETRY_S = 1
+"""Seconds a client is asked to wait for a scene that is still loading at start-up."""
 ERRORS = {code: {"model": ErrorDetail} for code in (401, 403, 404, 413, 422, 503)}
 
 
 def find_scene(registry: SceneRegistry, scene_id: str) -> Scene:
     scene = registry.get(scene_id)
     if scene is None:
+        if registry.pending(scene_id):
+            raise HTTPException(503, f"scene {scene_id!r} is still loading", {"Retry-After": str(LOADING_RETRY_S)})
         raise HTTPException(404, f"unknown scene {scene_id!r}")
     return scene
 

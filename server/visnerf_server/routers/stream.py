@@ -9,7 +9,9 @@ Protocol (the browser client is written against exactly this):
 - an invalid message gets ``{"type": "error", "seq": n or null, "status": 422 or 404, "detail"}``
   and the connection stays open. When the server is overloaded the status is 503 (with
   ``"retry_after"`` in seconds) or 504 (the render ran past the time limit).
-- unknown scene at connect: the error with status 404, then close code 4404.
+- unknown scene at connect: the error with status 404, then close code 4404. A scene whose file is
+  there but not loaded yet (server start-up): status 503 with ``"retry_after"``, then close code 1013
+  (try again later).
 
 A receive task keeps only the newest valid message; the render loop takes it, so stale requests
 are dropped (``dropped`` counts them) and a slow renderer never builds a backlog.
@@ -30,6 +32,7 @@ from visnerf_server.frames import FrameJob, FrameRenderer, prepare_frame
 from visnerf_server.metrics import Metrics
 from visnerf_server.registry import SceneRegistry
 from visnerf_server.render_queue import QueueFullError, RenderTimeoutError
+from visnerf_server.routers.scenes import LOADING_RETRY_S
 from visnerf_server.schemas import StreamRequest
 
 logger = logging.getLogger(__name__)
@@ -37,6 +40,7 @@ logger = logging.getLogger(__name__)
 router = APIRouter(tags=["stream"])
 
 CLOSE_UNKNOWN_SCENE = 4404
+CLOSE_TRY_AGAIN_LATER = 1013
 MAX_MESSAGE_CHARS = 64 * 1024
 QUEUE_RETRY_S = 0.02
 
@@ -219,10 +223,16 @@ async def stream(
 ) -> None:
     await websocket.accept()
     if registry.get(scene_id) is None:
-        error = {"type": "error", "seq": None, "status": 404, "detail": f"unknown scene {scene_id!r}"}
+        if registry.pending(scene_id):
+            error = {"type": "error", "seq": None, "status": 503, "retry_after": LOADING_RETRY_S,
+                     "detail": f"scene {scene_id!r} is still loading"}
+            code = CLOSE_TRY_AGAIN_LATER
+        else:
+            error = {"type": "error", "seq": None, "status": 404, "detail": f"unknown scene {scene_id!r}"}
+            code = CLOSE_UNKNOWN_SCENE
         with contextlib.suppress(RuntimeError, WebSocketDisconnect):
             await websocket.send_text(json.dumps(error))
-        await _close(websocket, CLOSE_UNKNOWN_SCENE)
+        await _close(websocket, code)
         return
     session = StreamSession(
         websocket, scene_id, registry, frames, metrics, settings.max_image_size, settings.retry_after_s
