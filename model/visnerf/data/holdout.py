@@ -2,6 +2,7 @@
 
 import torch
 
+from visnerf.checkpoint import ParamAxis
 from visnerf.config import HoldoutConfig
 from visnerf.data.scene import SceneData, axes_from_values
 
@@ -30,7 +31,18 @@ def split_holdout(scene: SceneData, holdout: HoldoutConfig, atol: float = 1e-6) 
     keep, axes = axes_from_values(names, train.params.double().numpy())
     if len(keep) != len(names):
         raise ValueError("the hold-out leaves a parameter axis with a single training value")
+    axes = tuple(_exact_values(a, full) for a, full in zip(axes, scene.param_axes, strict=True))
     train = SceneData(**{**train.__dict__, "param_axes": axes})
     val = scene.subset(held.nonzero()[:, 0])
     val = SceneData(**{**val.__dict__, "param_axes": axes})
     return train, val
+
+
+def _exact_values(axis: ParamAxis, full: ParamAxis) -> ParamAxis:
+    """``axis`` (read back from float32 parameters) with each value replaced by the dataset's exact
+    value it came from, so 0.2 stays 0.2 and not 0.20000000298 in checkpoints and the API."""
+    def exact(v: float) -> float:
+        return min(full.values, key=lambda u: abs(u - v))
+
+    values = tuple(exact(v) for v in axis.values)
+    return ParamAxis(axis.name, values[0], values[-1], values, exact(axis.default))
