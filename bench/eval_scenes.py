@@ -1,0 +1,233 @@
+"""Train and evaluate every synthetic scene under a fixed wall-clock budget; tabulate error and time.
+
+For each scene of ``visnerf scenes``: generate the dataset at ``--res`` (the full protocol: 42
+icosphere views per parameter setting, a 181-view test path between training values), train under
+``--minutes-per-scene`` with views 3, 11 and 25 held out for validation, evaluate the checkpoint on
+the test path as ``visnerf eval`` does (per-scene report in RESULTS/eval_scenes/NAME/), and write one
+table (scene, K, PSNR, SSIM, training minutes, ms per frame, model MB) next to the paper's figures
+where the paper has a corresponding row.
+
+    python bench/eval_scenes.py                                   # all scenes, 10 min each, 128x128
+    python bench/eval_scenes.py --scenes tangle_static --minutes-per-scene 0.5 --res 32 --test-views 8
+
+A full run (every scene at 128x128) writes bench/results/eval_scenes.{json,md} and its table into the
+README; any other run writes eval_scenes.partial.{json,md} and leaves the README alone.
+"""
+
+import argparse
+import json
+import os
+import platform
+import re
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+from visnerf.commands import pick_device
+from visnerf.config import HoldoutConfig, TrainConfig
+from visnerf.data.holdout import split_holdout
+from visnerf.data.parsers.blender import load_dataset
+from visnerf.evaluation.evaluate import EvalConfig, evaluate_checkpoint
+from visnerf.evaluation.plots import plot_training_curves
+from visnerf.evaluation.report import write_report
+from visnerf.evaluation.sweeps import SweepConfig
+from visnerf.evaluation.training_curves import read_training_log
+from visnerf.scenes.catalog import SceneSpec, scene_catalog
+from visnerf.scenes.writer import DatasetOptions, write_scene
+from visnerf.training.trainer import Trainer
+
+ROOT = Path(__file__).resolve().parents[1]
+HOLDOUT_VIEWS = (3, 11, 25)
+README_BEGIN, README_END = "<!-- eval_scenes:begin -->", "<!-- eval_scenes:end -->"
+
+# The paper's figures at hand (../shared/DESIGN.md and ../shared/data/nyx/README.md): Nyx-DVR only.
+PAPER_ROWS = {
+    "cosmo_sim": {
+        "dataset": "Nyx-DVR (3 simulation parameters, 1890 images 256x256, V100 GPU)",
+        "K": 3, "psnr": 30.02, "ssim": 0.978, "lpips": 0.018, "train_minutes": 1.66 * 60,
+        "ms_per_frame": 540.0, "model_mb": 12.79,
+        "note": "analogue, not the same data: a toy cosmic web at 128x128 on this machine's CPU against "
+                "the Nyx simulation at 256x256 on a V100",
+    },
+}  # fmt: skip
+NO_PAPER_ROW = "no counterpart: the paper's figures at hand (../shared) give only Nyx-DVR"
+
+
+def machine(device: torch.device) -> dict:
+    return {
+        "platform": f"{platform.machine()} {platform.system()}",
+        "cpu_cores": os.cpu_count(),
+        "device": str(device),
+        "torch": torch.__version__,
+        "torch_threads": torch.get_num_threads(),
+        "python": platform.python_version(),
+    }
+
+
+def dataset_for(spec: SceneSpec, root: Path, options: DatasetOptions, workers: int) -> tuple[Path, float]:
+    """The scene's dataset (reused when one with the same size is there) and the seconds spent making it."""
+    folder = root / f"{spec.name}_{options.resolution}"
+    try:
+        test = json.loads((folder / "transforms_test.json").read_text())
+        train = json.loads((folder / "transforms_train.json").read_text())
+        if (test["generator"]["resolution"][0] == options.resolution and len(test["frames"]) == options.n_test_views
+                and train["generator"]["views_per_setting"] == options.n_views):
+            return folder, 0.0
+    except (OSError, KeyError, IndexError, json.JSONDecodeError):
+        pass
+    summary = write_scene(spec, folder, options, progress=False, workers=workers)
+    return folder, summary.seconds
+
+
+def train_scene(data: Path, ckpt: Path, minutes: float, device: torch.device) -> float:
+    """Train under the budget; returns the training seconds (carving included, validation excluded)."""
+    train, val = split_holdout(load_dataset(data, "train"), HoldoutConfig(views=HOLDOUT_VIEWS))
+    budget = 60.0 * minutes
+    cfg = TrainConfig(time_budget_s=budget, validate_every_s=max(budget / 6.0, 5.0))
+    trainer = Trainer(train, val, cfg, device)
+    trainer.run(progress_bar=False)
+    trainer.save(ckpt, dataset=str(data))
+    return trainer.state.train_seconds
+
+
+def scene_row(spec: SceneSpec, summary: dict, train_seconds: float, gen_seconds: float) -> dict:
+    m, groups = summary["metrics"], summary["parameter_space"]["groups"]
+    return {
+        "scene": spec.name, "kind": spec.kind, "K": len(spec.axes), "frames": m["n"],
+        "psnr": m["psnr"], "ssim": m["ssim"], "lpips": m["lpips"], "train_minutes": train_seconds / 60.0,
+        "ms_per_frame": m["ms_median"], "model_mb": summary["model_mb"],
+        "psnr_between_training_values": groups["between_training_values"]["psnr"],
+        "generation_seconds": gen_seconds, "paper": PAPER_ROWS.get(spec.name),
+    }  # fmt: skip
+
+
+def _f(value: object, digits: int) -> str:
+    return f"{value:.{digits}f}" if isinstance(value, float) else ("n/a" if value is None else str(value))
+
+
+def table_lines(record: dict) -> list[str]:
+    """The results table, each scene followed by the paper's row where there is one."""
+    lines = [
+        "| scene | K | PSNR (dB) | SSIM | train minutes | ms per frame | model MB | paper |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for r in record["scenes"]:
+        paper = r["paper"]
+        lines.append(f"| {r['scene']} | {r['K']} | {_f(r['psnr'], 2)} | {_f(r['ssim'], 3)} | "
+                     f"{_f(r['train_minutes'], 1)} | {_f(r['ms_per_frame'], 0)} | {_f(r['model_mb'], 2)} | "
+                     f"{'see next row' if paper else NO_PAPER_ROW} |")
+        if paper:
+            lines.append(f"| paper: {paper['dataset']} | {paper['K']} | {paper['psnr']:.2f} | {paper['ssim']:.3f} | "
+                         f"{paper['train_minutes']:.0f} | {paper['ms_per_frame']:.0f} | {paper['model_mb']:.2f} | "
+                         f"{paper['note']} |")
+    return lines
+
+
+def write_markdown(path: Path, record: dict) -> None:
+    m = record["machine"]
+    lines = [
+        "# Synthetic scenes: error against training and rendering time",
+        "",
+        f"`{record['command']}` on {m['platform']}, {m['cpu_cores']} CPU cores, device {m['device']}, "
+        f"torch {m['torch']} with {m['torch_threads']} thread(s), {record['date']}.",
+        "",
+        f"Each scene: dataset at {record['resolution']}x{record['resolution']} ({record['views']} views per "
+        f"parameter setting), training for {record['minutes_per_scene']:g} minute(s) of wall-clock time with views "
+        f"{', '.join(map(str, HOLDOUT_VIEWS))} held out, then `visnerf eval` on {record['test_views']} test views "
+        "(parameters between training values). PSNR and SSIM are means over the evaluated test frames, "
+        "ms per frame the median full-quality render time.",
+        "",
+        *table_lines(record),
+        "",
+        "Per-scene reports (per-frame error, CIELUV difference images, render-settings sweep, training "
+        f"curve): `{record['reports']}/NAME/report.md`. Training curves of all scenes: "
+        f"`{record['training_figure']}`.",
+        "",
+    ]
+    path.write_text("\n".join(lines))
+
+
+def update_readme(readme: Path, record: dict) -> None:
+    """Replace (or add, before "## Layout") the README's evaluation section."""
+    section = "\n".join([
+        README_BEGIN, "## Evaluation of the synthetic scenes", "",
+        f"`python bench/eval_scenes.py` ({record['minutes_per_scene']:g} min of training per scene, "
+        f"{record['resolution']}x{record['resolution']}, {record['machine']['device']}; "
+        "details in bench/results/eval_scenes.md):", "", *table_lines(record), README_END,
+    ])  # fmt: skip
+    text = readme.read_text()
+    pattern = re.compile(re.escape(README_BEGIN) + ".*?" + re.escape(README_END), re.S)
+    if pattern.search(text):
+        text = pattern.sub(lambda _: section, text)
+    elif "\n## Layout" in text:
+        text = text.replace("\n## Layout", f"\n{section}\n\n## Layout", 1)
+    else:
+        text = text.rstrip("\n") + f"\n\n{section}\n"
+    readme.write_text(text)
+
+
+def main(argv: list[str] | None = None) -> int:
+    catalog = scene_catalog()
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--scenes", nargs="+", default=list(catalog), choices=list(catalog), metavar="NAME")
+    parser.add_argument("--minutes-per-scene", type=float, default=10.0, help="training budget (default 10)")
+    parser.add_argument("--res", type=int, default=128, help="image size (default 128)")
+    parser.add_argument("--test-views", type=int, default=181, help="views on the test path (default 181)")
+    parser.add_argument("--max-eval-frames", type=int, default=None, help="evaluate only N test frames")
+    parser.add_argument("--sweep-frames", type=int, default=4, help="frames per render setting (default 4)")
+    parser.add_argument("--data-root", type=Path, help="datasets (reused when present; default: temporary)")
+    parser.add_argument("--work-dir", type=Path, help="checkpoints and logs (default: temporary)")
+    parser.add_argument("--results", type=Path, default=ROOT / "bench" / "results", help="results folder")
+    parser.add_argument("--workers", type=int, default=2, help="scene generation processes (default 2)")
+    parser.add_argument("--device", default="auto")
+    args = parser.parse_args(argv)
+    if args.minutes_per_scene <= 0 or args.res < 8 or args.test_views < 2:
+        parser.error("--minutes-per-scene must be positive, --res at least 8, --test-views at least 2")
+    device = pick_device(args.device)
+    full_run = args.res == 128 and args.scenes == list(catalog) and args.test_views == 181 and not args.max_eval_frames
+    stem = "eval_scenes" if full_run else "eval_scenes.partial"  # a partial run never replaces the record
+    temporary = Path(tempfile.mkdtemp(prefix="visnerf_eval_scenes_"))
+    data_root, work = args.data_root or temporary / "data", args.work_dir or temporary / "runs"
+    reports = args.results / stem
+    options = DatasetOptions(resolution=args.res, n_test_views=args.test_views)
+    eval_cfg = EvalConfig(split="test", max_frames=args.max_eval_frames, sweep=SweepConfig(n_frames=args.sweep_frames))
+    record = {
+        "command": "python bench/eval_scenes.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+        "date": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()), "machine": machine(device),
+        "resolution": args.res, "views": options.n_views, "test_views": args.test_views,
+        "minutes_per_scene": args.minutes_per_scene, "reports": str(reports.relative_to(ROOT))
+        if reports.is_relative_to(ROOT) else str(reports), "scenes": [],
+    }  # fmt: skip
+    runs = []
+    try:
+        for name in args.scenes:
+            spec = catalog[name]
+            data, gen_seconds = dataset_for(spec, data_root, options, args.workers)
+            ckpt = work / f"{name}.safetensors"
+            print(f"{name}: training {args.minutes_per_scene:g} min on {data}", file=sys.stderr)
+            train_seconds = train_scene(data, ckpt, args.minutes_per_scene, device)
+            summary = write_report(evaluate_checkpoint(ckpt, data, eval_cfg, device), eval_cfg, reports / name)
+            record["scenes"].append(scene_row(spec, summary, train_seconds, gen_seconds))
+            runs.append(read_training_log(ckpt.with_suffix(".log.csv"), name=name))
+            print(f"{name}: PSNR {_f(summary['metrics']['psnr'], 2)} dB, SSIM {_f(summary['metrics']['ssim'], 3)}",
+                  file=sys.stderr)
+    finally:
+        shutil.rmtree(temporary, ignore_errors=True)
+    figure = args.results / f"{stem}_training.png"
+    plot_training_curves(figure, runs)
+    record["training_figure"] = str(figure.relative_to(ROOT)) if figure.is_relative_to(ROOT) else str(figure)
+    args.results.mkdir(parents=True, exist_ok=True)
+    (args.results / f"{stem}.json").write_text(json.dumps(record, indent=2, allow_nan=False) + "\n")
+    write_markdown(args.results / f"{stem}.md", record)
+    if full_run:
+        update_readme(ROOT / "README.md", record)
+    print(f"results -> {args.results / stem}.json and .md", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
