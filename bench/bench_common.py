@@ -1,0 +1,101 @@
+"""Helpers shared by bench/render_speed.py and bench/train_speed.py (not a benchmark itself).
+
+Evaluation frames of a dataset, the machine record, JSON without NaN/inf, and a figure writer.
+"""
+
+import json
+import math
+import os
+import platform
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from matplotlib.backends.backend_agg import FigureCanvasAgg
+from matplotlib.figure import Figure
+from nyx_train import HOLDOUT_SETTINGS, HOLDOUT_VIEWS
+
+from visnerf.config import HoldoutConfig
+from visnerf.data.holdout import split_holdout
+from visnerf.data.parsers.blender import load_dataset
+from visnerf.data.scene import SceneData
+
+ROOT = Path(__file__).resolve().parents[1]
+RESULTS = ROOT / "bench" / "results"
+
+
+def holdout_for(scene: SceneData) -> HoldoutConfig:
+    """The hold-out of bench/nyx_train.py and scripts/train_bundled.sh: views 5, 17, 29 and 40 at
+    every setting, plus nyx_train's four whole parameter settings where the dataset has that many
+    parameters (a setting that matches no frame holds nothing out)."""
+    settings = tuple(s for s in HOLDOUT_SETTINGS if len(s) == scene.n_params)
+    return HoldoutConfig(views=HOLDOUT_VIEWS, settings=settings)
+
+
+def held_out_frames(folder: Path) -> tuple[SceneData, str]:
+    """Frames the models were not trained on, and where they came from.
+
+    ``transforms_test.json`` if the dataset has one, else ``transforms_val.json``, else the
+    training split's hold-out (``holdout_for``).
+    """
+    for split in ("test", "val"):
+        if (folder / f"transforms_{split}.json").is_file():
+            return load_dataset(folder, split), f"transforms_{split}.json"
+    scene = load_dataset(folder, "train")
+    holdout = holdout_for(scene)
+    _, val = split_holdout(scene, holdout)
+    if val is None:
+        raise ValueError(f"{folder}: the hold-out {holdout} matches no training frame")
+    return val, f"transforms_train.json held out (views {holdout.views}, {len(holdout.settings)} settings)"
+
+
+def evenly_spaced(n_frames: int, count: int) -> list[int]:
+    """``count`` frame indices spread evenly over ``n_frames`` (fewer if there are fewer frames)."""
+    return np.unique(np.linspace(0, n_frames - 1, min(count, n_frames)).round().astype(int)).tolist()
+
+
+def load_average() -> float:
+    return round(os.getloadavg()[0], 2)
+
+
+def machine_record() -> dict[str, Any]:
+    return {
+        "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPU cores, "
+                   f"{'CUDA' if torch.cuda.is_available() else 'no GPU'}",
+        "torch": torch.__version__,
+        "torch_threads": torch.get_num_threads(),
+        "date": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()),
+    }
+
+
+def finite_or_none(value: Any) -> Any:
+    """``value`` with every non-finite float replaced by None, recursively (strict JSON)."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: finite_or_none(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [finite_or_none(v) for v in value]
+    return value
+
+
+def write_json(path: Path, data: dict[str, Any]) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(finite_or_none(data), indent=1, allow_nan=False) + "\n")
+
+
+def save_figure(fig: Figure, path: Path, dpi: int = 110) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    FigureCanvasAgg(fig)
+    fig.savefig(path, dpi=dpi)
+
+
+def fmt(value: float | None, digits: int = 1) -> str:
+    """A number for a Markdown table; a dash for a missing one."""
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "-"
+    if math.isinf(value):
+        return "identical" if value > 0 else "-inf"
+    return f"{value:.{digits}f}"
