@@ -125,6 +125,9 @@ class TrainConfig:
     """Progress fractions at which planes and lines are upsampled (log-spaced resolutions)."""
     occupancy_at: tuple[float, ...] = (0.067, 0.133)
     """Progress fractions at which the occupancy mask is rebuilt (the first also shrinks the box)."""
+    occupancy_min_iterations: int = 300
+    """Occupancy milestones wait for at least this many iterations (a time budget on a busy machine
+    would otherwise reach them before the density has formed)."""
     occupancy_resolution: int = 96
     """Cells per axis of the occupancy grid (at most)."""
     occupancy_max_settings: int = 64

@@ -203,8 +203,14 @@ class Trainer:
             self._rebuild_optimizer()
             if self.field.occupancy is None and self.carved is not None:
                 self.field.set_occupancy(self._carved_on(self._occupancy_resolution()))
-        while self.state.occupancy_done < len(self.cfg.occupancy_at) and p >= self.cfg.occupancy_at[self.state.occupancy_done]:
-            self.update_occupancy(shrink=self.state.occupancy_done == 0)
+        while (self.state.occupancy_done < len(self.cfg.occupancy_at)
+               and p >= self.cfg.occupancy_at[self.state.occupancy_done]
+               and self.state.iteration >= self.cfg.occupancy_min_iterations):
+            # The carve bounds the box from the images, which cannot lose content; bounds from a
+            # young density field can (seen: a time-budgeted run slowed by other jobs shrank the box
+            # to a slab before the surfaces had formed and never recovered), so with a carve the
+            # box is not shrunk again.
+            self.update_occupancy(shrink=self.state.occupancy_done == 0 and self.carved is None)
             self.state.occupancy_done += 1
 
     def _weights(self) -> RegularizerWeights:

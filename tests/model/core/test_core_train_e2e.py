@@ -23,7 +23,7 @@ def test_tiny_scene_trains_and_generalises_to_unseen_views(tmp_path):
     scene = load_dataset(data)
     train, val = split_holdout(scene, HoldoutConfig(views=(3, 11, 25)))
     cfg = TrainConfig(iterations=300, batch_rays=1024, resolution_init=24, resolution_final=40,
-                      upsample_at=(0.3, 0.5), occupancy_at=(0.25, 0.6), importance_from=2.0,
+                      upsample_at=(0.3, 0.5), occupancy_at=(0.25, 0.6), occupancy_min_iterations=50, importance_from=2.0,
                       l1_switch_iteration=150, validate_every_s=1e9, validate_max_images=6)
     trainer = Trainer(train, val, cfg, torch.device("cpu"))
     log = trainer.run(progress_bar=False)
