@@ -1,7 +1,7 @@
 """Browser tests of the web client: the real server in a subprocess, driven by headless Chromium.
 
-The session server loads two tiny random checkpoints (``tiny``: time x isovalue, DVR; ``iso``: one
-isovalue axis, IR). Each test gets a fresh page and leaves a screenshot in ``tests/_artifacts/``.
+The session server loads copies of the bundled checkpoints (``vortex_tf1``: DVR with two opacity
+axes; ``tangle_iso``: IR with one isovalue axis), as a user's server would. Each test gets a fresh page and leaves a screenshot in ``tests/_artifacts/``.
 Skipped when Playwright or a Chromium binary is missing (``VISNERF_CHROMIUM`` overrides the path).
 """
 
@@ -31,8 +31,7 @@ CHROMIUM_ARGS = [
     "--no-first-run",
 ]
 VIEWPORT = {"width": 1280, "height": 800}
-TINY_AXES = [("time", [0.0, 0.5, 1.0]), ("isovalue", [0.2, 0.8])]
-ISO_AXES = [("isovalue", [0.1, 0.3, 0.5, 0.7])]
+BUNDLED = ("vortex_tf1", "tangle_iso")
 READY_TIMEOUT_S = 60.0
 
 
@@ -89,11 +88,13 @@ def start_server(checkpoints: Path, name: str, port: int | None = None) -> Serve
 
 @pytest.fixture(scope="session")
 def checkpoints_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    from visnerf.testing import make_tiny_checkpoint
-
+    """Copies of the bundled checkpoints (tests may upload or delete; the repository's stay as they are)."""
     directory = tmp_path_factory.mktemp("checkpoints")
-    make_tiny_checkpoint(directory / "tiny.safetensors", param_axes=TINY_AXES, kind="dvr", title="Tiny")
-    make_tiny_checkpoint(directory / "iso.safetensors", param_axes=ISO_AXES, kind="ir", title="Iso", seed=1)
+    for name in BUNDLED:
+        source = REPO / "checkpoints" / f"{name}.safetensors"
+        if not source.is_file():
+            raise FileNotFoundError(f"bundled checkpoint {source} is missing (scripts/train_bundled.sh makes it)")
+        shutil.copy2(source, directory / source.name)
     return directory
 
 

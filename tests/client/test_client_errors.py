@@ -14,7 +14,7 @@ STREAM = re.compile(r".*/api/scenes/[^/]+/stream$")
 def test_stopped_server_shows_unreachable_then_recovers(page, extra_server):
     (ARTIFACTS / "server-stop.log").unlink(missing_ok=True)
     server = extra_server("stop")
-    page.goto(server.base_url + "/?scene=tiny&res=128")
+    page.goto(server.base_url + "/?scene=vortex_tf1&res=128")
     wait_for_full_frame(page)
     assert page.locator("#alert").is_hidden()
     server.stop()
@@ -60,7 +60,7 @@ def test_busy_server_is_retried_after_the_delay(page, base_url):
         ws.on_message(from_page)
 
     page.route_web_socket(STREAM, handler)
-    page.goto(base_url + "/?scene=tiny&res=128")
+    page.goto(base_url + "/?scene=vortex_tf1&res=128")
     page.wait_for_function("/busy/i.test(document.querySelector('#alert').textContent)")
     assert "retry" in page.inner_text("#alert").lower()
     wait_for_full_frame(page)
@@ -74,7 +74,7 @@ def test_scene_removed_while_streaming(page, base_url):
     calls = {"scene": 0}
 
     def stream(ws):
-        ws.send(json.dumps({"type": "error", "seq": None, "status": 404, "detail": "unknown scene 'tiny'"}))
+        ws.send(json.dumps({"type": "error", "seq": None, "status": 404, "detail": "unknown scene 'vortex_tf1'"}))
         ws.close(code=4404, reason="unknown scene")
 
     def scene(route):
@@ -82,13 +82,13 @@ def test_scene_removed_while_streaming(page, base_url):
         if calls["scene"] == 1:  # the page's first look succeeds; afterwards the scene is deleted
             route.continue_()
         else:
-            route.fulfill(status=404, json={"detail": "unknown scene 'tiny'"})
+            route.fulfill(status=404, json={"detail": "unknown scene 'vortex_tf1'"})
 
     page.route_web_socket(STREAM, stream)
-    page.route("**/api/scenes/tiny", scene)
-    page.goto(base_url + "/?scene=tiny&res=128")
+    page.route("**/api/scenes/vortex_tf1", scene)
+    page.goto(base_url + "/?scene=vortex_tf1&res=128")
     page.wait_for_function("/no longer available/i.test(document.querySelector('#alert').textContent)")
-    assert "tiny" in page.inner_text("#alert")
+    assert "vortex_tf1" in page.inner_text("#alert")
     assert calls["scene"] == 2
 
 
@@ -101,7 +101,7 @@ def test_unknown_scene_in_link_falls_back_with_a_warning(page, base_url):
 
 def test_refused_request_shows_the_servers_detail(page, base_url):
     """Saving at an impossible size: the 422 detail from the server is shown, in words."""
-    page.goto(base_url + "/?scene=tiny&res=128")
+    page.goto(base_url + "/?scene=vortex_tf1&res=128")
     wait_for_full_frame(page)
     page.fill("#export-width", "100000")
     page.fill("#export-height", "100000")
@@ -113,7 +113,7 @@ def test_refused_request_shows_the_servers_detail(page, base_url):
 
 
 def test_save_png_downloads_the_current_view(page, base_url):
-    page.goto(base_url + "/?scene=tiny&res=128")
+    page.goto(base_url + "/?scene=vortex_tf1&res=128")
     wait_for_full_frame(page)
     page.fill("#export-width", "96")
     page.fill("#export-height", "80")

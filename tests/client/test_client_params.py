@@ -9,8 +9,8 @@ ROW = '.param[data-set="A"][data-param="{}"]'
 
 
 def test_sliders_match_the_scene_axes(page, base_url):
-    scene = get_json(base_url + "/api/scenes/tiny")
-    page.goto(base_url + "/?scene=tiny&res=128")
+    scene = get_json(base_url + "/api/scenes/vortex_tf1")
+    page.goto(base_url + "/?scene=vortex_tf1&res=128")
     wait_for_full_frame(page)
     rows = page.locator('.param[data-set="A"]')
     assert rows.count() == len(scene["params"])
@@ -37,17 +37,17 @@ def test_sliders_match_the_scene_axes(page, base_url):
 
 
 def test_moving_a_slider_changes_the_picture(page, base_url):
-    page.goto(base_url + "/?scene=tiny&res=128")
+    page.goto(base_url + "/?scene=vortex_tf1&res=128")
     seq = wait_for_full_frame(page)
     before = canvas_pixels(page)
-    slider = page.locator(ROW.format("time") + " input[type=range]")
+    slider = page.locator(ROW.format("opacity_high") + " input[type=range]")
     slider.focus()
     for _ in range(6):
         page.keyboard.press("PageUp")  # a tenth of the range each
         page.wait_for_timeout(30)
     seq = wait_for_full_frame(page, seq)
-    page.wait_for_function("new URL(location.href).searchParams.get('time') !== null")
-    value = float(page.input_value(ROW.format("time") + " input[type=number]"))
+    page.wait_for_function("new URL(location.href).searchParams.get('opacity_high') !== null")
+    value = float(page.input_value(ROW.format("opacity_high") + " input[type=number]"))
     assert value > 0.5
     after = canvas_pixels(page)
     assert_changed(before, after)
@@ -61,37 +61,37 @@ def test_moving_a_slider_changes_the_picture(page, base_url):
         page.wait_for_timeout(25)
     page.mouse.up()
     wait_for_full_frame(page, seq)
-    assert float(page.input_value(ROW.format("time") + " input[type=number]")) < 0.2
+    assert float(page.input_value(ROW.format("opacity_high") + " input[type=number]")) < 0.2
     qualities = page.evaluate("window.__visnerfStats.frames.map(f => f.quality)")
     assert "preview" in qualities and qualities[-1] == "full"
 
 
 def test_typed_value_is_exact_and_kept_in_range(page, base_url):
-    page.goto(base_url + "/?scene=tiny&res=128")
+    page.goto(base_url + "/?scene=vortex_tf1&res=128")
     seq = wait_for_full_frame(page)
-    number = page.locator(ROW.format("isovalue") + " input[type=number]")
-    number.fill("0.4137")
+    number = page.locator(ROW.format("opacity_low") + " input[type=number]")
+    number.fill("0.1137")
     number.press("Enter")
     seq = wait_for_full_frame(page, seq)
-    page.wait_for_function("new URL(location.href).searchParams.get('isovalue') === '0.4137'")
+    page.wait_for_function("new URL(location.href).searchParams.get('opacity_low') === '0.1137'")
     number.fill("5")
     number.press("Enter")
-    assert number.input_value() == "0.8"  # clamped to the axis maximum
+    assert number.input_value() == "0.2"  # clamped to the axis maximum
     wait_for_full_frame(page, seq)
-    page.wait_for_function("new URL(location.href).searchParams.get('isovalue') === '0.8'")
-    assert page.locator(ROW.format("isovalue")).evaluate("r => r.classList.contains('at-training-value')")
+    page.wait_for_function("new URL(location.href).searchParams.get('opacity_low') === '0.2'")
+    assert page.locator(ROW.format("opacity_low")).evaluate("r => r.classList.contains('at-training-value')")
 
 
 def test_compare_shows_the_cieluv_difference(page, base_url):
-    page.goto(base_url + "/?scene=tiny&res=128")
+    page.goto(base_url + "/?scene=vortex_tf1&res=128")
     wait_for_full_frame(page)
     page.click("#pin-b")  # B = current parameters; comparison switches on
     assert page.locator("#pane-b").is_visible() and page.locator("#pane-diff").is_visible()
     wait_for_full_frame(page, selector="#canvas-b")
     page.wait_for_function("document.querySelector('#canvas-diff').dataset.max !== undefined")
     assert float(page.get_attribute("#canvas-diff", "data-max")) == 0.0, "A and B are equal: no difference"
-    # Move A's time to its maximum: the difference image lights up.
-    slider = page.locator(ROW.format("time") + " input[type=range]")
+    # Move A's opacity_high to its maximum: the difference image lights up.
+    slider = page.locator(ROW.format("opacity_high") + " input[type=range]")
     slider.focus()
     page.keyboard.press("End")
     page.wait_for_function(
@@ -115,4 +115,4 @@ def test_compare_shows_the_cieluv_difference(page, base_url):
     # B keeps its own sliders; the URL carries the comparison.
     assert page.locator('.param[data-set="B"]').count() == 2
     page.wait_for_function("new URL(location.href).searchParams.get('cmp') === '1'")
-    assert "b.time=" in page.url
+    assert "b.opacity_high=" in page.url

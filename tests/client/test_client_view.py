@@ -40,7 +40,7 @@ def test_page_loads_and_shows_a_frame(page, base_url):
 
 
 def test_drag_orbits_the_camera_and_changes_the_picture(page, base_url):
-    page.goto(base_url + "/?scene=tiny&res=128")
+    page.goto(base_url + "/?scene=vortex_tf1&res=128")
     seq = wait_for_full_frame(page)
     before = canvas_pixels(page)
     az0, el0, dist0 = camera_readout(page)
@@ -68,7 +68,7 @@ def test_drag_orbits_the_camera_and_changes_the_picture(page, base_url):
 
 
 def test_keyboard_orbits_zooms_and_resets(page, base_url):
-    page.goto(base_url + "/?scene=tiny&res=128")
+    page.goto(base_url + "/?scene=vortex_tf1&res=128")
     wait_for_full_frame(page)
     az0, el0, dist0 = camera_readout(page)
     page.focus("#viewport")
@@ -91,9 +91,9 @@ def test_keyboard_orbits_zooms_and_resets(page, base_url):
 
 
 def test_wheel_zoom_is_clamped(page, base_url):
-    page.goto(base_url + "/?scene=tiny&res=128")
+    page.goto(base_url + "/?scene=vortex_tf1&res=128")
     wait_for_full_frame(page)
-    default = get_json(base_url + "/api/scenes/tiny")["camera"]["distance"]
+    default = get_json(base_url + "/api/scenes/vortex_tf1")["camera"]["distance"]
     page.hover("#viewport")
     for _ in range(4):
         page.mouse.wheel(0, 1000)
@@ -107,47 +107,47 @@ def test_wheel_zoom_is_clamped(page, base_url):
 
 def test_url_state_restores_the_view(page, base_url):
     state = {
-        "scene": "tiny",
+        "scene": "vortex_tf1",
         "az": "-120",
         "el": "45",
         "dist": "3",
-        "time": "0.25",
-        "isovalue": "0.7",
+        "opacity_high": "0.25",
+        "opacity_low": "0.07",
         "res": "128",
     }
     page.goto(base_url + "/?" + urlencode(state))
     wait_for_full_frame(page)
     assert camera_readout(page) == (-120.0, 45.0, 3.0)
-    assert page.input_value('.param[data-set="A"][data-param="time"] input[type=number]') == "0.25"
-    assert page.input_value('.param[data-set="A"][data-param="isovalue"] input[type=number]') == "0.7"
-    assert page.input_value("#scene-select") == "tiny"
+    assert page.input_value('.param[data-set="A"][data-param="opacity_high"] input[type=number]') == "0.25"
+    assert page.input_value('.param[data-set="A"][data-param="opacity_low"] input[type=number]') == "0.07"
+    assert page.input_value("#scene-select") == "vortex_tf1"
     # The frame on screen is what the server renders for that state.
-    scene = get_json(base_url + "/api/scenes/tiny")
+    scene = get_json(base_url + "/api/scenes/vortex_tf1")
     query = {
         "azimuth": -120, "elevation": 45, "distance": 3, "fov_deg": scene["camera"]["fov_deg"],
-        "width": 128, "height": 128, "quality": "full", "format": "png", "time": 0.25, "isovalue": 0.7,
+        "width": 128, "height": 128, "quality": "full", "format": "png", "opacity_high": 0.25, "opacity_low": 0.07,
     }  # fmt: skip
-    expected = decode_png(get_bytes(f"{base_url}/api/scenes/tiny/render?{urlencode(query)}"))
+    expected = decode_png(get_bytes(f"{base_url}/api/scenes/vortex_tf1/render?{urlencode(query)}"))
     shown = canvas_pixels(page)
     assert shown.shape == expected.shape
     assert np.abs(shown.astype(int) - expected.astype(int)).max() <= 2
     # Out-of-range values in a shared link are clamped into the ranges, not sent to the server.
-    page.goto(base_url + "/?scene=tiny&res=128&az=270&el=120&time=7&isovalue=-1")
+    page.goto(base_url + "/?scene=vortex_tf1&res=128&az=270&el=120&opacity_high=7&opacity_low=-1")
     wait_for_full_frame(page)
     az, el, _ = camera_readout(page)
     assert (az, el) == (-90.0, 89.9)
-    assert page.input_value('.param[data-set="A"][data-param="time"] input[type=number]') == "1"
-    assert page.input_value('.param[data-set="A"][data-param="isovalue"] input[type=number]') == "0.2"
-    page.wait_for_function("new URL(location.href).searchParams.get('time') === '1'")
+    assert page.input_value('.param[data-set="A"][data-param="opacity_high"] input[type=number]') == "0.8"
+    assert page.input_value('.param[data-set="A"][data-param="opacity_low"] input[type=number]') == "0.02"
+    page.wait_for_function("new URL(location.href).searchParams.get('opacity_high') === '0.8'")
     assert parse_qs(urlparse(page.url).query)["el"] == ["89.9"]
 
 
 def test_scene_picker_shows_only_that_scenes_controls(page, base_url):
-    page.goto(base_url + "/?scene=tiny&res=128")
+    page.goto(base_url + "/?scene=vortex_tf1&res=128")
     wait_for_full_frame(page)
     assert page.locator('.param[data-set="A"]').count() == 2
-    page.select_option("#scene-select", "iso")
-    page.wait_for_function("new URL(location.href).searchParams.get('scene') === 'iso'")
+    page.select_option("#scene-select", "tangle_iso")
+    page.wait_for_function("new URL(location.href).searchParams.get('scene') === 'tangle_iso'")
     wait_for_full_frame(page)
     names = page.locator('.param[data-set="A"]').evaluate_all("rows => rows.map(r => r.dataset.param)")
     assert names == ["isovalue"]
