@@ -106,8 +106,11 @@ class TrainConfig:
     batch_rays: int = 4096
     """Rays per iteration."""
     micro_batch_rays: int = 1024
-    """Rays rendered and back-propagated together within an iteration (bounds activation memory;
-    the step is the same for any value)."""
+    """Most rays rendered and back-propagated together within an iteration (bounds activation
+    memory; the step is the same for any value)."""
+    micro_batch_samples: int = 131072
+    """Most samples (along the rays' spans through the box) per micro-batch: keeps activation memory
+    flat as the grid, and with it the number of samples per ray, grows."""
     trim_every: int = 25
     """Iterations between returns of freed heap memory to the system (bounds resident memory)."""
     lr_factors: float = 0.02

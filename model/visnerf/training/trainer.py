@@ -16,6 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from jaxtyping import Float
 from torch import Tensor
 from tqdm import tqdm
 
@@ -26,6 +27,7 @@ from visnerf.data.parsers.blender import estimate_bbox
 from visnerf.data.ray_batches import RayBatchSampler
 from visnerf.data.scene import SceneData
 from visnerf.evaluation.metrics import mse_to_psnr, psnr, ssim
+from visnerf.rendering.aabb import intersect_aabb
 from visnerf.rendering.occupancy import (
     build_occupancy,
     cell_centres,
@@ -223,7 +225,8 @@ class Trainer:
 
         The photometric loss is a mean over the whole batch, so each chunk's squared error is
         divided by the batch size and its gradient accumulated: the step is the same as one pass
-        over the batch, with activation memory bounded by ``micro_batch_rays``.
+        over the batch, with activation memory bounded by ``micro_batch_rays`` rays and about
+        ``micro_batch_samples`` samples per chunk (see ``micro_batches``).
         """
         cfg = self.cfg
         scale = cfg.lr_decay_ratio ** min(1.0, self.progress())
@@ -244,9 +247,8 @@ class Trainer:
         self.optimizer.zero_grad(set_to_none=True)
         sq_error = 0.0
         samples = 0
-        chunk = max(1, cfg.micro_batch_rays)
-        for lo in range(0, n, chunk):
-            sl = slice(lo, min(n, lo + chunk))
+        for sl in micro_batches(self.field, batch.rays_o, batch.rays_d, self.step_size(),
+                                cfg.micro_batch_rays, cfg.micro_batch_samples):
             out = render_rays(self.field, batch.rays_o[sl], batch.rays_d[sl], batch.params[sl], bg[sl],
                               self.step_size(), self.render_cfg.max_samples, self.field.occupancy,
                               self.render_cfg.weight_threshold, self.generator, importance)
@@ -336,6 +338,35 @@ class Trainer:
         save_checkpoint(self.field, meta, path)
         write_log(self.state.log, path.with_suffix(".log.csv"))
         return path
+
+
+def micro_batches(
+    field_: VisNerfField,
+    rays_o: Float[Tensor, "n 3"],
+    rays_d: Float[Tensor, "n 3"],
+    step: float,
+    max_rays: int,
+    max_samples: int,
+) -> list[slice]:
+    """Consecutive slices of the batch with at most ``max_rays`` rays and, where a single ray does
+    not exceed it alone, at most ``max_samples`` samples along the rays' spans through the box.
+
+    Samples per ray grow with the grid resolution (the step is half a voxel), so a fixed number of
+    rays per chunk would let activation memory grow with every upsampling; a sample budget keeps it
+    flat.
+    """
+    t_near, t_far, hit = intersect_aabb(rays_o, rays_d, field_.aabb)
+    per_ray = torch.where(hit, ((t_far - t_near).clamp_min(0.0) / step).ceil(), torch.zeros_like(t_far))
+    counts = per_ray.long().tolist()
+    slices, start, total = [], 0, 0
+    for i, c in enumerate(counts):
+        if i > start and (i - start >= max_rays or total + c > max_samples):
+            slices.append(slice(start, i))
+            start, total = i, 0
+        total += c
+    if start < len(counts):
+        slices.append(slice(start, len(counts)))
+    return slices
 
 
 def set_mixed_precision(field_: VisNerfField, enabled: bool) -> bool:

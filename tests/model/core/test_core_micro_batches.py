@@ -1,0 +1,74 @@
+"""A training step split into micro-batches is the same step as one pass over the batch."""
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+import visnerf.training.trainer as trainer_module
+from visnerf.config import TrainConfig
+from visnerf.data.cameras import Intrinsics, orbit_c2w
+from visnerf.data.scene import SceneData, axes_from_values
+from visnerf.training.trainer import Trainer, micro_batches
+
+
+def _scene() -> SceneData:
+    g = torch.Generator().manual_seed(0)
+    n = 6
+    values = np.array([[0.0], [1.0]] * 3)
+    _, axes = axes_from_values(["t"], values)
+    c2w = torch.stack([torch.from_numpy(orbit_c2w(60.0 * i, 20.0, 2.0)).float() for i in range(n)])
+    return SceneData(
+        images=torch.randint(0, 256, (n, 16, 16, 3), generator=g, dtype=torch.uint8),
+        c2w=c2w,
+        intrinsics=Intrinsics.from_fov(16, 16, math.radians(40.0)),
+        params=torch.from_numpy(values).float(),
+        param_axes=axes,
+        view_ids=torch.arange(n),
+        bbox=torch.tensor([[-0.5, -0.5, -0.5], [0.5, 0.5, 0.5]]),
+    )
+
+
+def _gradients(micro_rays: int, micro_samples: int, monkeypatch: pytest.MonkeyPatch) -> dict[str, torch.Tensor]:
+    original = trainer_module.render_rays
+
+    def deterministic(*args, **kwargs):  # midpoint samples, so every split sees the same positions
+        args = list(args)
+        args[9] = None  # generator
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(trainer_module, "render_rays", deterministic)
+    cfg = TrainConfig(iterations=1, batch_rays=256, resolution_init=12, resolution_final=12, carve=False,
+                      mixed_precision=False, micro_batch_rays=micro_rays, micro_batch_samples=micro_samples)
+    trainer = Trainer(_scene(), None, cfg, torch.device("cpu"))
+    trainer.optimizer.step = lambda: None  # keep the gradients, change nothing
+    trainer.train_step()
+    return {name: p.grad.clone() for name, p in trainer.field.named_parameters() if p.grad is not None}
+
+
+def test_micro_batched_gradients_equal_the_whole_batch(monkeypatch: pytest.MonkeyPatch) -> None:
+    whole = _gradients(10_000, 10**9, monkeypatch)
+    split = _gradients(37, 2_000, monkeypatch)
+    assert whole.keys() == split.keys() and len(whole) > 0
+    for name in whole:
+        assert torch.allclose(whole[name], split[name], rtol=1e-4, atol=1e-7), name
+
+
+def test_micro_batches_cover_the_batch_within_both_budgets() -> None:
+    scene = _scene()
+    field = Trainer(scene, None, TrainConfig(carve=False, resolution_init=12), torch.device("cpu")).field
+    g = torch.Generator().manual_seed(1)
+    origins = torch.randn(500, 3, generator=g) * 0.2 + torch.tensor([0.0, 0.0, 2.0])
+    dirs = torch.nn.functional.normalize(-origins + 0.3 * torch.randn(500, 3, generator=g), dim=-1)
+    step = 0.02
+    slices = micro_batches(field, origins, dirs, step, max_rays=64, max_samples=1500)
+    assert slices[0].start == 0 and slices[-1].stop == 500
+    assert all(a.stop == b.start for a, b in zip(slices, slices[1:], strict=False))  # contiguous
+    from visnerf.rendering.aabb import intersect_aabb
+
+    t_near, t_far, hit = intersect_aabb(origins, dirs, field.aabb)
+    per_ray = torch.where(hit, ((t_far - t_near).clamp_min(0) / step).ceil(), torch.zeros_like(t_far))
+    for sl in slices:
+        assert sl.stop - sl.start <= 64
+        assert per_ray[sl].sum() <= 1500 or sl.stop - sl.start == 1
