@@ -22,7 +22,7 @@ const OPEN_WAIT_MS = 1000; // how long a request waits for the socket before goi
  * comparison so their previews have the same size (the difference image needs that).
  */
 export class PreviewSizer {
-  constructor({ targetMs = 60, minScale = 0.2, maxScale = 0.5, minLongSide = 64 } = {}) {
+  constructor({ targetMs = 35, minScale = 0.2, maxScale = 0.5, minLongSide = 64 } = {}) {
     this.targetMs = targetMs;
     this.minScale = minScale;
     this.maxScale = maxScale;
