@@ -53,7 +53,7 @@ from matplotlib.figure import Figure
 from visnerf.data.cameras import Intrinsics
 from visnerf.evaluation.metrics import mse_to_psnr, psnr
 from visnerf.inference import SceneRenderer, load_scene
-from visnerf.rendering.renderer import RenderSettings, render_image
+from visnerf.rendering.renderer import RenderSettings, render_image_scaled
 from visnerf.runtime import configure
 
 MODES = ("fast", "plain", "preview")
@@ -177,16 +177,10 @@ def render_frame(
     settings: RenderSettings, size: int,
 ) -> tuple[np.ndarray, float]:
     """One ``size`` x ``size`` frame (float [0, 1]) and the seconds it took."""
-    scale = settings.resolution_scale
-    marched = max(1, round(size * scale))
-    cam = intrinsics.scaled(marched, marched)
+    cam = intrinsics.scaled(size, size)
     t0 = time.perf_counter()
     with torch.inference_mode():
-        rgb = render_image(scene.field, c2w.to(scene.device), cam, params.to(scene.device), settings)
-        if marched != size:
-            rgb = torch.nn.functional.interpolate(
-                rgb.permute(2, 0, 1)[None], size=(size, size), mode="bilinear", align_corners=False
-            )[0].permute(1, 2, 0)
+        rgb = render_image_scaled(scene.field, c2w.to(scene.device), cam, params.to(scene.device), settings)
     seconds = time.perf_counter() - t0
     return rgb.clamp(0, 1).cpu().numpy().astype(np.float32), seconds
 

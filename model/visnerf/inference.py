@@ -20,7 +20,7 @@ import torch
 
 from visnerf.checkpoint import CheckpointError, CheckpointMeta, load_checkpoint
 from visnerf.data.cameras import Intrinsics, check_rigid_c2w
-from visnerf.rendering.renderer import RenderSettings, render_image
+from visnerf.rendering.renderer import RenderSettings, render_image_scaled
 from visnerf.representation.field import VisNerfField
 
 Quality = Literal["preview", "full"]
@@ -132,18 +132,12 @@ class SceneRenderer:
             raise ValueError(f"quality must be 'preview' or 'full', got {quality!r}")
         values = self.resolve_params(params or {})
         settings = RenderSettings.from_meta(self.meta, quality)
-        scale = settings.resolution_scale
-        w_r, h_r = max(1, round(width * scale)), max(1, round(height * scale))
-        intrinsics = Intrinsics.from_fov(w_r, h_r, math.radians(fov_deg))
+        intrinsics = Intrinsics.from_fov(width, height, math.radians(fov_deg))
         c2w_t = torch.as_tensor(m, dtype=torch.float32, device=self.device)
         normalized = [axis.normalize(v) for axis, v in zip(self.meta.param_axes, values, strict=True)]
         params_t = torch.tensor(normalized, dtype=torch.float32, device=self.device)
         with self._lock, torch.inference_mode():
-            rgb = render_image(self.field, c2w_t, intrinsics, params_t, settings)  # [h, w, 3]
-            if (w_r, h_r) != (width, height):
-                rgb = torch.nn.functional.interpolate(
-                    rgb.permute(2, 0, 1)[None], size=(height, width), mode="bilinear", align_corners=False
-                )[0].permute(1, 2, 0)
+            rgb = render_image_scaled(self.field, c2w_t, intrinsics, params_t, settings)  # [h, w, 3]
             out = (rgb.clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
         return out
 

@@ -15,7 +15,7 @@ from torch import Tensor
 
 from visnerf.checkpoint import ParamAxis
 from visnerf.data.cameras import Intrinsics
-from visnerf.rendering.renderer import RenderSettings, render_image
+from visnerf.rendering.renderer import RenderSettings, render_image_scaled
 from visnerf.representation.field import VisNerfField
 
 
@@ -42,20 +42,12 @@ def render_frame(
 ) -> RenderedFrame:
     """Render and time one frame (``params`` normalised, see ``normalize_params``)."""
     device = field.device
-    scale = settings.resolution_scale
-    width, height = intrinsics.width, intrinsics.height
-    w_r, h_r = max(1, round(width * scale)), max(1, round(height * scale))
-    rendered_intrinsics = intrinsics if (w_r, h_r) == (width, height) else intrinsics.scaled(w_r, h_r)
     c2w_d, params_d = c2w.to(device=device, dtype=torch.float32), params.to(device)
     if device.type == "cuda":
         torch.cuda.synchronize(device)
     t0 = time.perf_counter()
     with torch.inference_mode():
-        rgb = render_image(field, c2w_d, rendered_intrinsics, params_d, settings)  # [h_r, w_r, 3]
-        if (w_r, h_r) != (width, height):
-            rgb = torch.nn.functional.interpolate(
-                rgb.permute(2, 0, 1)[None], size=(height, width), mode="bilinear", align_corners=False
-            )[0].permute(1, 2, 0)  # [h, w, 3]
+        rgb = render_image_scaled(field, c2w_d, intrinsics, params_d, settings)  # [h, w, 3]
         quantised = (rgb.clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).cpu().numpy()  # waits for the device
     ms = 1000.0 * (time.perf_counter() - t0)
     return RenderedFrame(rgb=quantised.astype(np.float32) / 255.0, ms=float(ms))

@@ -10,6 +10,7 @@ from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 import torch
+import torch.nn.functional as F
 from jaxtyping import Bool, Float
 from torch import Tensor
 
@@ -237,6 +238,25 @@ def render_image(
         sl = slice(start, start + settings.chunk_rays)
         out[sl] = march_rays(field, rays_o[sl], rays_d[sl], frame, background, settings, occupancy)
     return out.reshape(intrinsics.height, intrinsics.width, 3)
+
+
+def render_image_scaled(
+    field: VisNerfField,
+    c2w: Float[Tensor, "4 4"],
+    intrinsics: Intrinsics,
+    params: Float[Tensor, " k"],
+    settings: RenderSettings,
+) -> Float[Tensor, "h w 3"]:
+    """``render_image`` marched at ``settings.resolution_scale`` of the camera's size and upsampled
+    bilinearly to that size (the preview quality); the full size itself when the scale is 1."""
+    width, height = intrinsics.width, intrinsics.height
+    w_r = max(1, round(width * settings.resolution_scale))
+    h_r = max(1, round(height * settings.resolution_scale))
+    if (w_r, h_r) == (width, height):
+        return render_image(field, c2w, intrinsics, params, settings)
+    rgb = render_image(field, c2w, intrinsics.scaled(w_r, h_r), params, settings)  # [h_r, w_r, 3]
+    return F.interpolate(rgb.permute(2, 0, 1)[None], size=(height, width), mode="bilinear",
+                         align_corners=False)[0].permute(1, 2, 0)
 
 
 def march_rays(

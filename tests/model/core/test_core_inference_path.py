@@ -77,3 +77,20 @@ def test_early_termination_error_is_bounded_by_its_threshold(field, density_scal
     finally:
         with torch.no_grad():
             field.density_decoder.out.bias.sub_(math.log(density_scale))
+
+
+def test_scaled_render_is_the_small_render_upsampled(field) -> None:
+    from visnerf.rendering.renderer import render_image_scaled
+
+    intr = Intrinsics.from_fov(20, 14, math.radians(40.0))
+    c2w = torch.from_numpy(orbit_c2w(35.0, 25.0, 2.2)).float()
+    params = torch.tensor([0.2, -0.4])
+    full = RenderSettings()
+    with torch.no_grad():
+        assert torch.equal(render_image_scaled(field, c2w, intr, params, full), render_image(field, c2w, intr, params, full))
+        half = replace(full, resolution_scale=0.5)
+        small = render_image(field, c2w, intr.scaled(10, 7), params, half)
+        expected = torch.nn.functional.interpolate(small.permute(2, 0, 1)[None], size=(14, 20), mode="bilinear",
+                                                   align_corners=False)[0].permute(1, 2, 0)
+        scaled = render_image_scaled(field, c2w, intr, params, half)
+    assert scaled.shape == (14, 20, 3) and torch.allclose(scaled, expected)
