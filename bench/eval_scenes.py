@@ -27,6 +27,7 @@ from pathlib import Path
 
 import torch
 
+from visnerf import runtime
 from visnerf.commands import pick_device
 from visnerf.config import HoldoutConfig, TrainConfig
 from visnerf.data.holdout import split_holdout
@@ -184,9 +185,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--results", type=Path, default=ROOT / "bench" / "results", help="results folder")
     parser.add_argument("--workers", type=int, default=2, help="scene generation processes (default 2)")
     parser.add_argument("--device", default="auto")
+    parser.add_argument("--threads", type=int, default=None, help="torch threads (default: all cores)")
     args = parser.parse_args(argv)
     if args.minutes_per_scene <= 0 or args.res < 8 or args.test_views < 2:
         parser.error("--minutes-per-scene must be positive, --res at least 8, --test-views at least 2")
+    runtime.configure(args.threads)
     device = pick_device(args.device)
     full_run = args.res == 128 and args.scenes == list(catalog) and args.test_views == 181 and not args.max_eval_frames
     stem = "eval_scenes" if full_run else "eval_scenes.partial"  # a partial run never replaces the record

@@ -5,9 +5,10 @@ by scripts/train_bundled.sh, and runs/nyx.safetensors with ../shared/data/nyx) t
 views (transforms_test.json where the dataset has one, else the hold-out of bench/nyx_train.py),
 with the camera and parameters of those frames, are rendered at each size with three settings:
 
-- plain: ``render_image`` with the checkpoint's full settings but no occupancy grid, no early ray
-  termination and every sample's colour decoded (``weight_threshold`` 0): the exhaustive renderer;
-- fast: the checkpoint's full settings (``RenderSettings.from_meta``), as the server renders;
+- plain: quality ``exhaustive``: the training sample spacing (half a voxel), no occupancy grid, no
+  early ray termination, every sample's colour decoded and float32 decoders: the exhaustive renderer;
+- fast: the checkpoint's full settings (``RenderSettings.from_meta``), as the server renders (one
+  voxel spacing, empty-space skipping, early termination, bf16 decoders where the CPU has AMX);
 - preview: quality ``preview`` (half resolution, larger steps), bilinearly upsampled to the size.
 
 Per view the three run back to back (fast, plain, preview, then the next view), so machine noise
@@ -150,7 +151,7 @@ def default_cases() -> tuple[Case, ...]:
 
 def render_settings(scene: SceneRenderer) -> dict[str, RenderSettings]:
     full = RenderSettings.from_meta(scene.meta, "full")
-    plain = dataclasses.replace(full, use_occupancy=False, early_termination=False, weight_threshold=0.0)
+    plain = RenderSettings.from_meta(scene.meta, "exhaustive")
     return {"fast": full, "plain": plain, "preview": RenderSettings.from_meta(scene.meta, "preview")}
 
 

@@ -45,8 +45,8 @@ from visnerf.config import HoldoutConfig, RenderConfig, TrainConfig
 from visnerf.data.holdout import split_holdout
 from visnerf.data.parsers.blender import load_dataset
 from visnerf.data.scene import SceneData
-from visnerf.runtime import configure, release_free_memory
-from visnerf.training.trainer import Trainer, bf16_native
+from visnerf.runtime import bf16_native, configure, release_free_memory
+from visnerf.training.trainer import Trainer
 
 TARGET_SPEEDUP = 3.0
 

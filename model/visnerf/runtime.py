@@ -44,3 +44,12 @@ def default_threads() -> int:
 def configure(threads: int | None = None) -> None:
     """Thread settings, once per process, before heavy work."""
     torch.set_num_threads(threads or default_threads())
+
+
+def bf16_native(device: torch.device) -> bool:
+    """Whether ``device`` has bfloat16 matrix units (AMX / AVX512-BF16 on CPU, Ampere+ on CUDA)."""
+    if device.type == "cuda":
+        return torch.cuda.is_bf16_supported()
+    if device.type == "cpu":
+        return bool(torch.backends.mkldnn.is_available() and torch.ops.mkldnn._is_mkldnn_bf16_supported())
+    return False

@@ -22,6 +22,7 @@ from visnerf.rendering.sampling import deltas_from_samples, sample_pdf, uniform_
 from visnerf.rendering.volume import render_alpha_from_density
 from visnerf.representation.field import VisNerfField
 from visnerf.representation.frame_field import FrameField
+from visnerf.runtime import bf16_native
 
 if TYPE_CHECKING:
     from visnerf.checkpoint import CheckpointMeta
@@ -42,20 +43,26 @@ class RenderSettings:
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
     use_occupancy: bool = True
     early_termination: bool = True
+    bf16: bool = False
+    """Decoder matrix products in bfloat16 where the device has bf16 matrix units (inference)."""
 
     @classmethod
     def from_config(
         cls, cfg: RenderConfig, background: tuple[float, float, float], quality: str = "full"
     ) -> "RenderSettings":
         settings = cls(
-            step_ratio=cfg.step_ratio,
+            step_ratio=cfg.full_step_ratio,
             max_samples=cfg.max_samples,
             weight_threshold=cfg.weight_threshold,
             early_stop_eps=cfg.early_stop_eps,
             chunk_rays=cfg.chunk_rays,
             background=background,
+            bf16=cfg.bf16,
         )
-        if quality == "preview":
+        if quality == "exhaustive":  # the plain reference: every sample, float32, training spacing
+            settings = replace(settings, step_ratio=cfg.step_ratio, use_occupancy=False, early_termination=False,
+                               weight_threshold=0.0, bf16=False)
+        elif quality == "preview":
             settings = replace(
                 settings,
                 step_ratio=cfg.step_ratio * cfg.preview_step_factor,
@@ -232,7 +239,8 @@ def render_image(
     background = torch.tensor(settings.background, dtype=rays_o.dtype, device=rays_o.device)
     occupancy = field.occupancy if settings.use_occupancy else None
     q_d, q_a = field.param_features(params[None].to(rays_o.dtype))  # [1, c] each
-    frame = FrameField(field, q_d, q_a)
+    dtype = torch.bfloat16 if settings.bf16 and bf16_native(rays_o.device) else rays_o.dtype
+    frame = FrameField(field, q_d, q_a, dtype)
     out = torch.empty_like(rays_o)
     for start in range(0, rays_o.shape[0], settings.chunk_rays):
         sl = slice(start, start + settings.chunk_rays)

@@ -66,22 +66,6 @@ class VMGrid(nn.Module):
             feats.append(plane_feat * line_feat)
         return torch.cat(feats, dim=-1)
 
-    def sample_modes(self, coords: Float[Tensor, "n 3"]) -> list[Float[Tensor, "c n"]]:
-        """Per-mode features, channel-first and contiguous (inference).
-
-        Equal to ``sample(coords)`` split by mode and transposed. Lines are read with the same
-        bilinear kernel as planes (a ``[c, r, 1]`` image), so no per-channel gathers are needed.
-        """
-        feats = []
-        for ((a, b), c), plane, line in zip(MODES, self.planes, self.lines, strict=True):
-            plane_grid = coords[:, [a, b]].reshape(1, -1, 1, 2)
-            pf = F.grid_sample(plane[None], plane_grid, mode="bilinear", align_corners=True)[0, :, :, 0]
-            line_grid = torch.stack([torch.zeros_like(coords[:, c]), coords[:, c]], dim=-1).reshape(1, -1, 1, 2)
-            lf = F.grid_sample(line[None, :, :, None], line_grid, mode="bilinear", align_corners=True,
-                               padding_mode="border")[0, :, :, 0]
-            feats.append(pf.mul_(lf))  # [c, n]
-        return feats
-
     def l1(self) -> Tensor:
         """Mean absolute value of planes and lines (sparsity prior)."""
         total = sum(p.abs().mean() for p in self.planes) + sum(line.abs().mean() for line in self.lines)

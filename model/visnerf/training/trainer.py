@@ -37,7 +37,7 @@ from visnerf.rendering.occupancy import (
 )
 from visnerf.rendering.renderer import RenderSettings, render_image, render_rays
 from visnerf.representation.field import VisNerfField
-from visnerf.runtime import release_free_memory
+from visnerf.runtime import bf16_native, release_free_memory
 from visnerf.training.regularizers import RegularizerWeights, regularization
 
 
@@ -375,14 +375,6 @@ def set_mixed_precision(field_: VisNerfField, enabled: bool) -> bool:
     field_.density_decoder.bf16 = field_.color_decoder.bf16 = use
     return use
 
-
-def bf16_native(device: torch.device) -> bool:
-    """Whether ``device`` has bfloat16 matrix units (AMX / AVX512-BF16 on CPU, Ampere+ on CUDA)."""
-    if device.type == "cuda":
-        return torch.cuda.is_bf16_supported()
-    if device.type == "cpu":
-        return bool(torch.backends.mkldnn.is_available() and torch.ops.mkldnn._is_mkldnn_bf16_supported())
-    return False
 
 
 def write_log(rows: list[dict], path: Path) -> None:

@@ -1,4 +1,4 @@
-"""The inference path (folded decoders, channel-first VM lookups, segment marching) against the
+"""The inference path (folded decoders, channels-last VM lookups, bf16 products, segment marching) against the
 training path, which evaluates the field sample by sample with no shortcuts."""
 
 import math
@@ -9,7 +9,7 @@ import torch
 
 from visnerf.data.cameras import Intrinsics, image_rays, orbit_c2w
 from visnerf.rendering.renderer import RenderSettings, render_image, render_rays
-from visnerf.representation.frame_field import FrameField
+from visnerf.representation.frame_field import FrameField, ModeTables
 from visnerf.testing import make_tiny_field
 
 
@@ -19,12 +19,11 @@ def field():
     return f.eval()
 
 
-def test_channel_first_modes_equal_the_concatenated_features(field) -> None:
+def test_channels_last_lookups_equal_the_concatenated_features(field) -> None:
     coords = torch.rand(500, 3, generator=torch.Generator().manual_seed(0)) * 2.2 - 1.1  # some outside
     grid = field.appearance_grid
     expected = grid.sample(coords)  # [n, 3c]
-    modes = grid.sample_modes(coords)
-    assert torch.allclose(torch.cat([m.t() for m in modes], dim=1), expected, atol=1e-6)
+    assert torch.allclose(ModeTables.of(grid).features(coords, torch.float32), expected, atol=1e-6)
 
 
 @pytest.mark.parametrize("params", [(-1.0, -1.0), (0.3, -0.2), (1.0, 1.0)])
@@ -94,3 +93,47 @@ def test_scaled_render_is_the_small_render_upsampled(field) -> None:
                                                    align_corners=False)[0].permute(1, 2, 0)
         scaled = render_image_scaled(field, c2w, intr, params, half)
     assert scaled.shape == (14, 20, 3) and torch.allclose(scaled, expected)
+
+
+@pytest.mark.parametrize("params", [(-1.0, -1.0), (0.3, -0.2)])
+def test_bf16_decoders_differ_from_float32_only_by_rounding(field, params) -> None:
+    """bfloat16 products keep 8 significant bits: a relative error of a few 1e-3 per value."""
+    g = torch.Generator().manual_seed(2)
+    n = 40000  # more than one SUB_CHUNK pass
+    points = torch.rand(n, 3, generator=g) - 0.5
+    dirs = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1)
+    q_d, q_a = field.param_features(torch.tensor([params]))
+    exact, rounded = FrameField(field, q_d, q_a), FrameField(field, q_d, q_a, torch.bfloat16)
+    with torch.no_grad():
+        sigma, sigma_b = exact.density(points), rounded.density(points)
+        colour = exact.color(points, exact.direction_terms(dirs))
+        colour_b = rounded.color(points, rounded.direction_terms(dirs))
+    assert sigma_b.dtype == colour_b.dtype == torch.float32
+    assert torch.isfinite(sigma_b).all() and torch.isfinite(colour_b).all()
+    rel = (sigma_b - sigma).abs() / sigma.abs().clamp_min(1e-3)
+    assert float(rel.median()) < 1e-2 and float(rel.max()) < 0.1
+    assert float((colour_b - colour).abs().max()) < 2e-2
+    assert float((colour_b - colour).abs().mean()) < 2e-3
+    # Not the float32 path under another name: the rounding is there.
+    assert not torch.equal(colour_b, colour)
+
+
+def test_bf16_frames_stay_close_to_the_exhaustive_float32_frames(field) -> None:
+    base = RenderSettings(use_occupancy=False, early_termination=False, weight_threshold=0.0)
+    exact, _ = _both_renders(field, base)
+    rounded, _ = _both_renders(field, replace(base, bf16=True))
+    mse = float(((rounded - exact) ** 2).mean())
+    assert mse > 0.0 and 10.0 * math.log10(1.0 / mse) > 45.0
+
+
+def test_qualities_derive_from_the_checkpoint_render_config() -> None:
+    from visnerf.config import RenderConfig
+
+    cfg = RenderConfig(step_ratio=0.5, full_step_ratio=1.0, preview_step_factor=2.0, preview_scale=0.5, bf16=True)
+    full = RenderSettings.from_config(cfg, (1.0, 1.0, 1.0), "full")
+    plain = RenderSettings.from_config(cfg, (1.0, 1.0, 1.0), "exhaustive")
+    preview = RenderSettings.from_config(cfg, (1.0, 1.0, 1.0), "preview")
+    assert (full.step_ratio, full.use_occupancy, full.early_termination, full.bf16) == (1.0, True, True, True)
+    assert (plain.step_ratio, plain.use_occupancy, plain.early_termination, plain.bf16) == (0.5, False, False, False)
+    assert plain.weight_threshold == 0.0
+    assert (preview.step_ratio, preview.resolution_scale) == (1.0, 0.5)
