@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from visnerf.commands import pick_device
+from visnerf.commands import parse_bbox, pick_device, with_bbox
 from visnerf.config import HoldoutConfig, RenderConfig, TrainConfig
 from visnerf.data.holdout import split_holdout
 from visnerf.data.parsers.blender import load_dataset
@@ -83,6 +83,7 @@ def write_report(result: dict, out_dir: Path) -> None:
         f"| PSNR at held-out views | {f['psnr_held_out_views']:.2f} dB |",
         f"| peak RSS | {result['peak_rss_mb']:.0f} MB |",
         f"| checkpoint size | {result['checkpoint_mb']:.2f} MB |",
+        f"| model box (after carving) | {result['box'][0]} to {result['box'][1]}, grid {result['final_resolution']} |",
         f"| seconds per 256x256 frame (median) | {f['seconds_per_frame_256_median']:.2f} s |",
         "",
         "Validation PSNR against training time:",
@@ -125,6 +126,8 @@ def main() -> int:
     ap.add_argument("--validate-every", type=float, default=300.0, help="seconds of training")
     ap.add_argument("--eval-frames", type=int, default=24)
     ap.add_argument("--threads", type=int, default=None, help="torch threads (default: all cores)")
+    ap.add_argument("--bbox", type=parse_bbox, default=None, metavar="X0,Y0,Z0,X1,Y1,Z1",
+                    help="content box (write --bbox=-0.2,...); default: carved from the images")
     ap.add_argument("--out", default=str(ROOT / "runs" / "nyx.safetensors"))
     ap.add_argument("--results", default=str(ROOT / "bench" / "results"))
     args = ap.parse_args()
@@ -134,7 +137,7 @@ def main() -> int:
         torch.set_num_threads(args.threads)
     load_before = os.getloadavg()
     t0 = time.perf_counter()
-    scene = load_dataset(args.data)
+    scene = with_bbox(load_dataset(args.data), args.bbox)
     load_s = time.perf_counter() - t0
     rss_after_load = peak_rss_mb()
     train, val = split_holdout(scene, HoldoutConfig(views=HOLDOUT_VIEWS, settings=HOLDOUT_SETTINGS))
@@ -165,6 +168,7 @@ def main() -> int:
         "peak_rss_mb": peak_rss_mb(),
         "checkpoint_mb": ckpt.stat().st_size / 1e6,
         "final_resolution": trainer.field.resolution,
+        "box": [[round(float(x), 4) for x in row] for row in trainer.field.aabb.cpu()],
         "final": final,
         "log": trainer.state.log,
     }

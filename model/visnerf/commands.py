@@ -1,12 +1,14 @@
 """Sub-commands ``train``, ``render`` and ``info``."""
 
 import argparse
+import dataclasses
 import json
 import math
 import os
 import sys
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import torch
 
@@ -14,6 +16,9 @@ from visnerf.checkpoint import CheckpointError, read_checkpoint
 from visnerf.config import HoldoutConfig, RenderConfig, TrainConfig
 from visnerf.data.cameras import orbit_c2w
 from visnerf.runtime import configure
+
+if TYPE_CHECKING:
+    from visnerf.data.scene import SceneData
 
 
 def pick_device(name: str) -> torch.device:
@@ -45,6 +50,27 @@ def parse_views(text: str) -> tuple[int, ...]:
         raise argparse.ArgumentTypeError(f"cannot read view indices {text!r}: use '0,7,21'") from None
 
 
+def parse_bbox(text: str) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+    """``"-0.2,-0.2,-0.2,0.2,0.2,0.2"`` -> ((x0, y0, z0), (x1, y1, z1)), finite with x1 > x0 etc."""
+    try:
+        v = [float(x) for x in text.split(",")]
+    except ValueError:
+        v = []
+    if len(v) != 6 or not all(math.isfinite(x) for x in v):
+        raise argparse.ArgumentTypeError(f"cannot read box {text!r}: use six numbers 'X0,Y0,Z0,X1,Y1,Z1'")
+    lo, hi = (v[0], v[1], v[2]), (v[3], v[4], v[5])
+    if not all(b > a for a, b in zip(lo, hi, strict=True)):
+        raise argparse.ArgumentTypeError(f"box {text!r} is empty: each of X1,Y1,Z1 must exceed X0,Y0,Z0")
+    return lo, hi
+
+
+def with_bbox(scene: "SceneData", box: tuple[tuple[float, ...], tuple[float, ...]] | None) -> "SceneData":
+    """``scene`` with its content box replaced by ``box`` (unchanged when None)."""
+    if box is None:
+        return scene
+    return dataclasses.replace(scene, bbox=torch.tensor(box, dtype=torch.float32))
+
+
 def _train(args: argparse.Namespace) -> int:
     from visnerf.data.holdout import split_holdout
     from visnerf.data.parsers.blender import DatasetError, load_dataset
@@ -60,6 +86,7 @@ def _train(args: argparse.Namespace) -> int:
     device = pick_device(args.device)
     try:
         scene = load_dataset(args.data, "train")
+        scene = with_bbox(scene, args.bbox)
         train, val = split_holdout(scene, HoldoutConfig(views=args.holdout_views, settings=args.holdout_params))
     except (DatasetError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -163,6 +190,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="view indices held out for validation at every parameter setting")
     p.add_argument("--holdout-params", type=parse_settings, default=(), metavar="A,B;C,D",
                    help="parameter settings held out for validation (all their views)")
+    p.add_argument("--bbox", type=parse_bbox, default=None, metavar="X0,Y0,Z0,X1,Y1,Z1",
+                   help="world box that holds the content (write --bbox=-1,... for negative numbers); "
+                        "default: the dataset's bbox, else a box every camera sees, carved from the images")
     p.add_argument("--validate-every", type=float, default=120.0, metavar="SECONDS")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N")

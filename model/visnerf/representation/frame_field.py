@@ -64,41 +64,64 @@ def fold_first_layer(decoder: Decoder, q: Float[Tensor, " c"], n_components: int
     )
 
 
+def linear_taps(u: Float[Tensor, " m"], n: int) -> tuple[Float[Tensor, " m"], Float[Tensor, " m"]]:
+    """Lower node and fraction of linear interpolation on ``n`` nodes spanning [-1, 1]
+    (``align_corners=True``); coordinates outside are clamped to the border. Returns float nodes."""
+    pos = (u.clamp(-1.0, 1.0) + 1.0) * (0.5 * (n - 1))
+    lo = pos.floor().clamp_(0, n - 2)
+    return lo, pos - lo
+
+
 @dataclass(frozen=True)
 class ModeTables:
-    """Channels-last copies of a VM grid's factors: planes ``[1, c, h, w]``, lines ``[1, c, r, 1]``."""
+    """A VM grid's factors as row tables for ``embedding_bag``: each plane ``[h * w, c]`` (row
+    ``y * w + x``), each line ``[r, c]``.
+
+    A bilinear lookup is then one fused weighted sum of four rows per sample, written row-major
+    (``[m, c]``), which is the layout the decoder's matrix product wants. On this CPU that is 3 to 7
+    times faster than ``grid_sample``, whose output is channel-first and must be transposed.
+    Coordinates outside [-1, 1] read the border (inference only samples inside the box).
+    """
 
     planes: tuple[Tensor, ...]
+    plane_sizes: tuple[tuple[int, int], ...]
+    """(h, w) of each plane."""
     lines: tuple[Tensor, ...]
     n_components: int
 
     @classmethod
     def of(cls, grid: VMGrid) -> "ModeTables":
-        cl = torch.channels_last
-        return cls(
-            planes=tuple(p.detach()[None].contiguous(memory_format=cl) for p in grid.planes),
-            lines=tuple(li.detach()[None, :, :, None].contiguous(memory_format=cl) for li in grid.lines),
-            n_components=grid.n_components,
-        )
+        planes = tuple(p.detach().permute(1, 2, 0).reshape(-1, p.shape[0]).contiguous() for p in grid.planes)
+        sizes = tuple((int(p.shape[1]), int(p.shape[2])) for p in grid.planes)
+        lines = tuple(li.detach().t().contiguous() for li in grid.lines)
+        if min(min(hw) for hw in sizes) < 2 or min(li.shape[0] for li in lines) < 2:
+            raise ValueError(f"VM grid of resolution {grid.resolution} has an axis with fewer than 2 nodes")
+        return cls(planes=planes, plane_sizes=sizes, lines=lines, n_components=grid.n_components)
 
-    def features(self, coords: Float[Tensor, "m 3"], dtype: torch.dtype) -> Float[Tensor, "m f"]:
-        """``VMGrid.sample(coords)`` (plane times line per mode, modes concatenated) in ``dtype``.
+    def features_into(self, coords: Float[Tensor, "m 3"], out: Float[Tensor, "m f"]) -> None:
+        """Write ``VMGrid.sample(coords)`` (plane times line per mode, modes concatenated) into
+        ``out[:, :3c]``, in ``out``'s dtype."""
+        c = self.n_components
+        for i, (((a, b), axis), plane, (h, w), line) in enumerate(
+            zip(MODES, self.planes, self.plane_sizes, self.lines, strict=True)
+        ):
+            x0, fx = linear_taps(coords[:, a], w)
+            y0, fy = linear_taps(coords[:, b], h)
+            row = (y0 * w + x0).long()
+            idx = torch.stack([row, row + 1, row + w, row + w + 1], dim=1)  # [m, 4]
+            gx, gy = 1.0 - fx, 1.0 - fy
+            weights = torch.stack([gx * gy, fx * gy, gx * fy, fx * fy], dim=1)
+            pf = F.embedding_bag(idx, plane, per_sample_weights=weights, mode="sum")  # [m, c]
+            l0, fl = linear_taps(coords[:, axis], line.shape[0])
+            l0 = l0.long()
+            lf = F.embedding_bag(torch.stack([l0, l0 + 1], dim=1), line,
+                                 per_sample_weights=torch.stack([1.0 - fl, fl], dim=1), mode="sum")
+            torch.mul(pf, lf, out=out[:, i * c:(i + 1) * c])
 
-        The bilinear lookups give channel-first ``[c, m]`` blocks; the products are written into one
-        ``[f, m]`` buffer, which is cast and transposed once.
-        """
-        m, c = coords.shape[0], self.n_components
-        out = torch.empty(3 * c, m, dtype=coords.dtype, device=coords.device)  # [f, m]
-        zeros = torch.zeros_like(coords[:, 0])
-        for i, (((a, b), axis), plane, line) in enumerate(zip(MODES, self.planes, self.lines, strict=True)):
-            plane_grid = coords[:, [a, b]].reshape(1, m, 1, 2)
-            line_grid = torch.stack([zeros, coords[:, axis]], dim=-1).reshape(1, m, 1, 2)
-            pf = F.grid_sample(plane, plane_grid, mode="bilinear", align_corners=True)[0, :, :, 0]  # [c, m]
-            lf = F.grid_sample(line, line_grid, mode="bilinear", align_corners=True, padding_mode="border")[0, :, :, 0]
-            torch.mul(pf, lf, out=out[i * c:(i + 1) * c])
-        if dtype == out.dtype:
-            return out.t()  # the GEMM reads the transposed view in place
-        return out.to(dtype).t().contiguous()
+    def features(self, coords: Float[Tensor, "m 3"], dtype: torch.dtype = torch.float32) -> Float[Tensor, "m f"]:
+        out = torch.empty(coords.shape[0], 3 * self.n_components, dtype=dtype, device=coords.device)
+        self.features_into(coords, out)
+        return out
 
 
 class FrameField:
@@ -124,7 +147,8 @@ class FrameField:
         dd, cd = field.density_decoder.out, field.color_decoder.out
         self._density_out = (dd.weight.detach().to(dtype), dd.bias.detach().to(dtype))
         self._color_out = (cd.weight.detach().to(dtype), cd.bias.detach().to(dtype))
-        self._pos_weight_t = self.density_layer.rest_weight_t.to(dtype)
+        self._density_weight_t = torch.cat(  # [3c + e, h]: modes, then positional encoding
+            [self.density_layer.spatial_weight_t, self.density_layer.rest_weight_t.to(dtype)], dim=0)
         self._density_bias = self.density_layer.bias.to(dtype)
 
     def density(self, points: Float[Tensor, "m 3"]) -> Float[Tensor, " m"]:
@@ -136,9 +160,11 @@ class FrameField:
     def _density(self, points: Float[Tensor, "m 3"]) -> Float[Tensor, " m"]:
         f = self.field
         coords = f.to_grid(points)
-        pos = encode_position(coords, f.cfg.pos_encoding_freqs).to(self.dtype)  # [m, e]
-        hidden = torch.addmm(self._density_bias, pos, self._pos_weight_t)  # [m, h]
-        hidden.addmm_(self.density_tables.features(coords, self.dtype), self.density_layer.spatial_weight_t)
+        n_spatial = 3 * self.density_tables.n_components
+        x = torch.empty(points.shape[0], self._density_weight_t.shape[0], dtype=self.dtype, device=points.device)
+        self.density_tables.features_into(coords, x)
+        x[:, n_spatial:] = encode_position(coords, f.cfg.pos_encoding_freqs)
+        hidden = torch.addmm(self._density_bias, x, self._density_weight_t)  # [m, h]
         raw = F.linear(hidden.relu_(), *self._density_out)[:, 0].to(points.dtype)
         return F.softplus(raw + f.cfg.density_shift)
 
@@ -157,7 +183,7 @@ class FrameField:
 
     def _color(self, points: Float[Tensor, "m 3"], ray_terms: Float[Tensor, "m h"]) -> Float[Tensor, "m 3"]:
         coords = self.field.to_grid(points)
-        feats = self.appearance_tables.features(coords, self.dtype)  # [m, f]
+        feats = self.appearance_tables.features(coords, self.dtype)  # [m, 3c]
         hidden = torch.addmm(ray_terms, feats, self.color_layer.spatial_weight_t)  # [m, h]
         raw = F.linear(hidden.relu_(), *self._color_out)
         return torch.sigmoid(raw.to(points.dtype))

@@ -19,11 +19,25 @@ def field():
     return f.eval()
 
 
-def test_channels_last_lookups_equal_the_concatenated_features(field) -> None:
-    coords = torch.rand(500, 3, generator=torch.Generator().manual_seed(0)) * 2.2 - 1.1  # some outside
-    grid = field.appearance_grid
-    expected = grid.sample(coords)  # [n, 3c]
-    assert torch.allclose(ModeTables.of(grid).features(coords, torch.float32), expected, atol=1e-6)
+def test_table_lookups_equal_the_concatenated_features(field) -> None:
+    g = torch.Generator().manual_seed(0)
+    coords = torch.rand(500, 3, generator=g) * 2 - 1
+    coords[:6] = torch.tensor([[-1.0, -1.0, -1.0], [1.0, 1.0, 1.0], [1.0, -1.0, 0.0],
+                               [-1.0, 1.0, 1.0], [0.0, 0.0, 0.0], [1.0, 1.0, -1.0]])  # nodes and corners
+    for grid in (field.appearance_grid, field.density_grid):
+        expected = grid.sample(coords)  # [n, 3c]
+        assert torch.allclose(ModeTables.of(grid).features(coords, torch.float32), expected, atol=1e-6)
+        # Outside the box the tables read the border (inference never samples there).
+        outside = coords * 1.3
+        clamped = grid.sample(outside.clamp(-1.0, 1.0))
+        assert torch.allclose(ModeTables.of(grid).features(outside, torch.float32), clamped, atol=1e-6)
+
+
+def test_table_lookups_reject_a_grid_with_a_single_node() -> None:
+    from visnerf.representation.vm import VMGrid
+
+    with pytest.raises(ValueError, match="fewer than 2 nodes"):
+        ModeTables.of(VMGrid(4, (8, 1, 8), 0.1))
 
 
 @pytest.mark.parametrize("params", [(-1.0, -1.0), (0.3, -0.2), (1.0, 1.0)])
