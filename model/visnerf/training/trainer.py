@@ -255,7 +255,8 @@ class Trainer:
             part = ((out["rgb"] - target[sl]) ** 2).sum() / (3 * n)  # this chunk's share of the batch mean
             if not torch.isfinite(part):
                 raise FloatingPointError(f"non-finite loss at iteration {self.state.iteration}")
-            part.backward()
+            if part.requires_grad:  # a chunk whose rays meet no occupied cell has nothing to learn
+                part.backward()
             sq_error += float(part.detach())
             samples += int(out["n_samples"])
         terms = regularization(self.field, self._weights())
