@@ -9,12 +9,15 @@ sample is the VM lookup and two matrix products; no ``[m, f]`` repeat or product
 
 Two more things are done once per frame:
 
-- the planes and lines are copied channels-last, so each bilinear tap reads its ``c`` channels
-  from one contiguous run (about 1.7x faster lookups than the channel-first parameters);
+- the planes and lines are copied into row tables (``ModeTables``), so that a bilinear lookup is
+  one fused weighted sum of rows (``embedding_bag``) whose output is already in the row-major
+  layout the decoder's matrix product reads;
 - with ``dtype=torch.bfloat16`` (where the device has bf16 matrix units, see
   ``runtime.bf16_native``) the folded weights are cast once and the matrix products run in bf16,
-  as the decoders already do in training; sampling, softplus, sigmoid and compositing stay
-  float32. On this machine's AMX units that makes the decoders about 4x faster.
+  as the decoders already do in training; lookups, softplus, sigmoid and compositing stay
+  float32.
+
+bench/results/render_speed.md measures the whole renderer against the exhaustive float32 one.
 
 With float32 the result equals ``VisNerfField.density`` / ``color`` up to float rounding; with
 bfloat16 it differs by the rounding of the products (both tested).
@@ -78,9 +81,9 @@ class ModeTables:
     ``y * w + x``), each line ``[r, c]``.
 
     A bilinear lookup is then one fused weighted sum of four rows per sample, written row-major
-    (``[m, c]``), which is the layout the decoder's matrix product wants. On this CPU that is 3 to 7
-    times faster than ``grid_sample``, whose output is channel-first and must be transposed.
-    Coordinates outside [-1, 1] read the border (inference only samples inside the box).
+    (``[m, c]``), which is the layout the decoder's matrix product wants (``grid_sample`` writes
+    channel-first, and the transpose cost as much as the lookup). Coordinates outside [-1, 1] read
+    the border (inference only samples inside the box).
     """
 
     planes: tuple[Tensor, ...]
