@@ -50,6 +50,10 @@ class RenderSettings:
     def from_config(
         cls, cfg: RenderConfig, background: tuple[float, float, float], quality: str = "full"
     ) -> "RenderSettings":
+        """``full``: as the server renders; ``preview``: smaller and coarser; ``exhaustive``: the
+        plain reference (training spacing, every sample, float32)."""
+        if quality not in ("full", "preview", "exhaustive"):
+            raise ValueError(f"quality must be 'full', 'preview' or 'exhaustive', got {quality!r}")
         settings = cls(
             step_ratio=cfg.full_step_ratio,
             max_samples=cfg.max_samples,
@@ -59,7 +63,7 @@ class RenderSettings:
             background=background,
             bf16=cfg.bf16,
         )
-        if quality == "exhaustive":  # the plain reference: every sample, float32, training spacing
+        if quality == "exhaustive":
             settings = replace(settings, step_ratio=cfg.step_ratio, use_occupancy=False, early_termination=False,
                                weight_threshold=0.0, bf16=False)
         elif quality == "preview":

@@ -151,3 +151,5 @@ def test_qualities_derive_from_the_checkpoint_render_config() -> None:
     assert (plain.step_ratio, plain.use_occupancy, plain.early_termination, plain.bf16) == (0.5, False, False, False)
     assert plain.weight_threshold == 0.0
     assert (preview.step_ratio, preview.resolution_scale) == (1.0, 0.5)
+    with pytest.raises(ValueError, match="quality must be"):
+        RenderSettings.from_config(cfg, (1.0, 1.0, 1.0), "fast")
