@@ -99,8 +99,9 @@ class SceneRenderer:
             value = float(params.get(axis.name, axis.default))
             if not math.isfinite(value):
                 raise ValueError(f"parameter {axis.name!r} must be finite, got {value}")
-            span = axis.max - axis.min
-            tol = 1e-9 * max(1.0, abs(span))
+            # A value read back from float32 (0.12 -> 0.1199999973) is the end of the range, not
+            # outside it: allow the rounding of a float32 at this magnitude.
+            tol = 1e-6 * max(abs(axis.min), abs(axis.max), axis.max - axis.min, 1e-30)
             if value < axis.min - tol or value > axis.max + tol:
                 raise ValueError(
                     f"parameter {axis.name!r}={value} is outside its range [{axis.min}, {axis.max}]"

@@ -1,7 +1,9 @@
 """Single-frame rendering over HTTP: formats, cameras, parameters, caching, limits and errors."""
 
+import tempfile
 import threading
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -9,6 +11,8 @@ from fastapi.testclient import TestClient
 from server_helpers import ORBIT, SlowRenderer, image_size, make_settings
 
 from visnerf.data.cameras import orbit_c2w
+from visnerf.inference import load_scene
+from visnerf.testing import make_tiny_checkpoint
 from visnerf_server.app import create_app
 from visnerf_server.dependencies import get_frame_renderer, get_render_queue
 from visnerf_server.frame_cache import FrameCache
@@ -357,3 +361,15 @@ def test_no_bad_input_produces_a_500(client: TestClient, settings: Settings) -> 
             "/api/scenes/tiny/render", content=raw, headers={"content-type": "application/json"}
         )
         assert 400 <= response.status_code < 500, raw
+
+
+def test_range_ends_read_back_from_float32_are_accepted_and_clamped() -> None:
+    """0.12 stored as float32 reads 0.1199999973: the end of the range, not outside it."""
+    with tempfile.TemporaryDirectory() as tmp:
+        scene = load_scene(make_tiny_checkpoint(Path(tmp) / "s.safetensors", [("p", [0.12, 0.1375, 0.155])]))
+    low, high = float(np.float32(0.12)), float(np.float32(0.155))
+    assert low < 0.12 and high > 0.155
+    assert scene.resolve_params({"p": low}) == [0.12]
+    assert scene.resolve_params({"p": high}) == [0.155]
+    with pytest.raises(ValueError, match="outside its range"):
+        scene.resolve_params({"p": 0.1199})
