@@ -7,7 +7,7 @@ the test path as ``visnerf eval`` does (per-scene report in RESULTS/eval_scenes/
 table (scene, K, PSNR, SSIM, training minutes, ms per frame, model MB) next to the paper's figures
 where the paper has a corresponding row.
 
-    python bench/eval_scenes.py                                   # all scenes, 10 min each, 128x128
+    python bench/eval_scenes.py --minutes-per-scene 4              # all scenes, 4 min each, 128x128
     python bench/eval_scenes.py --scenes tangle_static --minutes-per-scene 0.5 --res 32 --test-views 8
 
 A full run (every scene at 128x128) writes bench/results/eval_scenes.{json,md} and its table into the
@@ -84,11 +84,11 @@ def dataset_for(spec: SceneSpec, root: Path, options: DatasetOptions, workers: i
     return folder, summary.seconds
 
 
-def train_scene(data: Path, ckpt: Path, minutes: float, device: torch.device) -> float:
+def train_scene(data: Path, ckpt: Path, minutes: float, resolution: int, device: torch.device) -> float:
     """Train under the budget; returns the training seconds (carving included, validation excluded)."""
     train, val = split_holdout(load_dataset(data, "train"), HoldoutConfig(views=HOLDOUT_VIEWS))
     budget = 60.0 * minutes
-    cfg = TrainConfig(time_budget_s=budget, validate_every_s=max(budget / 6.0, 5.0))
+    cfg = TrainConfig(time_budget_s=budget, validate_every_s=max(budget / 6.0, 5.0), resolution_final=resolution)
     trainer = Trainer(train, val, cfg, device)
     trainer.run(progress_bar=False)
     trainer.save(ckpt, dataset=str(data))
@@ -137,7 +137,8 @@ def write_markdown(path: Path, record: dict) -> None:
         f"torch {m['torch']} with {m['torch_threads']} thread(s), {record['date']}.",
         "",
         f"Each scene: dataset at {record['resolution']}x{record['resolution']} ({record['views']} views per "
-        f"parameter setting), training for {record['minutes_per_scene']:g} minute(s) of wall-clock time with views "
+        f"parameter setting), training for {record['minutes_per_scene']:g} minute(s) of wall-clock time "
+        f"({record['voxels_per_axis']} voxels per axis at the end) with views "
         f"{', '.join(map(str, HOLDOUT_VIEWS))} held out, then `visnerf eval` on {record['test_views']} test views "
         "(parameters between training values). PSNR and SSIM are means over the evaluated test frames, "
         "ms per frame the median full-quality render time.",
@@ -177,6 +178,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scenes", nargs="+", default=list(catalog), choices=list(catalog), metavar="NAME")
     parser.add_argument("--minutes-per-scene", type=float, default=10.0, help="training budget (default 10)")
     parser.add_argument("--res", type=int, default=128, help="image size (default 128)")
+    parser.add_argument("--resolution", type=int, default=72,
+                        help="final voxels per axis of each model (default 72, as the bundled checkpoints)")
     parser.add_argument("--test-views", type=int, default=181, help="views on the test path (default 181)")
     parser.add_argument("--max-eval-frames", type=int, default=None, help="evaluate only N test frames")
     parser.add_argument("--sweep-frames", type=int, default=4, help="frames per render setting (default 4)")
@@ -202,7 +205,7 @@ def main(argv: list[str] | None = None) -> int:
         "command": "python bench/eval_scenes.py " + " ".join(argv if argv is not None else sys.argv[1:]),
         "date": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()), "machine": machine(device),
         "resolution": args.res, "views": options.n_views, "test_views": args.test_views,
-        "minutes_per_scene": args.minutes_per_scene, "reports": str(reports.relative_to(ROOT))
+        "minutes_per_scene": args.minutes_per_scene, "voxels_per_axis": args.resolution, "reports": str(reports.relative_to(ROOT))
         if reports.is_relative_to(ROOT) else str(reports), "scenes": [],
     }  # fmt: skip
     runs = []
@@ -212,7 +215,7 @@ def main(argv: list[str] | None = None) -> int:
             data, gen_seconds = dataset_for(spec, data_root, options, args.workers)
             ckpt = work / f"{name}.safetensors"
             print(f"{name}: training {args.minutes_per_scene:g} min on {data}", file=sys.stderr)
-            train_seconds = train_scene(data, ckpt, args.minutes_per_scene, device)
+            train_seconds = train_scene(data, ckpt, args.minutes_per_scene, args.resolution, device)
             summary = write_report(evaluate_checkpoint(ckpt, data, eval_cfg, device), eval_cfg, reports / name)
             record["scenes"].append(scene_row(spec, summary, train_seconds, gen_seconds))
             runs.append(read_training_log(ckpt.with_suffix(".log.csv"), name=name))
