@@ -22,7 +22,7 @@ import numpy as np
 import torch
 
 from visnerf.commands import parse_bbox, pick_device, with_bbox
-from visnerf.config import HoldoutConfig, RenderConfig, TrainConfig
+from visnerf.config import FieldConfig, HoldoutConfig, RenderConfig, TrainConfig
 from visnerf.data.holdout import split_holdout
 from visnerf.data.parsers.blender import load_dataset
 from visnerf.evaluation.metrics import psnr, ssim
@@ -125,6 +125,11 @@ def main() -> int:
     ap.add_argument("--resolution", type=int, default=TrainConfig.resolution_final)
     ap.add_argument("--validate-every", type=float, default=300.0, help="seconds of training")
     ap.add_argument("--eval-frames", type=int, default=24)
+    ap.add_argument("--micro-batch-samples", type=int, default=TrainConfig.micro_batch_samples,
+                    help="most samples back-propagated together (bounds activation memory; "
+                         f"default {TrainConfig.micro_batch_samples})")
+    ap.add_argument("--density-shift", type=float, default=FieldConfig.density_shift,
+                    help=f"bias of the density activation of a fresh field (default {FieldConfig.density_shift:g})")
     ap.add_argument("--threads", type=int, default=None, help="torch threads (default: all cores)")
     ap.add_argument("--bbox", type=parse_bbox, default=None, metavar="X0,Y0,Z0,X1,Y1,Z1",
                     help="content box (write --bbox=-0.2,...); default: carved from the images")
@@ -144,8 +149,10 @@ def main() -> int:
     del scene
     assert val is not None
     cfg = TrainConfig(iterations=10**9, time_budget_s=args.minutes * 60, batch_rays=args.batch_rays,
-                      resolution_final=args.resolution, validate_every_s=args.validate_every, validate_max_images=6)
-    trainer = Trainer(train, val, cfg, device, render_cfg=RenderConfig())
+                      micro_batch_samples=args.micro_batch_samples, resolution_final=args.resolution,
+                      validate_every_s=args.validate_every, validate_max_images=6)
+    trainer = Trainer(train, val, cfg, device, field_cfg=FieldConfig(density_shift=args.density_shift),
+                      render_cfg=RenderConfig())
     trainer.run(progress_bar=sys.stderr.isatty(), on_validate=lambda row: print(json.dumps(row), flush=True))
     ckpt = trainer.save(args.out, dataset="shared/data/nyx")
     final = final_eval(ckpt, val, args.eval_frames)
