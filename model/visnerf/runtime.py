@@ -41,9 +41,22 @@ def default_threads() -> int:
         return max(1, os.cpu_count() or 1)
 
 
+_explicit_threads: int | None = None
+
+
 def configure(threads: int | None = None) -> None:
-    """Thread settings, once per process, before heavy work."""
-    torch.set_num_threads(threads or default_threads())
+    """Thread settings, once per process, before heavy work.
+
+    An explicit ``threads`` is kept: a later call without one (``commands.pick_device`` makes one)
+    leaves it alone instead of resetting to ``default_threads()``. bench/eval_scenes.py asked for
+    one thread and ran with two because of that reset.
+    """
+    global _explicit_threads
+    if threads is not None:
+        if threads < 1:
+            raise ValueError(f"threads must be at least 1, got {threads}")
+        _explicit_threads = threads
+    torch.set_num_threads(_explicit_threads or default_threads())
 
 
 def bf16_native(device: torch.device) -> bool:
