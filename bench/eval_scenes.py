@@ -55,7 +55,7 @@ PAPER_ROWS = {
                 "the Nyx simulation at 256x256 on a V100",
     },
 }  # fmt: skip
-NO_PAPER_ROW = "no counterpart: the paper's figures at hand (../shared) give only Nyx-DVR"
+NO_PAPER_ROW = "the paper's figures at hand (../shared) give only Nyx-DVR"
 
 
 def machine(device: torch.device) -> dict:
@@ -120,11 +120,12 @@ def table_lines(record: dict) -> list[str]:
         paper = r["paper"]
         lines.append(f"| {r['scene']} | {r['K']} | {_f(r['psnr'], 2)} | {_f(r['ssim'], 3)} | "
                      f"{_f(r['train_minutes'], 1)} | {_f(r['ms_per_frame'], 0)} | {_f(r['model_mb'], 2)} | "
-                     f"{'see next row' if paper else NO_PAPER_ROW} |")
+                     f"{'see next row' if paper else '-'} |")
         if paper:
             lines.append(f"| paper: {paper['dataset']} | {paper['K']} | {paper['psnr']:.2f} | {paper['ssim']:.3f} | "
                          f"{paper['train_minutes']:.0f} | {paper['ms_per_frame']:.0f} | {paper['model_mb']:.2f} | "
                          f"{paper['note']} |")
+    lines += ["", f"Paper column: {NO_PAPER_ROW}, so only the scenes with a row under them have a counterpart."]
     return lines
 
 
@@ -158,7 +159,8 @@ def update_readme(readme: Path, record: dict) -> None:
     section = "\n".join([
         README_BEGIN, "## Evaluation of the synthetic scenes", "",
         f"`python bench/eval_scenes.py` ({record['minutes_per_scene']:g} min of training per scene, "
-        f"{record['resolution']}x{record['resolution']}, {record['machine']['device']}; "
+        f"{record['resolution']}x{record['resolution']}, {record['machine']['device']} with "
+        f"{record['machine']['torch_threads']} thread(s), {record['date'][:10]}; "
         "details in bench/results/eval_scenes.md):", "", *table_lines(record), README_END,
     ])  # fmt: skip
     text = readme.read_text()
