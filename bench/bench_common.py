@@ -99,3 +99,18 @@ def fmt(value: float | None, digits: int = 1) -> str:
     if math.isinf(value):
         return "identical" if value > 0 else "-inf"
     return f"{value:.{digits}f}"
+
+
+def markdown_header(title: str, record: dict[str, Any]) -> list[str]:
+    """Title, command and machine lines of a benchmark's Markdown report, from a record holding
+    ``machine_record()``, ``command`` and ``load_average_1min`` (``before``, optional ``between``,
+    ``after``)."""
+    load = record["load_average_1min"]
+    between = f"{load['between']} between the runs, " if "between" in load else ""
+    return [
+        f"# {title}",
+        "",
+        f"Command: `{record['command']}`  ",
+        f"Machine: {record['machine']}, torch {record['torch']}, {record['torch_threads']} torch thread(s), "
+        f"{record['date']}; 1-min load average {load['before']} before, {between}{load['after']} after.",
+    ]

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
-from bench_common import RESULTS, load_average, machine_record, write_json
+from bench_common import RESULTS, load_average, machine_record, markdown_header, write_json
 from render_speed import default_cases, load_views, parse_case
 
 from visnerf.inference import load_scene
@@ -111,11 +111,7 @@ def measure(case, views_count: int, size: int) -> dict:
 
 def write_markdown(path: Path, record: dict) -> None:
     lines = [
-        "# Occupancy grid per parameter setting against the union grid",
-        "",
-        f"Command: `{record['command']}`  ",
-        f"Machine: {record['machine']}, {record['torch_threads']} torch thread(s), {record['date']}; "
-        f"1-min load average {record['load_average_1min']['before']} before, {record['load_average_1min']['after']} after.",
+        *markdown_header("Occupancy grid per parameter setting against the union grid", record),
         "",
         "Medians over the held-out views of bench/render_speed.py. Samples: density evaluations per frame.",
         "",

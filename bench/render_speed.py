@@ -46,6 +46,7 @@ from bench_common import (
     held_out_frames,
     load_average,
     machine_record,
+    markdown_header,
     save_figure,
     write_json,
 )
@@ -316,13 +317,8 @@ def target_rows(case: CaseResult) -> list[str]:
 
 
 def write_markdown(path: Path, record: dict, cases: list[CaseResult], sizes: tuple[int, ...]) -> None:
-    load = record["load_average_1min"]
     lines = [
-        "# Render speed: plain exhaustive renderer against the fast one",
-        "",
-        f"Command: `{record['command']}`  ",
-        f"Machine: {record['machine']}, torch {record['torch']}, {record['torch_threads']} torch thread(s), "
-        f"{record['date']}; 1-min load average {load['before']} before, {load['after']} after.",
+        *markdown_header("Render speed: plain exhaustive renderer against the fast one", record),
         "",
         f"{record['views']} held-out views per checkpoint (camera and parameters of those frames), rendered at each "
         "size by each setting, interleaved per view (fast, plain, preview), one untimed warm-up render per setting "

@@ -36,6 +36,7 @@ from bench_common import (
     holdout_for,
     load_average,
     machine_record,
+    markdown_header,
     save_figure,
     write_json,
 )
@@ -166,14 +167,8 @@ def equal_time_rows(plain: RunResult, fast: RunResult) -> list[dict]:
 
 def write_markdown(path: Path, record: dict, runs: list[RunResult], rows: list[dict]) -> None:
     speedup = record["speedup_iterations_per_second"]
-    load = record["load_average_1min"]
     lines = [
-        "# Training speed: plain against accelerated",
-        "",
-        f"Command: `{record['command']}`  ",
-        f"Machine: {record['machine']}, torch {record['torch']}, {record['torch_threads']} torch thread(s), "
-        f"{record['date']}; 1-min load average {load['before']} before, {load['between']} between the runs, "
-        f"{load['after']} after.",
+        *markdown_header("Training speed: plain against accelerated", record),
         "",
         f"Data: `{record['data']}`, {record['train_frames']} training frames, {record['val_frames']} held out "
         f"({record['holdout']}); up to {record['val_images']} of them rendered per validation, the same each time. Seed {record['seed']}, "

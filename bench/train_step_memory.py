@@ -23,7 +23,7 @@ import time
 from pathlib import Path
 
 import torch
-from bench_common import RESULTS, load_average, machine_record, write_json
+from bench_common import RESULTS, load_average, machine_record, markdown_header, write_json
 
 from visnerf.config import FieldConfig, TrainConfig
 from visnerf.rendering.renderer import render_rays
@@ -74,11 +74,7 @@ def measure(budget: int, batch_rays: int, repeats: int, threads: int) -> dict:
 
 def write_markdown(path: Path, record: dict) -> None:
     lines = [
-        "# Training step memory against the micro-batch sample budget",
-        "",
-        f"Command: `{record['command']}`  ",
-        f"Machine: {record['machine']}, torch {record['torch']}, {record['threads']} thread(s); "
-        f"load average {record['load_before']} before, {record['load_after']} after; {record['date']}",
+        *markdown_header("Training step memory against the micro-batch sample budget", record),
         "",
         f"One step of {record['batch_rays']} rays on a field of {'x'.join(map(str, RESOLUTION))} voxels, K = 3, "
         "in a fresh field's fog (every sample's colour decoded); each budget in its own process, "
@@ -122,8 +118,8 @@ def main(argv: list[str] | None = None) -> int:
               f"step {rows[-1]['step_seconds_median']:.2f} s", file=sys.stderr)  # fmt: skip
     record = {
         **machine_record(), "command": "python bench/train_step_memory.py " + " ".join(argv or sys.argv[1:]),
-        "threads": args.threads, "batch_rays": args.batch_rays, "repeats": args.repeats,
-        "load_before": load_before, "load_after": load_average(), "rows": rows,
+        "torch_threads": args.threads, "batch_rays": args.batch_rays, "repeats": args.repeats,
+        "load_average_1min": {"before": load_before, "after": load_average()}, "rows": rows,
     }  # fmt: skip
     args.out_dir.mkdir(parents=True, exist_ok=True)
     write_json(args.out_dir / "train_step_memory.json", record)

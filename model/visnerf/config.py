@@ -123,9 +123,10 @@ class TrainConfig:
     micro_batch_samples: int = 32768
     """Most samples (along the rays' spans through the box) per micro-batch: keeps activation memory
     flat as the grid, and with it the number of samples per ray, grows. One step of 4096 rays on a
-    Nyx-sized field (88x140x140, fresh fog) peaks 830 MB lower at 32768 than at 131072 (1074
-    against 1900 MB) in the same time: two runs gave 9.8 to 11.9 s per step at every budget, with
-    no order between them (bench/results/train_step_memory.md)."""
+    Nyx-sized field (88x140x140, fresh fog) peaks 0.8 to 1.1 GB lower at 32768 than at 131072
+    (1029 to 1074 against 1900 to 2097 MB over three runs) and is no slower: two runs beside other
+    jobs gave 9.8 to 11.9 s per step at every budget in no order, one on an idle machine 6.9
+    against 9.7 s (bench/results/train_step_memory.md)."""
     trim_every: int = 25
     """Iterations between returns of freed heap memory to the system (bounds resident memory)."""
     lr_factors: float = 0.02
