@@ -33,7 +33,7 @@ from visnerf.inference import load_scene
 from visnerf.rendering.occupancy import cell_centres
 from visnerf.rendering.renderer import RenderSettings, render_image
 from visnerf.representation.field import VisNerfField
-from visnerf.representation.frame_field import FrameField
+from visnerf.representation.frame_field import FrameField, SampleTaps
 from visnerf.runtime import bf16_native, configure
 
 
@@ -53,20 +53,20 @@ class Counting:
 
     def __init__(self) -> None:
         self.samples = 0
-        self._orig = FrameField.density
+        self._orig = FrameField.density_at
 
     def __enter__(self) -> "Counting":
         counter = self
 
-        def density(frame: FrameField, points: torch.Tensor) -> torch.Tensor:
-            counter.samples += int(points.shape[0])
-            return counter._orig(frame, points)
+        def density_at(frame: FrameField, samples: SampleTaps) -> torch.Tensor:
+            counter.samples += len(samples)
+            return counter._orig(frame, samples)
 
-        FrameField.density = density  # type: ignore[method-assign]
+        FrameField.density_at = density_at  # type: ignore[method-assign]
         return self
 
     def __exit__(self, *exc: object) -> None:
-        FrameField.density = self._orig  # type: ignore[method-assign]
+        FrameField.density_at = self._orig  # type: ignore[method-assign]
 
 
 def measure(case, views_count: int, size: int) -> dict:

@@ -6,17 +6,19 @@ segments, with empty-space skipping through the occupancy grid and early ray ter
 """
 
 import math
+import weakref
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 import torch
 import torch.nn.functional as F
-from jaxtyping import Bool, Float
+from jaxtyping import Bool, Float, Int
 from torch import Tensor
 
 from visnerf.config import RenderConfig
 from visnerf.data.cameras import Intrinsics, image_rays
 from visnerf.rendering.aabb import intersect_aabb
+from visnerf.rendering.empty_space import EmptySpace
 from visnerf.rendering.occupancy import query_occupancy
 from visnerf.rendering.sampling import deltas_from_samples, sample_pdf, uniform_samples
 from visnerf.rendering.volume import render_alpha_from_density
@@ -123,22 +125,26 @@ def _shade_frame_samples(
 ) -> tuple[Float[Tensor, "n 3"], Float[Tensor, " n"]]:
     """Inference twin of ``_shade_samples`` at one parameter tuple, equal spacing ``step``.
 
-    Returns (colour contribution, optical depth of this segment).
+    The VM taps of the valid samples are computed once; colour reuses those of the samples whose
+    weight matters. Returns (colour contribution, optical depth of this segment).
     """
     n, s = valid.shape
     sigmas = torch.zeros(n, s, dtype=points.dtype, device=points.device)
-    if bool(valid.any()):
-        sigmas = sigmas.masked_scatter(valid, frame.density(points[valid]))
+    rgb = torch.zeros(n, 3, dtype=points.dtype, device=points.device)
+    valid_idx = valid.nonzero()  # [m, 2]
+    if valid_idx.shape[0] == 0:
+        return rgb, sigmas.sum(dim=-1)
+    samples = frame.lookup(points[valid])
+    sigmas = sigmas.masked_scatter(valid, frame.density_at(samples))
     tau = sigmas * step  # [n, s]
     exclusive = torch.cumsum(tau, dim=-1) - tau + tau_before[:, None]
     weights = torch.exp(-exclusive) * -torch.expm1(-tau)  # [n, s]
-    shade = valid & (weights > weight_threshold)
-    rgb = torch.zeros(n, 3, dtype=points.dtype, device=points.device)
-    shade_idx = shade.nonzero()  # [m, 2]
-    if shade_idx.shape[0] > 0:
-        ray_idx = shade_idx[:, 0]
-        colors = frame.color(points[shade], ray_terms[ray_idx])  # [m, 3]
-        rgb = rgb.index_add(0, ray_idx, weights[shade][:, None] * colors)
+    valid_weights = weights[valid]  # [m]
+    shade = (valid_weights > weight_threshold).nonzero()[:, 0]  # into the valid samples
+    if shade.numel() > 0:
+        ray_idx = valid_idx[shade, 0]
+        colors = frame.color_at(samples.select(shade), ray_terms[ray_idx])  # [k, 3]
+        rgb = rgb.index_add(0, ray_idx, valid_weights[shade, None] * colors)
     return rgb, tau.sum(dim=-1)
 
 
@@ -230,6 +236,54 @@ def _importance_positions(
     return t, deltas, valid_t
 
 
+_EMPTY_SPACE: "weakref.WeakKeyDictionary[VisNerfField, tuple[Tensor, EmptySpace]]" = weakref.WeakKeyDictionary()
+
+
+def empty_space_of(field: VisNerfField) -> EmptySpace | None:
+    """The field's occupancy grid with distances to content, built once per grid (cached)."""
+    grid = field.occupancy
+    if grid is None:
+        return None
+    cached = _EMPTY_SPACE.get(field)
+    if cached is None or cached[0] is not grid:
+        cached = (grid, EmptySpace.of(grid, field.aabb))
+        _EMPTY_SPACE[field] = cached
+    return cached[1]
+
+
+@dataclass(frozen=True)
+class RayWindows:
+    """Per ray: the box interval and the window ``[first, last]`` of lattice samples
+    ``t_near + step * (i + 0.5)`` to walk (``first > last``: nothing to walk)."""
+
+    t_near: Float[Tensor, " n"]
+    t_far: Float[Tensor, " n"]
+    first: Int[Tensor, " n"]
+    last: Int[Tensor, " n"]
+
+    def __getitem__(self, index: slice) -> "RayWindows":
+        return RayWindows(self.t_near[index], self.t_far[index], self.first[index], self.last[index])
+
+
+def ray_windows(
+    field: VisNerfField,
+    rays_o: Float[Tensor, "n 3"],
+    rays_d: Float[Tensor, "n 3"],
+    step: float,
+    max_samples: int,
+    empty_space: EmptySpace | None,
+) -> RayWindows:
+    """Box interval of every ray and its window of samples: the whole lattice inside the box (at
+    most ``max_samples``), narrowed to the occupied samples' span when ``empty_space`` is given."""
+    t_near, t_far, hit = intersect_aabb(rays_o, rays_d, field.aabb)
+    count = torch.ceil((t_far - t_near) / step - 0.5 + 1e-3).clamp(0, max_samples)  # may count one beyond t_far
+    last = torch.where(hit, count.long() - 1, -1)
+    first = torch.zeros_like(last)
+    if empty_space is not None:
+        first, last = empty_space.sample_window(rays_o, rays_d, t_near, step, first, last)
+    return RayWindows(t_near, t_far, first, last)
+
+
 def render_image(
     field: VisNerfField,
     c2w: Float[Tensor, "4 4"],
@@ -241,14 +295,16 @@ def render_image(
     rays_o, rays_d = image_rays(c2w, intrinsics)
     rays_o, rays_d = rays_o.reshape(-1, 3), rays_d.reshape(-1, 3)
     background = torch.tensor(settings.background, dtype=rays_o.dtype, device=rays_o.device)
-    occupancy = field.occupancy if settings.use_occupancy else None
+    empty = empty_space_of(field) if settings.use_occupancy else None
     q_d, q_a = field.param_features(params[None].to(rays_o.dtype))  # [1, c] each
     dtype = torch.bfloat16 if settings.bf16 and bf16_native(rays_o.device) else rays_o.dtype
     frame = FrameField(field, q_d, q_a, dtype)
+    step = field.voxel_size() * settings.step_ratio
+    windows = ray_windows(field, rays_o, rays_d, step, settings.max_samples, empty)
     out = torch.empty_like(rays_o)
     for start in range(0, rays_o.shape[0], settings.chunk_rays):
         sl = slice(start, start + settings.chunk_rays)
-        out[sl] = march_rays(field, rays_o[sl], rays_d[sl], frame, background, settings, occupancy)
+        out[sl] = march_rays(field, rays_o[sl], rays_d[sl], frame, background, settings, empty, windows[sl])
     return out.reshape(intrinsics.height, intrinsics.width, 3)
 
 
@@ -278,34 +334,41 @@ def march_rays(
     frame: FrameField,
     background: Float[Tensor, " 3"],
     settings: RenderSettings,
-    occupancy: Bool[Tensor, "x y z"] | None,
+    empty_space: EmptySpace | None,
+    windows: RayWindows | None = None,
 ) -> Float[Tensor, "n 3"]:
-    """March rays in segments, dropping rays that left the box or became opaque."""
+    """March rays through their sample windows in segments, testing each sample's cell in
+    ``empty_space`` (None: every sample counts) and dropping rays that became opaque or left
+    their window. ``windows`` defaults to ``ray_windows`` of these rays."""
     n = rays_o.shape[0]
     step = field.voxel_size() * settings.step_ratio
-    t_near, t_far, hit = intersect_aabb(rays_o, rays_d, field.aabb)
+    if windows is None:
+        windows = ray_windows(field, rays_o, rays_d, step, settings.max_samples, empty_space)
     rgb = torch.zeros(n, 3, dtype=rays_o.dtype, device=rays_o.device)
     tau_total = torch.zeros(n, dtype=rays_o.dtype, device=rays_o.device)
-    n_total = min(settings.max_samples, math.ceil(float((t_far - t_near).max()) / step)) if hit.any() else 0
-    seg = settings.segment_samples if settings.early_termination else max(n_total, 1)
-    active = hit.nonzero()[:, 0]
+    active = (windows.first <= windows.last).nonzero()[:, 0]
+    if active.numel() == 0:
+        return background[None].expand(n, 3).clone()
+    longest = int((windows.last[active] - windows.first[active]).max()) + 1
+    seg = settings.segment_samples if settings.early_termination else longest
     ray_terms = frame.direction_terms(rays_d)  # [n, h], once per ray
     tau_stop = -math.log(settings.early_stop_eps) if settings.early_termination else math.inf
-    for s0 in range(0, n_total, seg):
+    offsets = torch.arange(seg, device=rays_o.device)
+    for s0 in range(0, longest, seg):
         if active.numel() == 0:
             break
-        s = min(seg, n_total - s0)
-        t = t_near[active, None] + step * (torch.arange(s0, s0 + s, device=rays_o.device) + 0.5)[None]
-        valid = t < t_far[active, None]  # [a, s]
-        points = rays_o[active, None, :] + rays_d[active, None, :] * t[..., None]
-        if occupancy is not None:
-            valid = valid.masked_scatter(valid, query_occupancy(occupancy, field.aabb, points[valid]))
+        idx = (windows.first[active] + s0)[:, None] + offsets[None]  # [a, s]
+        t = windows.t_near[active, None] + step * (idx.to(rays_o.dtype) + 0.5)
+        valid = (idx <= windows.last[active, None]) & (t < windows.t_far[active, None])
+        points = rays_o[active, None, :] + rays_d[active, None, :] * t[..., None]  # [a, s, 3]
+        if empty_space is not None:
+            valid = valid.masked_scatter(valid, empty_space.occupied_at(points[valid]))
         seg_rgb, seg_tau = _shade_frame_samples(
             frame, ray_terms[active], points, step, valid, tau_total[active], settings.weight_threshold,
         )
         rgb[active] += seg_rgb
         tau_total[active] += seg_tau
-        keep = (tau_total[active] < tau_stop) & (t[:, -1] + step < t_far[active])
+        keep = (tau_total[active] < tau_stop) & (idx[:, -1] < windows.last[active])
         active = active[keep]
     opacity = -torch.expm1(-tau_total)
     return rgb + background[None] * (1.0 - opacity)[:, None]

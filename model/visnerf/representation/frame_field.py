@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
-from jaxtyping import Float
+from jaxtyping import Float, Int
 from torch import Tensor
 
 from visnerf.representation.decoders import Decoder, encode_position, encode_sh
@@ -69,66 +69,173 @@ def fold_first_layer(decoder: Decoder, q: Float[Tensor, " c"], n_components: int
     )
 
 
-def linear_taps(u: Float[Tensor, " m"], n: int) -> tuple[Float[Tensor, " m"], Float[Tensor, " m"]]:
-    """Lower node and fraction of linear interpolation on ``n`` nodes spanning [-1, 1]
-    (``align_corners=True``); coordinates outside are clamped to the border. Returns float nodes."""
-    pos = (u.clamp(-1.0, 1.0) + 1.0) * (0.5 * (n - 1))
-    lo = pos.floor().clamp_(0, n - 2)
-    return lo, pos - lo
+PLANE_U = tuple(a for (a, _), _ in MODES)
+"""Grid axis along the width of each mode's plane: (0, 0, 1)."""
+PLANE_V = tuple(b for (_, b), _ in MODES)
+"""Grid axis along the height of each mode's plane: (1, 2, 2)."""
+LINE_AXIS = tuple(c for _, c in MODES)
+"""Grid axis of each mode's line: (2, 1, 0)."""
+
+
+@dataclass(frozen=True)
+class VMTaps:
+    """Where a VM grid is read for ``m`` samples: for each of the three modes, the four plane rows
+    and two line rows of its bilinear and linear interpolation, and their weights.
+
+    The taps depend only on the grid's resolution, so the density and the appearance grid (same
+    resolution) share them: colour reuses the taps its samples had for density.
+    """
+
+    plane_rows: Int[Tensor, "m 3 4"]
+    plane_weights: Float[Tensor, "m 3 4"]
+    line_rows: Int[Tensor, "m 3 2"]
+    line_weights: Float[Tensor, "m 3 2"]
+
+    def __len__(self) -> int:
+        return self.plane_rows.shape[0]
+
+    def select(self, index: Int[Tensor, " k"] | slice) -> "VMTaps":
+        return VMTaps(self.plane_rows[index], self.plane_weights[index], self.line_rows[index], self.line_weights[index])
+
+
+@dataclass(frozen=True)
+class TapLayout:
+    """Where the taps of a grid of one resolution point into the stacked tables.
+
+    Interpolation along an axis is the same in every mode that uses the axis (same node count),
+    so the lower node and the fraction are computed once per axis. Everything after that is linear
+    in them, or a product of two such things, and is written as small matrix products, which
+    write contiguous rows (broadcasting over the trailing 3 x 4 taps was five times slower):
+
+    - rows: ``lower @ row_matrix + row_offset`` (each plane row is ``offset + y0 * w + x0`` plus
+      its corner's 0, 1, w or w + 1; each line row ``offset + z0`` plus 0 or 1);
+    - weights: ``(1 - f, f)`` of each axis picked by 0/1 matrices (exact), the plane weight being
+      the product of the picks of its two axes.
+    """
+
+    resolution: tuple[int, int, int]
+    half_span: Float[Tensor, " 3"]
+    """(n - 1) / 2 per axis: grid coordinate [-1, 1] to node position [0, n - 1]."""
+    last_lower: Float[Tensor, " 3"]
+    """n - 2 per axis: the highest lower node."""
+    row_matrix: Float[Tensor, "3 18"]
+    row_offset: Float[Tensor, " 18"]
+    """Rows from the lower nodes: twelve plane taps (three modes of four corners), then six line
+    taps (three modes of two nodes)."""
+    weight_picks: Float[Tensor, "6 30"]
+    """Pick from ``(1 - f, f)`` of the three axes: the weight along each plane tap's width axis
+    (12), along its height axis (12), and each line tap's (6)."""
+
+    @classmethod
+    def of(cls, resolution: tuple[int, int, int], device: torch.device) -> "TapLayout":
+        if min(resolution) < 2:
+            raise ValueError(f"VM grid of resolution {resolution} has an axis with fewer than 2 nodes")
+        plane_m, plane_o = torch.zeros(3, 12), torch.zeros(12)
+        line_m, line_o = torch.zeros(3, 6), torch.zeros(6)
+        pick_u, pick_v, pick_l = torch.zeros(6, 12), torch.zeros(6, 12), torch.zeros(6, 6)
+        plane_start = line_start = 0
+        # ``both`` holds (1 - f) of the three axes, then f of the three axes.
+        for i, ((a, b), c) in enumerate(MODES):
+            w, h, n = resolution[a], resolution[b], resolution[c]
+            for k, (dx, dy) in enumerate(((0, 0), (1, 0), (0, 1), (1, 1))):
+                col = 4 * i + k
+                plane_m[a, col], plane_m[b, col] = 1.0, float(w)
+                plane_o[col] = plane_start + dx + dy * w
+                pick_u[a + 3 * dx, col] = 1.0
+                pick_v[b + 3 * dy, col] = 1.0
+            for k in (0, 1):
+                col = 2 * i + k
+                line_m[c, col] = 1.0
+                line_o[col] = line_start + k
+                pick_l[c + 3 * k, col] = 1.0
+            plane_start += w * h
+            line_start += n
+        res = torch.tensor(resolution, dtype=torch.float32)
+        return cls(
+            resolution=resolution,
+            half_span=(0.5 * (res - 1.0)).to(device),
+            last_lower=(res - 2.0).to(device),
+            row_matrix=torch.cat([plane_m, line_m], dim=1).to(device),
+            row_offset=torch.cat([plane_o, line_o]).to(device),
+            weight_picks=torch.cat([pick_u, pick_v, pick_l], dim=1).to(device),
+        )
+
+    def taps(self, coords: Float[Tensor, "m 3"], dtype: torch.dtype) -> VMTaps:
+        """Taps of grid coordinates in [-1, 1] (outside reads the border); weights in ``dtype``.
+
+        Row indices are exact in float32 below 2^24 rows."""
+        m = coords.shape[0]
+        pos = torch.addcmul(self.half_span, coords.clamp(-1.0, 1.0), self.half_span)  # [m, 3], in [0, n - 1]
+        lower = torch.minimum(pos.floor(), self.last_lower)
+        frac = pos - lower
+        both = torch.cat([1.0 - frac, frac], dim=1)  # [m, 6]
+        rows = torch.addmm(self.row_offset, lower, self.row_matrix)  # [m, 18]
+        picks = both @ self.weight_picks  # [m, 30]
+        plane_rows = rows[:, :12].to(torch.int32).contiguous().view(m, 3, 4)
+        line_rows = rows[:, 12:].to(torch.int32).contiguous().view(m, 3, 2)
+        plane_weights = torch.mul(picks[:, :12], picks[:, 12:24]).to(dtype).view(m, 3, 4)
+        line_weights = picks[:, 24:].to(dtype).contiguous().view(m, 3, 2)
+        return VMTaps(plane_rows, plane_weights, line_rows, line_weights)
 
 
 @dataclass(frozen=True)
 class ModeTables:
-    """A VM grid's factors as row tables for ``embedding_bag``: each plane ``[h * w, c]`` (row
-    ``y * w + x``), each line ``[r, c]``.
+    """A VM grid's factors as two row tables for ``embedding_bag``: the three planes stacked
+    (``[sum h * w, c]``, row ``offset + y * w + x``) and the three lines stacked (``[sum r, c]``).
 
-    A bilinear lookup is then one fused weighted sum of four rows per sample, written row-major
-    (``[m, c]``), which is the layout the decoder's matrix product wants (``grid_sample`` writes
-    channel-first, and the transpose cost as much as the lookup). Coordinates outside [-1, 1] read
-    the border (inference only samples inside the box).
+    A lookup is then two fused weighted sums of rows for all three modes at once (four plane rows
+    and two line rows per mode and sample), written row-major (``[m, 3, c]``), the layout the
+    decoder's matrix product wants (``grid_sample`` writes channel-first, and the transpose cost
+    as much as the lookup). Coordinates outside [-1, 1] read the border (inference only samples
+    inside the box).
     """
 
-    planes: tuple[Tensor, ...]
-    plane_sizes: tuple[tuple[int, int], ...]
-    """(h, w) of each plane."""
-    lines: tuple[Tensor, ...]
+    plane_table: Tensor
+    line_table: Tensor
+    layout: TapLayout
     n_components: int
 
     @classmethod
     def of(cls, grid: VMGrid, dtype: torch.dtype = torch.float32) -> "ModeTables":
         """Tables of ``grid`` in ``dtype``: in bfloat16 the lookups read half the bytes and their
         products are written in the decoders' compute type without a conversion."""
-        planes = tuple(p.detach().permute(1, 2, 0).reshape(-1, p.shape[0]).to(dtype).contiguous() for p in grid.planes)
-        sizes = tuple((int(p.shape[1]), int(p.shape[2])) for p in grid.planes)
-        lines = tuple(li.detach().t().to(dtype).contiguous() for li in grid.lines)
-        if min(min(hw) for hw in sizes) < 2 or min(li.shape[0] for li in lines) < 2:
-            raise ValueError(f"VM grid of resolution {grid.resolution} has an axis with fewer than 2 nodes")
-        return cls(planes=planes, plane_sizes=sizes, lines=lines, n_components=grid.n_components)
+        layout = TapLayout.of(grid.resolution, grid.planes[0].device)
+        planes = torch.cat([p.detach().permute(1, 2, 0).reshape(-1, p.shape[0]) for p in grid.planes])
+        lines = torch.cat([li.detach().t() for li in grid.lines])
+        return cls(planes.to(dtype).contiguous(), lines.to(dtype).contiguous(), layout, grid.n_components)
 
-    def features_into(self, coords: Float[Tensor, "m 3"], out: Float[Tensor, "m f"]) -> None:
-        """Write ``VMGrid.sample(coords)`` (plane times line per mode, modes concatenated) into
-        ``out[:, :3c]``, in ``out``'s dtype (the lookups run in the tables' dtype)."""
-        c = self.n_components
-        for i, (((a, b), axis), plane, (h, w), line) in enumerate(
-            zip(MODES, self.planes, self.plane_sizes, self.lines, strict=True)
-        ):
-            x0, fx = linear_taps(coords[:, a], w)
-            y0, fy = linear_taps(coords[:, b], h)
-            row = (y0 * w + x0).long()
-            idx = row[:, None] + torch.tensor([0, 1, w, w + 1], device=row.device)  # [m, 4]
-            gx, gy = 1.0 - fx, 1.0 - fy
-            weights = torch.stack([gx * gy, fx * gy, gx * fy, fx * fy], dim=1).to(plane.dtype)
-            pf = F.embedding_bag(idx, plane, per_sample_weights=weights, mode="sum")  # [m, c]
-            l0, fl = linear_taps(coords[:, axis], line.shape[0])
-            l0 = l0.long()
-            lf = F.embedding_bag(l0[:, None] + torch.tensor([0, 1], device=l0.device), line,
-                                 per_sample_weights=torch.stack([1.0 - fl, fl], dim=1).to(line.dtype), mode="sum")
-            torch.mul(pf, lf, out=out[:, i * c:(i + 1) * c])
+    def taps(self, coords: Float[Tensor, "m 3"]) -> VMTaps:
+        return self.layout.taps(coords, self.plane_table.dtype)
+
+    def features_into(self, taps: VMTaps, out: Float[Tensor, "m f"]) -> None:
+        """Write ``VMGrid.sample`` at the taps' samples (plane times line per mode, modes
+        concatenated) into ``out[:, :3c]``, in ``out``'s dtype (lookups in the tables' dtype)."""
+        m, c = len(taps), self.n_components
+        pf = F.embedding_bag(taps.plane_rows.view(-1, 4), self.plane_table,
+                             per_sample_weights=taps.plane_weights.view(-1, 4), mode="sum")  # [3m, c]
+        lf = F.embedding_bag(taps.line_rows.view(-1, 2), self.line_table,
+                             per_sample_weights=taps.line_weights.view(-1, 2), mode="sum")  # [3m, c]
+        torch.mul(pf.view(m, 3 * c), lf.view(m, 3 * c), out=out[:, : 3 * c])
 
     def features(self, coords: Float[Tensor, "m 3"], dtype: torch.dtype = torch.float32) -> Float[Tensor, "m f"]:
         out = torch.empty(coords.shape[0], 3 * self.n_components, dtype=dtype, device=coords.device)
-        self.features_into(coords, out)
+        self.features_into(self.taps(coords), out)
         return out
+
+
+@dataclass(frozen=True)
+class SampleTaps:
+    """Samples prepared for ``FrameField``: world points, grid coordinates and VM taps."""
+
+    points: Float[Tensor, "m 3"]
+    coords: Float[Tensor, "m 3"]
+    taps: VMTaps
+
+    def __len__(self) -> int:
+        return self.points.shape[0]
+
+    def select(self, index: Int[Tensor, " k"] | slice) -> "SampleTaps":
+        return SampleTaps(self.points[index], self.coords[index], self.taps.select(index))
 
 
 class FrameField:
@@ -151,6 +258,9 @@ class FrameField:
         self.color_layer = fold_first_layer(field.color_decoder, q_appearance[0], cfg.n_appearance_components, dtype)
         self.density_tables = ModeTables.of(field.density_grid, dtype)
         self.appearance_tables = ModeTables.of(field.appearance_grid, dtype)
+        if field.appearance_grid.resolution != field.density_grid.resolution:
+            raise ValueError(f"density grid {field.density_grid.resolution} and appearance grid "
+                             f"{field.appearance_grid.resolution} differ in resolution")
         dd, cd = field.density_decoder.out, field.color_decoder.out
         self._density_out = (dd.weight.detach().to(dtype), dd.bias.detach().to(dtype))
         self._color_out = (cd.weight.detach().to(dtype), cd.bias.detach().to(dtype))
@@ -158,39 +268,52 @@ class FrameField:
             [self.density_layer.spatial_weight_t, self.density_layer.rest_weight_t.to(dtype)], dim=0)
         self._density_bias = self.density_layer.bias.to(dtype)
 
+    def lookup(self, points: Float[Tensor, "m 3"]) -> SampleTaps:
+        """Grid coordinates and VM taps of ``points``, shared by density and colour."""
+        coords = self.field.to_grid(points)
+        return SampleTaps(points, coords, self.density_tables.taps(coords))
+
     def density(self, points: Float[Tensor, "m 3"]) -> Float[Tensor, " m"]:
-        out = torch.empty(points.shape[0], dtype=points.dtype, device=points.device)
-        for start in range(0, points.shape[0], SUB_CHUNK):
-            out[start:start + SUB_CHUNK] = self._density(points[start:start + SUB_CHUNK])
+        return self.density_at(self.lookup(points))
+
+    def color(self, points: Float[Tensor, "m 3"], ray_terms: Float[Tensor, "m h"]) -> Float[Tensor, "m 3"]:
+        """RGB at ``points``; ``ray_terms`` is ``direction_terms`` of each sample's ray."""
+        return self.color_at(self.lookup(points), ray_terms)
+
+    def density_at(self, samples: SampleTaps) -> Float[Tensor, " m"]:
+        out = torch.empty(len(samples), dtype=samples.points.dtype, device=samples.points.device)
+        for start in range(0, len(samples), SUB_CHUNK):
+            sl = slice(start, start + SUB_CHUNK)
+            out[sl] = self._density(samples.coords[sl], samples.taps.select(sl))
         return out
 
-    def _density(self, points: Float[Tensor, "m 3"]) -> Float[Tensor, " m"]:
-        f = self.field
-        coords = f.to_grid(points)
+    def _density(self, coords: Float[Tensor, "m 3"], taps: VMTaps) -> Float[Tensor, " m"]:
+        cfg = self.field.cfg
         n_spatial = 3 * self.density_tables.n_components
-        x = torch.empty(points.shape[0], self._density_weight_t.shape[0], dtype=self.dtype, device=points.device)
-        self.density_tables.features_into(coords, x)
-        x[:, n_spatial:] = encode_position(coords, f.cfg.pos_encoding_freqs)
+        x = torch.empty(coords.shape[0], self._density_weight_t.shape[0], dtype=self.dtype, device=coords.device)
+        self.density_tables.features_into(taps, x)
+        x[:, n_spatial:] = encode_position(coords, cfg.pos_encoding_freqs)
         hidden = torch.addmm(self._density_bias, x, self._density_weight_t)  # [m, h]
-        raw = F.linear(hidden.relu_(), *self._density_out)[:, 0].to(points.dtype)
-        return F.softplus(raw + f.cfg.density_shift)
+        raw = F.linear(hidden.relu_(), *self._density_out)[:, 0].to(coords.dtype)
+        return F.softplus(raw + cfg.density_shift)
 
     def direction_terms(self, directions: Float[Tensor, "a 3"]) -> Float[Tensor, "a h"]:
         """Per-ray part of the colour decoder's first layer (bias included), in the compute dtype."""
         sh = encode_sh(directions, self.field.cfg.sh_degree)
         return torch.addmm(self.color_layer.bias, sh, self.color_layer.rest_weight_t).to(self.dtype)
 
-    def color(self, points: Float[Tensor, "m 3"], ray_terms: Float[Tensor, "m h"]) -> Float[Tensor, "m 3"]:
-        """RGB at ``points``; ``ray_terms`` is ``direction_terms`` of each sample's ray."""
-        out = torch.empty(points.shape[0], 3, dtype=points.dtype, device=points.device)
-        for start in range(0, points.shape[0], SUB_CHUNK):
+    def color_at(self, samples: SampleTaps, ray_terms: Float[Tensor, "m h"]) -> Float[Tensor, "m 3"]:
+        """RGB at prepared samples; ``ray_terms`` is ``direction_terms`` of each sample's ray."""
+        out = torch.empty(len(samples), 3, dtype=samples.points.dtype, device=samples.points.device)
+        for start in range(0, len(samples), SUB_CHUNK):
             sl = slice(start, start + SUB_CHUNK)
-            out[sl] = self._color(points[sl], ray_terms[sl])
+            out[sl] = self._color(samples.taps.select(sl), ray_terms[sl])
         return out
 
-    def _color(self, points: Float[Tensor, "m 3"], ray_terms: Float[Tensor, "m h"]) -> Float[Tensor, "m 3"]:
-        coords = self.field.to_grid(points)
-        feats = self.appearance_tables.features(coords, self.dtype)  # [m, 3c]
+    def _color(self, taps: VMTaps, ray_terms: Float[Tensor, "m h"]) -> Float[Tensor, "m 3"]:
+        feats = torch.empty(len(taps), 3 * self.appearance_tables.n_components, dtype=self.dtype,
+                            device=ray_terms.device)
+        self.appearance_tables.features_into(taps, feats)  # [m, 3c]
         hidden = torch.addmm(ray_terms, feats, self.color_layer.spatial_weight_t)  # [m, h]
         raw = F.linear(hidden.relu_(), *self._color_out)
-        return torch.sigmoid(raw.to(points.dtype))
+        return torch.sigmoid(raw.float())

@@ -11,6 +11,7 @@ import pytest
 import torch
 
 from visnerf.data.cameras import Intrinsics, orbit_c2w
+from visnerf.rendering.empty_space import EmptySpace
 from visnerf.rendering.occupancy import build_occupancy
 from visnerf.rendering.renderer import RenderSettings, march_rays, render_image
 from visnerf.representation.field import VisNerfField
@@ -34,7 +35,7 @@ def shell_density(points: torch.Tensor) -> torch.Tensor:
 def shell_field(monkeypatch: pytest.MonkeyPatch):
     field, _ = make_tiny_field([("a", [0.0, 1.0])], seed=5, resolution=12)
     monkeypatch.setattr(VisNerfField, "density", lambda self, points, q: shell_density(points))
-    monkeypatch.setattr(FrameField, "density", lambda self, points: shell_density(points))
+    monkeypatch.setattr(FrameField, "density_at", lambda self, samples: shell_density(samples.points))
     return field.eval()
 
 
@@ -101,7 +102,7 @@ def test_rays_grazing_the_box_match_the_exhaustive_march(shell_field) -> None:
     fast = replace(exhaustive, early_termination=True, weight_threshold=1e-4, segment_samples=8)
     with torch.inference_mode():
         a = march_rays(shell_field, rays_o, rays_d, frame, bg, exhaustive, None)
-        b = march_rays(shell_field, rays_o, rays_d, frame, bg, fast, shell_field.occupancy)
+        b = march_rays(shell_field, rays_o, rays_d, frame, bg, fast, EmptySpace.of(shell_field.occupancy, shell_field.aabb))
     assert torch.isfinite(a).all() and torch.isfinite(b).all()
     assert float((a - b).abs().max()) < 2e-3
     assert float((a[-1] - 1.0).abs().max()) > 0.05  # the ray through the centre meets the shell

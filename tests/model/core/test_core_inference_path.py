@@ -26,11 +26,11 @@ def test_table_lookups_equal_the_concatenated_features(field) -> None:
                                [-1.0, 1.0, 1.0], [0.0, 0.0, 0.0], [1.0, 1.0, -1.0]])  # nodes and corners
     for grid in (field.appearance_grid, field.density_grid):
         expected = grid.sample(coords)  # [n, 3c]
-        assert torch.allclose(ModeTables.of(grid).features(coords, torch.float32), expected, atol=1e-6)
+        assert torch.allclose(ModeTables.of(grid).features(coords, torch.float32), expected, atol=1e-5)
         # Outside the box the tables read the border (inference never samples there).
         outside = coords * 1.3
         clamped = grid.sample(outside.clamp(-1.0, 1.0))
-        assert torch.allclose(ModeTables.of(grid).features(outside, torch.float32), clamped, atol=1e-6)
+        assert torch.allclose(ModeTables.of(grid).features(outside, torch.float32), clamped, atol=1e-5)
 
 
 def test_bf16_table_lookups_stay_within_bf16_rounding_of_float32(field) -> None:
@@ -47,7 +47,7 @@ def test_bf16_table_lookups_stay_within_bf16_rounding_of_float32(field) -> None:
         assert float((err / scale).max()) < 0.02  # measured 0.011
         assert float((err / scale).median()) < 1e-3  # measured 1.8e-4
         tables = ModeTables.of(grid, torch.bfloat16)
-        assert {t.dtype for t in tables.planes + tables.lines} == {torch.bfloat16}
+        assert tables.plane_table.dtype == tables.line_table.dtype == torch.bfloat16
 
 
 def test_table_lookups_reject_a_grid_with_a_single_node() -> None:
