@@ -20,6 +20,7 @@ from visnerf.data.cameras import Intrinsics, image_rays
 from visnerf.rendering.aabb import intersect_aabb
 from visnerf.rendering.empty_space import EmptySpace
 from visnerf.rendering.occupancy import query_occupancy
+from visnerf.rendering.parallel import chunk_workers, map_chunks
 from visnerf.rendering.sampling import deltas_from_samples, sample_pdf, uniform_samples
 from visnerf.rendering.volume import render_alpha_from_density
 from visnerf.representation.field import VisNerfField
@@ -47,6 +48,8 @@ class RenderSettings:
     early_termination: bool = True
     bf16: bool = False
     """Decoder matrix products in bfloat16 where the device has bf16 matrix units (inference)."""
+    threaded_chunks: bool = True
+    """On the CPU, march chunks of rays on one thread per core (``rendering.parallel``)."""
 
     @classmethod
     def from_config(
@@ -117,35 +120,37 @@ def _shade_samples(
 def _shade_frame_samples(
     frame: FrameField,
     ray_terms: Float[Tensor, "n h"],
-    points: Float[Tensor, "n s 3"],
+    rays: Int[Tensor, " a"],
+    points: Float[Tensor, "a s 3"],
     step: float,
-    valid: Bool[Tensor, "n s"],
-    tau_before: Float[Tensor, " n"],
+    valid: Bool[Tensor, "a s"],
+    tau_before: Float[Tensor, " a"],
     weight_threshold: float,
-) -> tuple[Float[Tensor, "n 3"], Float[Tensor, " n"]]:
-    """Inference twin of ``_shade_samples`` at one parameter tuple, equal spacing ``step``.
+    rgb: Float[Tensor, "n 3"],
+) -> Float[Tensor, " a"]:
+    """Inference twin of ``_shade_samples`` at one parameter tuple, equal spacing ``step``, for
+    the segment ``points`` of rays ``rays`` (indices into ``ray_terms`` and ``rgb``).
 
     The VM taps of the valid samples are computed once; colour reuses those of the samples whose
-    weight matters. Returns (colour contribution, optical depth of this segment).
+    weight matters. Adds the segment's colour into ``rgb``; returns its optical depth per ray.
     """
-    n, s = valid.shape
-    sigmas = torch.zeros(n, s, dtype=points.dtype, device=points.device)
-    rgb = torch.zeros(n, 3, dtype=points.dtype, device=points.device)
+    a, s = valid.shape
     valid_idx = valid.nonzero()  # [m, 2]
     if valid_idx.shape[0] == 0:
-        return rgb, sigmas.sum(dim=-1)
+        return torch.zeros(a, dtype=points.dtype, device=points.device)
     samples = frame.lookup(points[valid])
+    sigmas = torch.zeros(a, s, dtype=points.dtype, device=points.device)
     sigmas = sigmas.masked_scatter(valid, frame.density_at(samples))
-    tau = sigmas * step  # [n, s]
+    tau = sigmas * step  # [a, s]
     exclusive = torch.cumsum(tau, dim=-1) - tau + tau_before[:, None]
-    weights = torch.exp(-exclusive) * -torch.expm1(-tau)  # [n, s]
+    weights = torch.exp(-exclusive) * -torch.expm1(-tau)  # [a, s]
     valid_weights = weights[valid]  # [m]
     shade = (valid_weights > weight_threshold).nonzero()[:, 0]  # into the valid samples
     if shade.numel() > 0:
-        ray_idx = valid_idx[shade, 0]
-        colors = frame.color_at(samples.select(shade), ray_terms[ray_idx])  # [k, 3]
-        rgb = rgb.index_add(0, ray_idx, valid_weights[shade, None] * colors)
-    return rgb, tau.sum(dim=-1)
+        ray_idx = rays[valid_idx[shade, 0]]
+        colors = frame.color_at(samples.taps.select(shade), ray_terms[ray_idx])  # [k, 3]
+        rgb.index_add_(0, ray_idx, valid_weights[shade, None] * colors)
+    return tau.sum(dim=-1)
 
 
 def render_rays(
@@ -302,9 +307,14 @@ def render_image(
     step = field.voxel_size() * settings.step_ratio
     windows = ray_windows(field, rays_o, rays_d, step, settings.max_samples, empty)
     out = torch.empty_like(rays_o)
-    for start in range(0, rays_o.shape[0], settings.chunk_rays):
-        sl = slice(start, start + settings.chunk_rays)
+    chunk = settings.chunk_rays
+
+    def march_chunk(i: int) -> None:
+        sl = slice(i * chunk, (i + 1) * chunk)
         out[sl] = march_rays(field, rays_o[sl], rays_d[sl], frame, background, settings, empty, windows[sl])
+
+    workers = chunk_workers(rays_o.device) if settings.threaded_chunks else 1
+    map_chunks(march_chunk, math.ceil(rays_o.shape[0] / chunk), workers)
     return out.reshape(intrinsics.height, intrinsics.width, 3)
 
 
@@ -363,11 +373,10 @@ def march_rays(
         points = rays_o[active, None, :] + rays_d[active, None, :] * t[..., None]  # [a, s, 3]
         if empty_space is not None:
             valid = valid.masked_scatter(valid, empty_space.occupied_at(points[valid]))
-        seg_rgb, seg_tau = _shade_frame_samples(
-            frame, ray_terms[active], points, step, valid, tau_total[active], settings.weight_threshold,
+        seg_tau = _shade_frame_samples(
+            frame, ray_terms, active, points, step, valid, tau_total[active], settings.weight_threshold, rgb,
         )
-        rgb[active] += seg_rgb
-        tau_total[active] += seg_tau
+        tau_total.index_add_(0, active, seg_tau)
         keep = (tau_total[active] < tau_stop) & (idx[:, -1] < windows.last[active])
         active = active[keep]
     opacity = -torch.expm1(-tau_total)

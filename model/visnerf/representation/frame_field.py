@@ -278,7 +278,7 @@ class FrameField:
 
     def color(self, points: Float[Tensor, "m 3"], ray_terms: Float[Tensor, "m h"]) -> Float[Tensor, "m 3"]:
         """RGB at ``points``; ``ray_terms`` is ``direction_terms`` of each sample's ray."""
-        return self.color_at(self.lookup(points), ray_terms)
+        return self.color_at(self.lookup(points).taps, ray_terms)
 
     def density_at(self, samples: SampleTaps) -> Float[Tensor, " m"]:
         out = torch.empty(len(samples), dtype=samples.points.dtype, device=samples.points.device)
@@ -302,12 +302,13 @@ class FrameField:
         sh = encode_sh(directions, self.field.cfg.sh_degree)
         return torch.addmm(self.color_layer.bias, sh, self.color_layer.rest_weight_t).to(self.dtype)
 
-    def color_at(self, samples: SampleTaps, ray_terms: Float[Tensor, "m h"]) -> Float[Tensor, "m 3"]:
-        """RGB at prepared samples; ``ray_terms`` is ``direction_terms`` of each sample's ray."""
-        out = torch.empty(len(samples), 3, dtype=samples.points.dtype, device=samples.points.device)
-        for start in range(0, len(samples), SUB_CHUNK):
+    def color_at(self, taps: VMTaps, ray_terms: Float[Tensor, "m h"]) -> Float[Tensor, "m 3"]:
+        """RGB at samples with VM taps ``taps`` (``lookup(points).taps``); ``ray_terms`` is
+        ``direction_terms`` of each sample's ray."""
+        out = torch.empty(len(taps), 3, dtype=torch.float32, device=ray_terms.device)
+        for start in range(0, len(taps), SUB_CHUNK):
             sl = slice(start, start + SUB_CHUNK)
-            out[sl] = self._color(samples.taps.select(sl), ray_terms[sl])
+            out[sl] = self._color(taps.select(sl), ray_terms[sl])
         return out
 
     def _color(self, taps: VMTaps, ray_terms: Float[Tensor, "m h"]) -> Float[Tensor, "m 3"]:
