@@ -58,8 +58,10 @@ from visnerf.inference import SceneRenderer, load_scene
 from visnerf.rendering.renderer import RenderSettings, render_image_scaled
 from visnerf.runtime import configure
 
-MODES = ("fast", "plain", "preview")
-"""Render order within each view."""
+MODES = ("fast", "fast_intraop", "plain", "preview")
+"""Render order within each view. ``fast_intraop`` is ``fast`` with the frame's chunks marched one
+after another, the torch threads sharing each operation (``threaded_chunks=False``): the same frame,
+timed to show what marching chunks on one thread per core pays."""
 TARGET_FULL_256_MS = 500.0
 TARGET_PREVIEW_128_MS = 80.0
 TARGET_PSNR_DROP_DB = 0.1
@@ -153,7 +155,8 @@ def default_cases() -> tuple[Case, ...]:
 def render_settings(scene: SceneRenderer) -> dict[str, RenderSettings]:
     full = RenderSettings.from_meta(scene.meta, "full")
     plain = RenderSettings.from_meta(scene.meta, "exhaustive")
-    return {"fast": full, "plain": plain, "preview": RenderSettings.from_meta(scene.meta, "preview")}
+    return {"fast": full, "fast_intraop": dataclasses.replace(full, threaded_chunks=False), "plain": plain,
+            "preview": RenderSettings.from_meta(scene.meta, "preview")}
 
 
 def load_views(scene: SceneRenderer, folder: Path, count: int) -> Views:
@@ -277,16 +280,18 @@ def psnr_delta(case: CaseResult, size: int) -> float | None:
 
 def table_rows(case: CaseResult, sizes: tuple[int, ...]) -> list[str]:
     if case.skipped:
-        return [f"| {case.name} | skipped: {case.skipped} |" + " |" * 10]
+        return [f"| {case.name} | skipped: {case.skipped} |" + " |" * 11]
     rows = []
     for size in sizes:
         plain, fast, prev = (case.result(m, size) for m in ("plain", "fast", "preview"))
         if plain is None or fast is None or prev is None:
             continue
+        intra = case.result("fast_intraop", size)
         gt = " / ".join(fmt(r.psnr_vs_gt, 2) for r in (plain, fast, prev))
         rows.append(
             f"| {case.name} | {size}x{size} | {fmt(plain.ms_median)} / {fmt(plain.ms_p95)} | "
             f"{fmt(fast.ms_median)} / {fmt(fast.ms_p95)} | {fmt(ratio(plain, fast), 2)} | "
+            f"{fmt(intra.ms_median if intra else None)} ({fmt(ratio(intra, fast), 2)}x) | "
             f"{fmt(prev.ms_median)} / {fmt(prev.ms_p95)} ({prev.render_size}px) | {fmt(ratio(plain, prev), 2)} | "
             f"{fmt(fast.psnr_vs_plain, 2)} | {fmt(fast.max_abs_diff_vs_plain, 4)} | {fmt(prev.psnr_vs_plain, 2)} | "
             f"{gt} | {fmt(psnr_delta(case, size), 3)} |"
@@ -323,14 +328,17 @@ def write_markdown(path: Path, record: dict, cases: list[CaseResult], sizes: tup
         f"{record['views']} held-out views per checkpoint (camera and parameters of those frames), rendered at each "
         "size by each setting, interleaved per view (fast, plain, preview), one untimed warm-up render per setting "
         "and size first. ms per frame: median / p95 of the render call (the preview's upsampling included). "
+        "\"Chunks in turn\": the fast setting with the frame's chunks of rays marched one after another, the torch "
+        "threads sharing each operation, instead of one chunk per thread (the same frame). "
         "Ratios are plain median / other median. PSNR against plain pools the squared error of all views "
         "(\"identical\": no difference at all); max |diff| is the largest channel difference in [0, 1]. PSNR against "
         "ground truth is the mean over views and is given only at the dataset's native image size (the frames "
         "are not resampled for it); delta = fast minus plain, against ground truth.",
         "",
-        "| checkpoint | size | plain ms | fast ms | plain/fast | preview ms | plain/preview | fast vs plain dB "
-        "| fast max abs diff | preview vs plain dB | vs ground truth dB: plain / fast / preview | delta dB |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| checkpoint | size | plain ms | fast ms | plain/fast | fast, chunks in turn ms (/fast) | preview ms "
+        "| plain/preview | fast vs plain dB | fast max abs diff | preview vs plain dB "
+        "| vs ground truth dB: plain / fast / preview | delta dB |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for case in cases:
         lines += table_rows(case, sizes)
@@ -362,12 +370,14 @@ def plot(path: Path, cases: list[CaseResult]) -> None:
     """PSNR against median ms per frame: against ground truth (native size) and against plain."""
     fig = Figure(figsize=(10, 4.2), layout="constrained")
     ax_gt, ax_plain = fig.subplots(1, 2)
-    markers = {"plain": "s", "fast": "o", "preview": "^"}
+    markers = {"plain": "s", "fast": "o", "fast_intraop": "x", "preview": "^"}
     colours = [f"C{i}" for i in range(10)]
     measured = [c for c in cases if not c.skipped]
     for i, case in enumerate(measured):
         colour = colours[i % len(colours)]
         for r in case.results:
+            if r.mode == "fast_intraop":  # the fast frame, timed another way
+                continue
             label = f"{case.name} {r.mode}"
             if r.psnr_vs_gt is not None:
                 ax_gt.scatter(r.ms_median, r.psnr_vs_gt, marker=markers[r.mode], color=colour, label=label)
