@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import torch
 import torch.nn.functional as F
-from jaxtyping import Bool, Float, Int
+from jaxtyping import Bool, Float, Int, UInt8
 from torch import Tensor
 
 MAX_DISTANCE = 16
@@ -46,26 +46,39 @@ def distance_to_content(grid: Bool[Tensor, "x y z"], max_distance: int = MAX_DIS
 
 @dataclass(frozen=True)
 class EmptySpace:
-    """The occupancy grid over ``aabb`` with each cell's distance to content."""
+    """The occupancy grid over ``aabb`` with each cell's distance to content.
 
-    occupied: Bool[Tensor, " cells"]
-    """Flattened occupancy (x-major)."""
-    distance: Int[Tensor, " cells"]
-    """Flattened ``distance_to_content``."""
+    Lookups gather with ``index_select`` from small flat tables (uint8): advanced indexing is
+    several times slower on the CPU.
+    """
+
+    occupied: UInt8[Tensor, " cells"]
+    """Flattened occupancy (x-major), 0 or 1, uint8."""
+    distance: UInt8[Tensor, " cells"]
+    """Flattened ``distance_to_content``, uint8."""
     shape: tuple[int, int, int]
     lower: Float[Tensor, " 3"]
     cells_per_unit: Float[Tensor, " 3"]
     """Cells per world unit along each axis."""
-    strides: Int[Tensor, " 3"]
+    last_cell: Float[Tensor, " 3"]
+    strides: Float[Tensor, " 3"]
+    """Flat-index strides as floats (exact: the grids hold far fewer than 2^24 cells)."""
 
     @classmethod
     def of(cls, grid: Bool[Tensor, "x y z"], aabb: Float[Tensor, "2 3"]) -> "EmptySpace":
         shape = tuple(int(s) for s in grid.shape)
         res = torch.tensor(shape, dtype=aabb.dtype, device=aabb.device)
         extent = (aabb[1] - aabb[0]).clamp_min(torch.finfo(aabb.dtype).eps)
-        strides = torch.tensor([shape[1] * shape[2], shape[2], 1], device=aabb.device)
-        return cls(grid.reshape(-1).contiguous(), distance_to_content(grid).reshape(-1).long(), shape,  # type: ignore[arg-type]
-                   aabb[0].clone(), res / extent, strides)
+        strides = torch.tensor([shape[1] * shape[2], shape[2], 1], dtype=aabb.dtype, device=aabb.device)
+        return cls(
+            occupied=grid.reshape(-1).to(torch.uint8).contiguous(),
+            distance=distance_to_content(grid).reshape(-1).to(torch.uint8).contiguous(),
+            shape=shape,  # type: ignore[arg-type]
+            lower=aabb[0].clone(),
+            cells_per_unit=res / extent,
+            last_cell=res - 1.0,
+            strides=strides,
+        )
 
     def cell_coords(self, points: Float[Tensor, "n 3"]) -> Float[Tensor, "n 3"]:
         """Continuous cell coordinates: cell ``(i, j, k)`` spans ``[i, i + 1) x ...``."""
@@ -74,13 +87,11 @@ class EmptySpace:
     def cell_index(self, cells: Float[Tensor, "n 3"]) -> Int[Tensor, " n"]:
         """Flat index of the cell holding each continuous cell coordinate, clamped to the grid
         (a point a rounding error outside the box reads the border cell)."""
-        idx = cells.long()
-        for axis, size in enumerate(self.shape):
-            idx[:, axis].clamp_(0, size - 1)
-        return idx @ self.strides
+        whole = torch.minimum(cells.floor().clamp_(min=0.0), self.last_cell)
+        return (whole @ self.strides).long()
 
     def occupied_at(self, points: Float[Tensor, "n 3"]) -> Bool[Tensor, " n"]:
-        return self.occupied[self.cell_index(self.cell_coords(points))]
+        return self.occupied.index_select(0, self.cell_index(self.cell_coords(points))).bool()
 
     def _jump(
         self, points: Float[Tensor, "n 3"], directions: Float[Tensor, "n 3"], backwards: bool
@@ -88,16 +99,14 @@ class EmptySpace:
         """For each point: whether its cell is occupied, and else the ray distance (along
         ``directions``, or against them when ``backwards``) to the edge of its empty block."""
         cells = self.cell_coords(points)
-        flat = self.cell_index(cells)
-        k = self.distance[flat]  # [n]
+        k = self.distance.index_select(0, self.cell_index(cells))  # [n]
         cell = cells.floor()
         velocity = (-directions if backwards else directions) * self.cells_per_unit  # cells per unit t
-        reach = (k - 1).to(cells.dtype)[:, None]
-        upper = cell + 1.0 + reach  # the block spans [cell - reach, cell + 1 + reach) per axis
-        lower = cell - reach
-        gap = torch.where(velocity > 0, upper - cells, cells - lower)  # >= reach >= 0
+        reach = (k.to(cells.dtype) - 1.0)[:, None]
+        # the block spans [cell - reach, cell + 1 + reach) per axis
+        gap = torch.where(velocity > 0, cell + 1.0 + reach - cells, cells - cell + reach)  # >= reach >= 0
         speed = velocity.abs()
-        exit_t = torch.where(speed > 0, gap / speed.clamp_min(1e-30), torch.full_like(gap, float("inf")))
+        exit_t = torch.where(speed > 0, gap / speed, torch.inf)  # never 0 / 0 on an axis the ray does not move along
         return k == 0, exit_t.amin(dim=-1)
 
     def sample_window(
@@ -111,8 +120,8 @@ class EmptySpace:
     ) -> tuple[Int[Tensor, " n"], Int[Tensor, " n"]]:
         """Shrink each ray's window ``[first, last]`` of lattice samples to the first and the last
         sample in an occupied cell. A ray with no such sample gets ``first > last``."""
-        first = self._walk(rays_o, rays_d, t_near, step, first.clone(), last, backwards=False)
-        last = self._walk(rays_o, rays_d, t_near, step, last.clone(), first, backwards=True)
+        first = self._walk(rays_o, rays_d, t_near, step, first, last, backwards=False)
+        last = self._walk(rays_o, rays_d, t_near, step, last, first, backwards=True)
         return first, last
 
     def _walk(
@@ -121,30 +130,36 @@ class EmptySpace:
         rays_d: Tensor,
         t_near: Tensor,
         step: float,
-        index: Tensor,
+        start: Tensor,
         bound: Tensor,
         backwards: bool,
     ) -> Tensor:
-        """Advance ``index`` (towards ``bound``) past samples in empty blocks; returns the first
-        index in an occupied cell, ``index`` past ``bound`` when there is none, or where the
-        jumps ran out."""
-        searching = (index <= bound) if not backwards else (index >= bound)
-        rays = searching.nonzero()[:, 0]
+        """Move each ray's sample index from ``start`` towards ``bound`` past samples in empty
+        blocks; returns the first index in an occupied cell, an index past ``bound`` when there is
+        none, or where the jumps ran out."""
+        index = start.clone()
+        rays = ((start >= bound) if backwards else (start <= bound)).nonzero()[:, 0]
+        o, d, tn, i, b = (x.index_select(0, rays) for x in (rays_o, rays_d, t_near, start, bound))
         for _ in range(MAX_JUMPS):
             if rays.numel() == 0:
                 break
-            i = index[rays]
-            t = t_near[rays] + step * (i.to(t_near.dtype) + 0.5)
-            occupied, exit_t = self._jump(rays_o[rays] + rays_d[rays] * t[:, None], rays_d[rays], backwards)
+            t = tn + step * (i.to(tn.dtype) + 0.5)
+            occupied, exit_t = self._jump(o + d * t[:, None], d, backwards)
             if backwards:
                 # the last lattice sample at or before the block's near edge, and at least one back
-                target = torch.floor((t - exit_t - t_near[rays]) / step - 0.5 + _GUARD)
+                target = torch.floor((t - exit_t - tn) / step - 0.5 + _GUARD)
                 nxt = torch.minimum(target.clamp_min(-1.0).long(), i - 1)
+                going = ~occupied & (nxt >= b)
             else:
-                target = torch.ceil((t + exit_t - t_near[rays]) / step - 0.5 - _GUARD)
+                target = torch.ceil((t + exit_t - tn) / step - 0.5 - _GUARD)
                 nxt = torch.maximum(target.clamp_max(float(2**40)).long(), i + 1)
+                going = ~occupied & (nxt <= b)
             nxt = torch.where(occupied, i, nxt)
-            index[rays] = nxt
-            going = ~occupied & ((nxt <= bound[rays]) if not backwards else (nxt >= bound[rays]))
-            rays = rays[going]
+            index.index_copy_(0, rays, nxt)
+            keep = going.nonzero()[:, 0]
+            if keep.numel() == rays.numel():
+                i = nxt
+                continue
+            rays, o, d, tn, b = (x.index_select(0, keep) for x in (rays, o, d, tn, b))
+            i = nxt.index_select(0, keep)
         return index

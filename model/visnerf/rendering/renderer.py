@@ -1,8 +1,11 @@
 """Wires sampler, field and compositing: rays in, colours out.
 
 ``render_rays`` is the training path (one differentiable pass, stratified samples, optional
-importance sampling). ``render_image`` is the inference path: deterministic samples marched in
-segments, with empty-space skipping through the occupancy grid and early ray termination.
+importance sampling). ``render_image`` is the inference path: deterministic samples on a lattice
+one step apart; each ray walks only the window between its first and last sample in an occupied
+cell (found by jumping over empty blocks, ``rendering.empty_space``), in segments, testing each
+sample's cell, until it leaves the window or its transmittance falls below ``early_stop_eps``.
+Chunks of rays are marched on one thread per core (``rendering.parallel``).
 """
 
 import math
@@ -135,21 +138,21 @@ def _shade_frame_samples(
     weight matters. Adds the segment's colour into ``rgb``; returns its optical depth per ray.
     """
     a, s = valid.shape
-    valid_idx = valid.nonzero()  # [m, 2]
-    if valid_idx.shape[0] == 0:
+    flat = valid.view(-1).nonzero()[:, 0]  # [m], into the a * s samples
+    if flat.numel() == 0:
         return torch.zeros(a, dtype=points.dtype, device=points.device)
-    samples = frame.lookup(points[valid])
-    sigmas = torch.zeros(a, s, dtype=points.dtype, device=points.device)
-    sigmas = sigmas.masked_scatter(valid, frame.density_at(samples))
+    samples = frame.lookup(points.view(-1, 3).index_select(0, flat))
+    sigmas = torch.zeros(a * s, dtype=points.dtype, device=points.device)
+    sigmas = sigmas.index_copy_(0, flat, frame.density_at(samples)).view(a, s)
     tau = sigmas * step  # [a, s]
     exclusive = torch.cumsum(tau, dim=-1) - tau + tau_before[:, None]
     weights = torch.exp(-exclusive) * -torch.expm1(-tau)  # [a, s]
-    valid_weights = weights[valid]  # [m]
+    valid_weights = weights.view(-1).index_select(0, flat)  # [m]
     shade = (valid_weights > weight_threshold).nonzero()[:, 0]  # into the valid samples
     if shade.numel() > 0:
-        ray_idx = rays[valid_idx[shade, 0]]
-        colors = frame.color_at(samples.taps.select(shade), ray_terms[ray_idx])  # [k, 3]
-        rgb.index_add_(0, ray_idx, valid_weights[shade, None] * colors)
+        ray_idx = rays.index_select(0, flat.index_select(0, shade) // s)
+        colors = frame.color_at(samples.taps.select(shade), ray_terms.index_select(0, ray_idx))  # [k, 3]
+        rgb.index_add_(0, ray_idx, valid_weights.index_select(0, shade)[:, None] * colors)
     return tau.sum(dim=-1)
 
 
@@ -359,25 +362,39 @@ def march_rays(
     active = (windows.first <= windows.last).nonzero()[:, 0]
     if active.numel() == 0:
         return background[None].expand(n, 3).clone()
-    longest = int((windows.last[active] - windows.first[active]).max()) + 1
+    # Per active ray, compacted as rays drop out (``index_select``: advanced indexing is several
+    # times slower on the CPU).
+    first, last = windows.first.index_select(0, active), windows.last.index_select(0, active)
+    t_near, t_far = windows.t_near.index_select(0, active), windows.t_far.index_select(0, active)
+    origins, directions = rays_o.index_select(0, active), rays_d.index_select(0, active)
+    tau_active = torch.zeros(active.shape[0], dtype=rays_o.dtype, device=rays_o.device)
+    longest = int((last - first).max()) + 1
     seg = settings.segment_samples if settings.early_termination else longest
     ray_terms = frame.direction_terms(rays_d)  # [n, h], once per ray
     tau_stop = -math.log(settings.early_stop_eps) if settings.early_termination else math.inf
     offsets = torch.arange(seg, device=rays_o.device)
     for s0 in range(0, longest, seg):
-        if active.numel() == 0:
-            break
-        idx = (windows.first[active] + s0)[:, None] + offsets[None]  # [a, s]
-        t = windows.t_near[active, None] + step * (idx.to(rays_o.dtype) + 0.5)
-        valid = (idx <= windows.last[active, None]) & (t < windows.t_far[active, None])
-        points = rays_o[active, None, :] + rays_d[active, None, :] * t[..., None]  # [a, s, 3]
+        idx = (first + s0)[:, None] + offsets[None]  # [a, s]
+        t = t_near[:, None] + step * (idx.to(rays_o.dtype) + 0.5)
+        valid = (idx <= last[:, None]) & (t < t_far[:, None])
+        points = origins[:, None, :] + directions[:, None, :] * t[..., None]  # [a, s, 3]
         if empty_space is not None:
-            valid = valid.masked_scatter(valid, empty_space.occupied_at(points[valid]))
-        seg_tau = _shade_frame_samples(
-            frame, ray_terms, active, points, step, valid, tau_total[active], settings.weight_threshold, rgb,
+            flat = valid.view(-1).nonzero()[:, 0]
+            valid = torch.zeros_like(valid).view(-1).index_copy_(
+                0, flat, empty_space.occupied_at(points.view(-1, 3).index_select(0, flat))).view_as(valid)
+        tau_active += _shade_frame_samples(
+            frame, ray_terms, active, points, step, valid, tau_active, settings.weight_threshold, rgb,
         )
-        tau_total.index_add_(0, active, seg_tau)
-        keep = (tau_total[active] < tau_stop) & (idx[:, -1] < windows.last[active])
-        active = active[keep]
+        keep = ((tau_active < tau_stop) & (idx[:, -1] < last)).nonzero()[:, 0]
+        if keep.numel() < active.numel():
+            tau_total.index_copy_(0, active, tau_active)
+            if keep.numel() == 0:
+                active = keep
+                break
+            active, first, last, t_near, t_far, origins, directions, tau_active = (
+                x.index_select(0, keep) for x in (active, first, last, t_near, t_far, origins, directions, tau_active)
+            )
+    if active.numel() > 0:
+        tau_total.index_copy_(0, active, tau_active)
     opacity = -torch.expm1(-tau_total)
     return rgb + background[None] * (1.0 - opacity)[:, None]

@@ -77,6 +77,10 @@ LINE_AXIS = tuple(c for _, c in MODES)
 """Grid axis of each mode's line: (2, 1, 0)."""
 
 
+def _take(t: Tensor, index: Int[Tensor, " k"] | slice) -> Tensor:
+    return t[index] if isinstance(index, slice) else t.index_select(0, index)
+
+
 @dataclass(frozen=True)
 class VMTaps:
     """Where a VM grid is read for ``m`` samples: for each of the three modes, the four plane rows
@@ -95,7 +99,9 @@ class VMTaps:
         return self.plane_rows.shape[0]
 
     def select(self, index: Int[Tensor, " k"] | slice) -> "VMTaps":
-        return VMTaps(self.plane_rows[index], self.plane_weights[index], self.line_rows[index], self.line_weights[index])
+        """Taps of samples ``index`` (a slice, or indices: ``index_select``, several times faster
+        on the CPU than advanced indexing)."""
+        return VMTaps(*(_take(t, index) for t in (self.plane_rows, self.plane_weights, self.line_rows, self.line_weights)))
 
 
 @dataclass(frozen=True)
@@ -235,7 +241,7 @@ class SampleTaps:
         return self.points.shape[0]
 
     def select(self, index: Int[Tensor, " k"] | slice) -> "SampleTaps":
-        return SampleTaps(self.points[index], self.coords[index], self.taps.select(index))
+        return SampleTaps(_take(self.points, index), _take(self.coords, index), self.taps.select(index))
 
 
 class FrameField:
