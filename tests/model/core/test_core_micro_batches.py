@@ -30,7 +30,16 @@ def _scene() -> SceneData:
     )
 
 
-def _gradients(micro_rays: int, micro_samples: int, monkeypatch: pytest.MonkeyPatch) -> dict[str, torch.Tensor]:
+def _occupied_ball() -> torch.Tensor:
+    """A ball of occupied cells in the middle of an 8^3 grid."""
+    c = (torch.arange(8) + 0.5) / 8 - 0.5
+    x, y, z = torch.meshgrid(c, c, c, indexing="ij")
+    return (x**2 + y**2 + z**2).sqrt() < 0.3
+
+
+def _gradients(
+    micro_rays: int, micro_samples: int, monkeypatch: pytest.MonkeyPatch, occupancy: torch.Tensor | None = None
+) -> dict[str, torch.Tensor]:
     original = trainer_module.render_rays
 
     def deterministic(*args, **kwargs):  # midpoint samples, so every split sees the same positions
@@ -42,6 +51,7 @@ def _gradients(micro_rays: int, micro_samples: int, monkeypatch: pytest.MonkeyPa
     cfg = TrainConfig(iterations=1, batch_rays=256, resolution_init=12, resolution_final=12, carve=False,
                       mixed_precision=False, micro_batch_rays=micro_rays, micro_batch_samples=micro_samples)
     trainer = Trainer(_scene(), None, cfg, torch.device("cpu"))
+    trainer.field.set_occupancy(occupancy)
     trainer.optimizer.step = lambda: None  # keep the gradients, change nothing
     trainer.train_step()
     return {name: p.grad.clone() for name, p in trainer.field.named_parameters() if p.grad is not None}
@@ -53,6 +63,45 @@ def test_micro_batched_gradients_equal_the_whole_batch(monkeypatch: pytest.Monke
     assert whole.keys() == split.keys() and len(whole) > 0
     for name in whole:
         assert torch.allclose(whole[name], split[name], rtol=1e-4, atol=1e-7), name
+
+
+def test_micro_batched_gradients_equal_the_whole_batch_when_chunks_count_occupied_samples(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    whole = _gradients(10_000, 10**9, monkeypatch, _occupied_ball())
+    split = _gradients(37, 300, monkeypatch, _occupied_ball())
+    assert whole.keys() == split.keys() and len(whole) > 0
+    for name in whole:
+        assert torch.allclose(whole[name], split[name], rtol=1e-4, atol=1e-7), name
+
+
+def test_chunks_counted_by_occupied_span_hold_the_samples_evaluated_within_the_budget() -> None:
+    """Counting each ray's occupied span (plus the jitter's sample at each end) instead of its
+    box span: every chunk's evaluated samples, stratified, stay within the budget, with fewer chunks."""
+    from visnerf.rendering.empty_space import EmptySpace
+    from visnerf.rendering.renderer import render_rays
+
+    scene = _scene()
+    field = Trainer(scene, None, TrainConfig(carve=False, resolution_init=12), torch.device("cpu")).field
+    field.set_occupancy(_occupied_ball())
+    g = torch.Generator().manual_seed(3)
+    origins = torch.randn(600, 3, generator=g) * 0.2 + torch.tensor([0.0, 0.0, 2.0])
+    dirs = torch.nn.functional.normalize(-origins + 0.4 * torch.randn(600, 3, generator=g), dim=-1)
+    step, budget = 0.02, 800
+    space = EmptySpace.of(field.occupancy, field.aabb)
+    by_box = micro_batches(field, origins, dirs, step, max_rays=10_000, max_samples=budget)
+    by_span = micro_batches(field, origins, dirs, step, max_rays=10_000, max_samples=budget, empty_space=space)
+    assert by_span[0].start == 0 and by_span[-1].stop == 600
+    assert all(a.stop == b.start for a, b in zip(by_span, by_span[1:], strict=False))
+    assert len(by_span) < 0.6 * len(by_box)
+    params = torch.zeros(600, 1)
+    bg = torch.ones(600, 3)
+    with torch.no_grad():
+        for sl in by_span:
+            for seed in range(3):
+                out = render_rays(field, origins[sl], dirs[sl], params[sl], bg[sl], step, 1024, field.occupancy,
+                                  generator=torch.Generator().manual_seed(seed))
+                assert int(out["n_samples"]) <= budget or sl.stop - sl.start == 1
 
 
 def test_micro_batches_cover_the_batch_within_both_budgets() -> None:
