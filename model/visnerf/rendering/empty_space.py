@@ -80,6 +80,10 @@ class EmptySpace:
             strides=strides,
         )
 
+    def min_cell_size(self) -> float:
+        """World size of the smallest cell edge."""
+        return float((1.0 / self.cells_per_unit).min())
+
     def cell_coords(self, points: Float[Tensor, "n 3"]) -> Float[Tensor, "n 3"]:
         """Continuous cell coordinates: cell ``(i, j, k)`` spans ``[i, i + 1) x ...``."""
         return (points - self.lower) * self.cells_per_unit
@@ -94,20 +98,22 @@ class EmptySpace:
         return self.occupied.index_select(0, self.cell_index(self.cell_coords(points))).bool()
 
     def _jump(
-        self, points: Float[Tensor, "n 3"], directions: Float[Tensor, "n 3"], backwards: bool
+        self, points: Float[Tensor, "n 3"], directions: Float[Tensor, "n 3"], backwards: bool, near: int
     ) -> tuple[Bool[Tensor, " n"], Float[Tensor, " n"]]:
-        """For each point: whether its cell is occupied, and else the ray distance (along
-        ``directions``, or against them when ``backwards``) to the edge of its empty block."""
+        """For each point: whether its cell lies within ``near`` cells of an occupied one, and
+        else the ray distance (along ``directions``, or against them when ``backwards``) to the
+        edge of the block of cells that do not."""
         cells = self.cell_coords(points)
         k = self.distance.index_select(0, self.cell_index(cells))  # [n]
         cell = cells.floor()
         velocity = (-directions if backwards else directions) * self.cells_per_unit  # cells per unit t
-        reach = (k.to(cells.dtype) - 1.0)[:, None]
+        # cells within k - 1 - near of this one are more than ``near`` cells from content
+        reach = (k.to(cells.dtype) - 1.0 - near)[:, None]
         # the block spans [cell - reach, cell + 1 + reach) per axis
         gap = torch.where(velocity > 0, cell + 1.0 + reach - cells, cells - cell + reach)  # >= reach >= 0
         speed = velocity.abs()
         exit_t = torch.where(speed > 0, gap / speed, torch.inf)  # never 0 / 0 on an axis the ray does not move along
-        return k == 0, exit_t.amin(dim=-1)
+        return k <= near, exit_t.amin(dim=-1)
 
     def sample_window(
         self,
@@ -117,11 +123,18 @@ class EmptySpace:
         step: float,
         first: Int[Tensor, " n"],
         last: Int[Tensor, " n"],
+        near: int = 0,
     ) -> tuple[Int[Tensor, " n"], Int[Tensor, " n"]]:
         """Shrink each ray's window ``[first, last]`` of lattice samples to the first and the last
-        sample in an occupied cell. A ray with no such sample gets ``first > last``."""
-        first = self._walk(rays_o, rays_d, t_near, step, first, last, backwards=False)
-        last = self._walk(rays_o, rays_d, t_near, step, last, first, backwards=True)
+        sample in an occupied cell (``near = 1``: in a cell within one cell of an occupied one).
+        A ray with no such sample gets ``first > last``.
+
+        ``near = 1`` serves stratified training samples: a sample moved by at most half a step
+        from its lattice point, with the step no larger than a cell, lies in the lattice point's
+        cell or a neighbour, so every such sample in an occupied cell has its lattice point in
+        the window."""
+        first = self._walk(rays_o, rays_d, t_near, step, first, last, backwards=False, near=near)
+        last = self._walk(rays_o, rays_d, t_near, step, last, first, backwards=True, near=near)
         return first, last
 
     def _walk(
@@ -133,10 +146,11 @@ class EmptySpace:
         start: Tensor,
         bound: Tensor,
         backwards: bool,
+        near: int,
     ) -> Tensor:
         """Move each ray's sample index from ``start`` towards ``bound`` past samples in empty
-        blocks; returns the first index in an occupied cell, an index past ``bound`` when there is
-        none, or where the jumps ran out."""
+        blocks; returns the first index in a cell within ``near`` cells of an occupied one, an
+        index past ``bound`` when there is none, or where the jumps ran out."""
         index = start.clone()
         rays = ((start >= bound) if backwards else (start <= bound)).nonzero()[:, 0]
         o, d, tn, i, b = (x.index_select(0, rays) for x in (rays_o, rays_d, t_near, start, bound))
@@ -144,7 +158,7 @@ class EmptySpace:
             if rays.numel() == 0:
                 break
             t = tn + step * (i.to(tn.dtype) + 0.5)
-            occupied, exit_t = self._jump(o + d * t[:, None], d, backwards)
+            occupied, exit_t = self._jump(o + d * t[:, None], d, backwards, near)
             if backwards:
                 # the last lattice sample at or before the block's near edge, and at least one back
                 target = torch.floor((t - exit_t - tn) / step - 0.5 + _GUARD)

@@ -168,12 +168,17 @@ def render_rays(
     weight_threshold: float = 1e-4,
     generator: torch.Generator | None = None,
     importance_samples: int = 0,
+    windows: tuple[Int[Tensor, " n"], Int[Tensor, " n"]] | None = None,
 ) -> dict[str, Tensor]:
     """Differentiable render of a batch of rays (training and tests).
 
-    Stratified sample positions when ``generator`` is given. With ``importance_samples > 0`` a
-    no-grad coarse pass at twice the step places that many samples per ray by importance.
-    Returns ``rgb`` [n, 3], ``opacity`` [n] and ``n_samples`` (valid samples evaluated).
+    Stratified sample positions when ``generator`` is given: sample ``i`` of a ray at
+    ``t_near + step * (i + u)``, one ``u`` per ray. ``windows`` (first, last), from
+    ``EmptySpace.sample_window(..., near=1)``, restricts each ray to samples ``first .. last``:
+    the samples left out lie in empty cells, which the occupancy test would drop anyway. With
+    ``importance_samples > 0`` a no-grad coarse pass at twice the step places that many samples
+    per ray by importance (``windows`` is ignored). Returns ``rgb`` [n, 3], ``opacity`` [n] and
+    ``n_samples`` (valid samples evaluated).
     """
     t_near, t_far, hit = intersect_aabb(rays_o, rays_d, field.aabb)
     span = float((t_far - t_near).max()) if hit.any() else 0.0
@@ -188,9 +193,18 @@ def render_rays(
         jitter = None
         if generator is not None:
             jitter = torch.rand(rays_o.shape[0], generator=generator, device=rays_o.device)
-        t = uniform_samples(t_near, n_samples, step, jitter)  # [n, s]
+        if windows is None:
+            t = uniform_samples(t_near, n_samples, step, jitter)  # [n, s]
+            valid = (t < t_far[:, None]) & hit[:, None]
+        else:
+            start = windows[0].clamp_min(0)
+            stop = windows[1].clamp_max(n_samples - 1)
+            longest = max(1, int((stop - start + 1).max()))
+            index = start[:, None] + torch.arange(longest, device=rays_o.device)[None]  # [n, s]
+            u = torch.full_like(t_near, 0.5) if jitter is None else jitter
+            t = t_near[:, None] + step * (index.to(t_near.dtype) + u[:, None])
+            valid = (index <= stop[:, None]) & (t < t_far[:, None]) & hit[:, None]
         deltas = torch.full_like(t, step)
-        valid = (t < t_far[:, None]) & hit[:, None]
     points = rays_o[:, None, :] + rays_d[:, None, :] * t[..., None]  # [n, s, 3]
     if occupancy is not None:
         valid = valid.masked_scatter(valid, query_occupancy(occupancy, field.aabb, points[valid]))

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from jaxtyping import Float
+from jaxtyping import Float, Int
 from torch import Tensor
 from tqdm import tqdm
 
@@ -248,13 +248,18 @@ class Trainer:
         self.optimizer.zero_grad(set_to_none=True)
         sq_error = 0.0
         samples = 0
-        # With importance sampling a ray's samples are placed anywhere along its box span.
+        # Each ray samples only its occupied span; with importance sampling, anywhere along its box span.
         empty = empty_space_of(self.field) if importance == 0 else None
+        if empty is not None and self.step_size() > empty.min_cell_size():
+            empty = None  # a grid finer than the step: the windows would not hold every jittered sample
+        windows = None if empty is None else occupied_windows(
+            self.field, batch.rays_o, batch.rays_d, self.step_size(), empty)
         for sl in micro_batches(self.field, batch.rays_o, batch.rays_d, self.step_size(),
-                                cfg.micro_batch_rays, cfg.micro_batch_samples, empty):
+                                cfg.micro_batch_rays, cfg.micro_batch_samples, windows):
             out = render_rays(self.field, batch.rays_o[sl], batch.rays_d[sl], batch.params[sl], bg[sl],
                               self.step_size(), self.render_cfg.max_samples, self.field.occupancy,
-                              self.render_cfg.weight_threshold, self.generator, importance)
+                              self.render_cfg.weight_threshold, self.generator, importance,
+                              None if windows is None else (windows[0][sl], windows[1][sl]))
             part = ((out["rgb"] - target[sl]) ** 2).sum() / (3 * n)  # this chunk's share of the batch mean
             if not torch.isfinite(part):
                 raise FloatingPointError(f"non-finite loss at iteration {self.state.iteration}")
@@ -344,6 +349,21 @@ class Trainer:
         return path
 
 
+def occupied_windows(
+    field_: VisNerfField, rays_o: Float[Tensor, "n 3"], rays_d: Float[Tensor, "n 3"], step: float,
+    empty_space: EmptySpace,
+) -> tuple[Int[Tensor, " n"], Int[Tensor, " n"]]:
+    """Each ray's first and last lattice sample (``t_near + step * (i + 0.5)``) within one cell
+    of an occupied cell, ``first > last`` for a ray with none: its stratified samples in occupied
+    cells lie between them (``EmptySpace.sample_window``). Needs a step no larger than a cell."""
+    if step > empty_space.min_cell_size():
+        raise ValueError(f"step {step} is larger than the occupancy grid's cells ({empty_space.min_cell_size()})")
+    t_near, t_far, hit = intersect_aabb(rays_o, rays_d, field_.aabb)
+    count = torch.ceil((t_far - t_near) / step - 0.5 + 1e-3).clamp_min(0).long()
+    last = torch.where(hit, count - 1, -1)
+    return empty_space.sample_window(rays_o, rays_d, t_near, step, torch.zeros_like(last), last, near=1)
+
+
 def micro_batches(
     field_: VisNerfField,
     rays_o: Float[Tensor, "n 3"],
@@ -351,28 +371,25 @@ def micro_batches(
     step: float,
     max_rays: int,
     max_samples: int,
-    empty_space: EmptySpace | None = None,
+    windows: tuple[Int[Tensor, " n"], Int[Tensor, " n"]] | None = None,
 ) -> list[slice]:
     """Consecutive slices of the batch with at most ``max_rays`` rays and, where a single ray does
     not exceed it alone, at most ``max_samples`` samples per slice.
 
-    A ray's samples are counted along its span through the box or, with ``empty_space``, along
-    the span between its first and last sample in an occupied cell (plus one sample at each end
-    for the stratified jitter): only those are evaluated and back-propagated. Samples per ray grow
-    with the grid resolution (the step is half a voxel), so a fixed number of rays per chunk would
-    let activation memory grow with every upsampling; a sample budget keeps it flat. Counting the
-    occupied span instead of the box span gives fewer, fuller chunks once content is carved or
-    learned (on Nyx, 26 chunks of a 4096-ray step became 5), and each chunk's backward pass fills
-    and accumulates dense gradients of every plane.
+    A ray's samples are counted along its span through the box or, with ``windows``
+    (``occupied_windows``), the samples ``render_rays`` takes in its window: only those are
+    evaluated and back-propagated. Samples per ray grow with the grid resolution (the step is half a voxel), so
+    a fixed number of rays per chunk would let activation memory grow with every upsampling; a
+    sample budget keeps it flat. Counting the occupied span instead of the box span gives fewer,
+    fuller chunks once content is carved or learned (on Nyx, 26 chunks of a 4096-ray step became
+    7), and each chunk's backward pass fills and accumulates dense gradients of every plane.
     """
     t_near, t_far, hit = intersect_aabb(rays_o, rays_d, field_.aabb)
-    if empty_space is None:
+    if windows is None:
         per_ray = torch.where(hit, ((t_far - t_near).clamp_min(0.0) / step).ceil(), torch.zeros_like(t_far)).long()
     else:
-        count = torch.ceil((t_far - t_near) / step - 0.5 + 1e-3).clamp_min(0).long()
-        last = torch.where(hit, count - 1, -1)
-        first, last = empty_space.sample_window(rays_o, rays_d, t_near, step, torch.zeros_like(last), last)
-        per_ray = torch.where(hit, (last - first + 1).clamp_min(0) + 2, 0)
+        first, last = windows
+        per_ray = torch.where(hit & (first <= last), last - first + 1, 0)
     counts = per_ray.tolist()
     slices, start, total = [], 0, 0
     for i, c in enumerate(counts):

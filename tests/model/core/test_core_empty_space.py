@@ -108,3 +108,22 @@ def test_frames_with_jumps_equal_frames_walking_every_sample(azimuth: float) -> 
     assert jump_len < 0.7 * walk_len  # the jumps leave samples out
     assert (a - 1.0).abs().amax() > 0.05  # and there is something in the picture
     assert float((a - b).abs().max()) < 1e-5
+
+
+def test_a_window_near_content_is_the_window_of_the_grid_grown_by_one_cell() -> None:
+    aabb = torch.tensor([[-0.5, -0.5, -0.5], [0.5, 0.5, 0.5]])
+    grid = _blobs((12, 12, 12), 3, seed=5)
+    grown = torch.nn.functional.max_pool3d(grid.float()[None, None], 3, 1, 1)[0, 0] > 0
+    g = torch.Generator().manual_seed(9)
+    rays_o = torch.randn(2000, 3, generator=g) * 0.3 + torch.tensor([0.2, -0.1, -2.0])
+    rays_d = torch.nn.functional.normalize((torch.rand(2000, 3, generator=g) - 0.5) - rays_o, dim=-1)
+    step = 0.03
+    t_near, t_far, hit = intersect_aabb(rays_o, rays_d, aabb)
+    last0 = torch.where(hit, torch.ceil((t_far - t_near) / step - 0.5 + 1e-3).long() - 1, -1)
+    first0 = torch.zeros_like(last0)
+    near = EmptySpace.of(grid, aabb).sample_window(rays_o, rays_d, t_near, step, first0, last0, near=1)
+    lo, hi, any_occ = _every_sample_window(EmptySpace.of(grown, aabb), rays_o, rays_d, t_near, step, first0, last0)
+    assert any_occ.float().mean() > 0.2
+    assert (near[0][any_occ] <= lo[any_occ]).all() and (near[1][any_occ] >= hi[any_occ]).all()
+    assert (near[0][any_occ] == lo[any_occ]).float().mean() > 0.95
+    assert (near[1][any_occ] == hi[any_occ]).float().mean() > 0.95

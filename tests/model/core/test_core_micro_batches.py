@@ -10,7 +10,7 @@ import visnerf.training.trainer as trainer_module
 from visnerf.config import TrainConfig
 from visnerf.data.cameras import Intrinsics, orbit_c2w
 from visnerf.data.scene import SceneData, axes_from_values
-from visnerf.training.trainer import Trainer, micro_batches
+from visnerf.training.trainer import Trainer, micro_batches, occupied_windows
 
 
 def _scene() -> SceneData:
@@ -90,7 +90,8 @@ def test_chunks_counted_by_occupied_span_hold_the_samples_evaluated_within_the_b
     step, budget = 0.02, 800
     space = EmptySpace.of(field.occupancy, field.aabb)
     by_box = micro_batches(field, origins, dirs, step, max_rays=10_000, max_samples=budget)
-    by_span = micro_batches(field, origins, dirs, step, max_rays=10_000, max_samples=budget, empty_space=space)
+    windows = occupied_windows(field, origins, dirs, step, space)
+    by_span = micro_batches(field, origins, dirs, step, max_rays=10_000, max_samples=budget, windows=windows)
     assert by_span[0].start == 0 and by_span[-1].stop == 600
     assert all(a.stop == b.start for a, b in zip(by_span, by_span[1:], strict=False))
     assert len(by_span) < 0.6 * len(by_box)
@@ -99,9 +100,15 @@ def test_chunks_counted_by_occupied_span_hold_the_samples_evaluated_within_the_b
     with torch.no_grad():
         for sl in by_span:
             for seed in range(3):
-                out = render_rays(field, origins[sl], dirs[sl], params[sl], bg[sl], step, 1024, field.occupancy,
-                                  generator=torch.Generator().manual_seed(seed))
-                assert int(out["n_samples"]) <= budget or sl.stop - sl.start == 1
+                everything = render_rays(field, origins[sl], dirs[sl], params[sl], bg[sl], step, 1024,
+                                         field.occupancy, generator=torch.Generator().manual_seed(seed))
+                windowed = render_rays(field, origins[sl], dirs[sl], params[sl], bg[sl], step, 1024,
+                                       field.occupancy, generator=torch.Generator().manual_seed(seed),
+                                       windows=(windows[0][sl], windows[1][sl]))
+                assert int(everything["n_samples"]) <= budget or sl.stop - sl.start == 1
+                # the window leaves out only samples in empty cells: the same colours
+                assert int(windowed["n_samples"]) == int(everything["n_samples"])
+                assert torch.allclose(windowed["rgb"], everything["rgb"], atol=1e-6)
 
 
 def test_micro_batches_cover_the_batch_within_both_budgets() -> None:
