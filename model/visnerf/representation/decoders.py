@@ -55,6 +55,16 @@ def encode_position(points: Float[Tensor, "n 3"], n_freqs: int) -> Float[Tensor,
     return torch.cat(feats, dim=-1)
 
 
+def encode_position_into(points: Float[Tensor, "n 3"], n_freqs: int, out: Float[Tensor, "n d"]) -> None:
+    """``encode_position`` written into ``out`` (any dtype) column block by column block, with
+    no concatenation (inference)."""
+    out[:, :3] = points
+    for level in range(n_freqs):
+        scaled = points * (math.pi * 2.0**level)
+        out[:, 3 + 6 * level:6 + 6 * level] = torch.sin(scaled)
+        out[:, 6 + 6 * level:9 + 6 * level] = torch.cos(scaled)
+
+
 class Decoder(nn.Module):
     """One hidden layer MLP: ``in -> hidden -> out`` with ReLU.
 

@@ -32,7 +32,7 @@ import torch.nn.functional as F
 from jaxtyping import Float, Int
 from torch import Tensor
 
-from visnerf.representation.decoders import Decoder, encode_position, encode_sh
+from visnerf.representation.decoders import Decoder, encode_position_into, encode_sh
 from visnerf.representation.field import VisNerfField
 from visnerf.representation.vm import MODES, VMGrid
 
@@ -298,7 +298,7 @@ class FrameField:
         n_spatial = 3 * self.density_tables.n_components
         x = torch.empty(coords.shape[0], self._density_weight_t.shape[0], dtype=self.dtype, device=coords.device)
         self.density_tables.features_into(taps, x)
-        x[:, n_spatial:] = encode_position(coords, cfg.pos_encoding_freqs)
+        encode_position_into(coords, cfg.pos_encoding_freqs, x[:, n_spatial:])
         hidden = torch.addmm(self._density_bias, x, self._density_weight_t)  # [m, h]
         raw = F.linear(hidden.relu_(), *self._density_out)[:, 0].to(coords.dtype)
         return F.softplus(raw + cfg.density_shift)
