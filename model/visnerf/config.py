@@ -90,9 +90,6 @@ class RenderConfig:
     """Samples whose compositing weight is below this skip colour decoding."""
     early_stop_eps: float = 1e-4
     """Rays stop once transmittance falls below this (inference)."""
-    chunk_rays: int = 2048
-    """Rays per chunk when rendering whole images (measured on Nyx: 2048 renders a 256x256
-    frame in half the time of 8192, whose tensors no longer fit the allocator's reuse)."""
     preview_scale: float = 0.5
     """Resolution scale of the preview quality."""
     preview_step_factor: float = 2.0

@@ -55,7 +55,7 @@ def make_tiny_checkpoint(
     field, axes = make_tiny_field(axes_spec, seed)
     meta = CheckpointMeta(
         field=field.cfg,
-        render=RenderConfig(step_ratio=0.5, chunk_rays=4096),
+        render=RenderConfig(step_ratio=0.5),
         param_axes=axes,
         bbox=((-0.5, -0.5, -0.5), (0.5, 0.5, 0.5)),
         camera={"azimuth": 30.0, "elevation": 20.0, "distance": 2.5, "fov_deg": 30.0},
