@@ -32,12 +32,13 @@ import torch.nn.functional as F
 from jaxtyping import Float, Int
 from torch import Tensor
 
-from visnerf.representation.decoders import Decoder, encode_position_into, encode_sh
+from visnerf.representation.decoders import Decoder, encode_position_into, encode_sh, padded_rows
 from visnerf.representation.field import VisNerfField
 from visnerf.representation.vm import MODES, VMGrid
 
 SUB_CHUNK = 16384
 """Samples decoded per pass: the hidden activations of one pass stay in the core's cache."""
+
 
 
 @dataclass(frozen=True)
@@ -295,12 +296,14 @@ class FrameField:
 
     def _density(self, coords: Float[Tensor, "m 3"], taps: VMTaps) -> Float[Tensor, " m"]:
         cfg = self.field.cfg
+        m = coords.shape[0]
         n_spatial = 3 * self.density_tables.n_components
-        x = torch.empty(coords.shape[0], self._density_weight_t.shape[0], dtype=self.dtype, device=coords.device)
-        self.density_tables.features_into(taps, x)
-        encode_position_into(coords, cfg.pos_encoding_freqs, x[:, n_spatial:])
-        hidden = torch.addmm(self._density_bias, x, self._density_weight_t)  # [m, h]
-        raw = F.linear(hidden.relu_(), *self._density_out)[:, 0].to(coords.dtype)
+        x = torch.empty(padded_rows(m), self._density_weight_t.shape[0], dtype=self.dtype, device=coords.device)
+        x[m:].zero_()
+        self.density_tables.features_into(taps, x[:m])
+        encode_position_into(coords, cfg.pos_encoding_freqs, x[:m, n_spatial:])
+        hidden = torch.addmm(self._density_bias, x, self._density_weight_t)  # [padded, h]
+        raw = F.linear(hidden.relu_(), *self._density_out)[:m, 0].to(coords.dtype)
         return F.softplus(raw + cfg.density_shift)
 
     def direction_terms(self, directions: Float[Tensor, "a 3"]) -> Float[Tensor, "a h"]:
@@ -318,9 +321,12 @@ class FrameField:
         return out
 
     def _color(self, taps: VMTaps, ray_terms: Float[Tensor, "m h"]) -> Float[Tensor, "m 3"]:
-        feats = torch.empty(len(taps), 3 * self.appearance_tables.n_components, dtype=self.dtype,
+        m = len(taps)
+        feats = torch.empty(padded_rows(m), 3 * self.appearance_tables.n_components, dtype=self.dtype,
                             device=ray_terms.device)
-        self.appearance_tables.features_into(taps, feats)  # [m, 3c]
-        hidden = torch.addmm(ray_terms, feats, self.color_layer.spatial_weight_t)  # [m, h]
-        raw = F.linear(hidden.relu_(), *self._color_out)
+        feats[m:].zero_()
+        self.appearance_tables.features_into(taps, feats[:m])  # [m, 3c]
+        hidden = torch.mm(feats, self.color_layer.spatial_weight_t)  # [padded, h]
+        hidden[:m] += ray_terms
+        raw = F.linear(hidden.relu_(), *self._color_out)[:m]
         return torch.sigmoid(raw.float())
