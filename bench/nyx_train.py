@@ -130,6 +130,9 @@ def main() -> int:
                          f"default {TrainConfig.micro_batch_samples})")
     ap.add_argument("--density-shift", type=float, default=FieldConfig.density_shift,
                     help=f"bias of the density activation of a fresh field (default {FieldConfig.density_shift:g})")
+    ap.add_argument("--carve-min-seen-fraction", type=float, default=TrainConfig.carve_min_seen_fraction,
+                    help="fraction of a setting's views that must see a carved cell "
+                         f"(default {TrainConfig.carve_min_seen_fraction:g}; 0 keeps every cell some view sees)")
     ap.add_argument("--threads", type=int, default=None, help="torch threads (default: all cores)")
     ap.add_argument("--bbox", type=parse_bbox, default=None, metavar="X0,Y0,Z0,X1,Y1,Z1",
                     help="content box (write --bbox=-0.2,...); default: carved from the images")
@@ -150,7 +153,8 @@ def main() -> int:
     assert val is not None
     cfg = TrainConfig(iterations=10**9, time_budget_s=args.minutes * 60, batch_rays=args.batch_rays,
                       micro_batch_samples=args.micro_batch_samples, resolution_final=args.resolution,
-                      validate_every_s=args.validate_every, validate_max_images=6)
+                      validate_every_s=args.validate_every, validate_max_images=6,
+                      carve_min_seen_fraction=args.carve_min_seen_fraction)
     trainer = Trainer(train, val, cfg, device, field_cfg=FieldConfig(density_shift=args.density_shift),
                       render_cfg=RenderConfig())
     trainer.run(progress_bar=sys.stderr.isatty(), on_validate=lambda row: print(json.dumps(row), flush=True))

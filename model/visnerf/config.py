@@ -155,6 +155,11 @@ class TrainConfig:
     """Cells per axis of the carved grid."""
     carve_tolerance: int = 2
     """Largest channel difference (0-255) from the background that still counts as background."""
+    carve_min_seen_fraction: float = 0.75
+    """A carved cell must be in the image of at least this fraction of its setting's views: the few
+    views that see a far corner of the camera box all look through it at the content behind, so it
+    survives carving (see data/carving.py; on Nyx such corners stretched the box from +-0.19 to
+    +-0.31 on two axes)."""
     mixed_precision: bool = True
     """Decoder matrix products in bfloat16 where the device supports it (weights stay float32)."""
     l1_weight_initial: float = 1e-4

@@ -9,8 +9,13 @@ exists only at some parameter values.
 
 Each cell is tested at its centre against the foreground mask dilated by the cell's projected
 half-diagonal, so structure thinner than a cell is never carved. A view that does not see a cell
-(outside its image or behind it) cannot carve it; a cell that no view of a setting sees is empty for
-that setting, since nothing there could be learned or checked from the images.
+(outside its image or behind it) cannot carve it; a cell that fewer than ``min_seen_fraction`` of a
+setting's views see is empty for that setting, since the images check it too weakly. With the
+fraction at 0 (only cells no view sees are dropped), 81 cells in the corners of Nyx's camera box,
+each seen by 19 to 24 of its 42 views (every one of them looking through the cell at the real
+content behind), survived and stretched the content box from +-0.19 to +-0.31 on two axes: 2.5
+times the volume, and 1.6 times coarser voxels for the same grid size. Every cell of the real
+content is seen by every view.
 """
 
 import math
@@ -58,12 +63,16 @@ def carve_occupancy(
     resolution: tuple[int, int, int],
     tolerance: int = 2,
     chunk_frames: int = 64,
+    min_seen_fraction: float = 0.0,
 ) -> Bool[Tensor, "x y z"]:
     """Union over parameter settings of the cells that every view of the setting sees as foreground.
 
     ``tolerance`` is the largest channel difference (0-255) from the background still counted as
-    background.
+    background. A cell counts only where at least ``min_seen_fraction`` of the setting's views (and
+    at least one) have it in their image.
     """
+    if not 0.0 <= min_seen_fraction <= 1.0:
+        raise ValueError(f"min_seen_fraction must be in [0, 1], got {min_seen_fraction}")
     aabb = aabb.detach().cpu().float()
     res = torch.tensor(resolution, dtype=torch.float32)
     cell = (aabb[1] - aabb[0]) / res  # [3]
@@ -79,7 +88,7 @@ def carve_occupancy(
     union = torch.zeros(centres.shape[0], dtype=torch.bool)
     for frames in setting_groups(scene.params):
         cand = (~union).nonzero()[:, 0]  # cells not yet known to hold content
-        seen = torch.zeros(centres.shape[0], dtype=torch.bool)
+        seen = torch.zeros(centres.shape[0], dtype=torch.int32)  # views that have the cell in their image
         for start in range(0, frames.numel(), chunk_frames):
             if cand.numel() == 0:
                 break
@@ -93,7 +102,8 @@ def carve_occupancy(
                 py = uv[:, 1].floor().long()
                 inside = (depth > 0) & (px >= 0) & (px < w) & (py >= 0) & (py < h)
                 seen_fg = masks[j][py.clamp(0, h - 1), px.clamp(0, w - 1)]
-                seen[cand[inside]] = True
+                seen[cand[inside]] += 1
                 cand = cand[~inside | seen_fg]
-        union[cand[seen[cand]]] = True
+        min_seen = max(1, math.ceil(min_seen_fraction * frames.numel() - 1e-9))
+        union[cand[seen[cand] >= min_seen]] = True
     return union.reshape(resolution)

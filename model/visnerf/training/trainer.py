@@ -124,7 +124,8 @@ class Trainer:
             aabb = estimate_bbox(train_scene)
             if cfg.carve:
                 t0 = time.perf_counter()
-                grid = carve_occupancy(train_scene, aabb, (cfg.carve_resolution,) * 3, cfg.carve_tolerance)
+                grid = carve_occupancy(train_scene, aabb, (cfg.carve_resolution,) * 3, cfg.carve_tolerance,
+                                       min_seen_fraction=cfg.carve_min_seen_fraction)
                 self.setup_seconds = time.perf_counter() - t0
                 bounds = occupied_bounds(grid, aabb)
                 if bounds is not None:

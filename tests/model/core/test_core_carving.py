@@ -108,3 +108,21 @@ def test_structure_thinner_than_a_cell_survives(radius: float) -> None:
     centre = (0.013, 0.21, -0.17)
     grid = carve_occupancy(make_scene([(centre, radius)], size=64), BOX, (RES,) * 3)
     assert grid[distances(centre) <= radius + 0.5 * math.sqrt(3) * 1.2 / RES].all()
+
+
+def test_cells_few_views_see_do_not_stretch_the_hull() -> None:
+    """A box much wider than the views' frusta: its corners are seen by a minority of views, each
+    looking through them at the sphere, so counting every view that sees a cell keeps them (as on
+    Nyx); requiring three quarters of the views keeps only the sphere's hull, and all of it."""
+    box = torch.tensor([[-1.0] * 3, [1.0] * 3])
+    centre, radius = (0.0, 0.0, 0.0), 0.55
+    scene = make_scene([(centre, radius)])
+    dist = torch.linalg.norm(cell_centres_flat(box, (RES,) * 3) - torch.tensor(centre), dim=-1).reshape((RES,) * 3)
+    touching = dist <= radius + 0.5 * math.sqrt(3) * 2.0 / RES
+    loose = carve_occupancy(scene, box, (RES,) * 3, min_seen_fraction=0.0)
+    assert float(dist[loose].max()) > 1.2, "the corners survive when any view may vouch for them"
+    tight = carve_occupancy(scene, box, (RES,) * 3, min_seen_fraction=0.75)
+    assert tight[touching].all(), "a cell touching the sphere was dropped"
+    assert float(dist[tight].max()) < radius + 0.35
+    with pytest.raises(ValueError, match="min_seen_fraction"):
+        carve_occupancy(scene, box, (RES,) * 3, min_seen_fraction=1.5)
