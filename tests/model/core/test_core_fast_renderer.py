@@ -59,12 +59,15 @@ def test_the_occupancy_grid_keeps_a_shell_a_tenth_of_a_cell_thick(shell_field) -
     assert 0.05 < float(grid.float().mean()) < 0.9  # and it does skip something
 
 
-@pytest.mark.parametrize("azimuth", [0.0, 33.0])
-def test_fast_frames_match_the_exhaustive_frames_on_a_thin_opaque_shell(shell_field, azimuth: float) -> None:
+@pytest.mark.parametrize(("azimuth", "first_segment", "segment"), [(0.0, 16, 16), (33.0, 16, 16), (33.0, 3, 64)])
+def test_fast_frames_match_the_exhaustive_frames_on_a_thin_opaque_shell(
+    shell_field, azimuth: float, first_segment: int, segment: int
+) -> None:
+    """Segments of one length, and segments growing from 3 samples (3, 6, 12, ... 64)."""
     exhaustive = RenderSettings(use_occupancy=False, early_termination=False, weight_threshold=0.0,
                                 step_ratio=0.25)
     fast = replace(exhaustive, use_occupancy=True, early_termination=True, weight_threshold=1e-4,
-                   early_stop_eps=1e-4, segment_samples=16)
+                   early_stop_eps=1e-4, segment_samples=segment, first_segment_samples=first_segment)
     shell_field.set_occupancy(_occupancy(shell_field, shell_field.voxel_size() * 0.25))
     intr = Intrinsics.from_fov(40, 40, math.radians(35.0))
     c2w = torch.from_numpy(orbit_c2w(azimuth, 20.0, 2.0)).float()
