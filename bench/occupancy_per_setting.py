@@ -3,10 +3,11 @@
 The renderer skips empty space with one grid: the union over the parameter space of the cells
 where any training setting has visible density (stored in the checkpoint). A grid built for the
 frame's own parameter tuple could only skip more. For each checkpoint and each of its held-out
-views (as bench/render_speed.py picks them), this builds that grid at the frame's parameters
-(density at the centres of the union's occupied cells, alpha at the full-quality step above the
-checkpoint's occupancy threshold, dilated by one cell, exactly as the union is built), then renders
-the frame with each grid, interleaved, and records:
+views (as bench/render_speed.py picks them), this builds that grid at the frame's parameters as
+the server's cache does (``rendering.setting_occupancy.build_setting_grid``: density at
+``--samples-per-axis``^3 points of each of the union's occupied cells, alpha at the full-quality
+step above the checkpoint's occupancy threshold, dilated by one cell, intersected with the union),
+then renders the frame with each grid, interleaved, and records:
 
 - the occupied fraction of each grid and the density samples each frame evaluates;
 - ms per frame with each grid (the build excluded), and the build's ms;
@@ -25,27 +26,15 @@ from pathlib import Path
 
 import numpy as np
 import torch
-import torch.nn.functional as F
 from bench_common import RESULTS, load_average, machine_record, markdown_header, write_json
 from render_speed import default_cases, load_views, parse_case
 
 from visnerf.inference import load_scene
-from visnerf.rendering.occupancy import cell_centres
+from visnerf.rendering.empty_space import EmptySpace
 from visnerf.rendering.renderer import RenderSettings, render_image
-from visnerf.representation.field import VisNerfField
+from visnerf.rendering.setting_occupancy import build_setting_grid
 from visnerf.representation.frame_field import FrameField, SampleTaps
-from visnerf.runtime import bf16_native, configure
-
-
-def setting_grid(field: VisNerfField, frame: FrameField, union: torch.Tensor, step: float, threshold: float) -> torch.Tensor:
-    """Occupancy at one parameter tuple: alpha at the union's occupied cell centres, dilated."""
-    centres = cell_centres(field.aabb, tuple(union.shape)).reshape(-1, 3)
-    cand = union.reshape(-1).nonzero()[:, 0]
-    alpha = -torch.expm1(-frame.density(centres[cand]) * step)
-    full = torch.zeros(centres.shape[0], dtype=torch.bool)
-    full[cand] = alpha > threshold
-    grid = full.reshape(union.shape).float()[None, None]
-    return F.max_pool3d(grid, kernel_size=3, stride=1, padding=1)[0, 0] > 0
+from visnerf.runtime import configure
 
 
 class Counting:
@@ -69,7 +58,7 @@ class Counting:
         FrameField.density_at = self._orig  # type: ignore[method-assign]
 
 
-def measure(case, views_count: int, size: int) -> dict:
+def measure(case, views_count: int, size: int, samples_per_axis: int) -> dict:
     scene = load_scene(case.checkpoint)
     field, meta = scene.field, scene.meta
     settings = RenderSettings.from_meta(meta, "full")
@@ -82,20 +71,17 @@ def measure(case, views_count: int, size: int) -> dict:
         render_image(field, views.c2w[0], cam, views.params[0], settings)  # warm-up
         for v in range(views.c2w.shape[0]):
             params = views.params[v]
-            q_d, q_a = field.param_features(params[None])
-            dtype = torch.bfloat16 if settings.bf16 and bf16_native(scene.device) else torch.float32
             t0 = time.perf_counter()
-            own = setting_grid(field, FrameField(field, q_d, q_a, dtype), union, step, meta.render.occupancy_threshold)
+            own_grid = build_setting_grid(field, params, step, meta.render.occupancy_threshold, samples_per_axis)
+            own = EmptySpace.of(own_grid, field.aabb)
             build_ms = 1000 * (time.perf_counter() - t0)
             out = {}
-            for name, grid in (("union", union), ("setting", own)):
-                field.occupancy = grid
+            for name, space, grid in (("union", None, union), ("setting", own, own_grid)):
                 with Counting() as count:
                     t0 = time.perf_counter()
-                    img = render_image(field, views.c2w[v], cam, params, settings)
+                    img = render_image(field, views.c2w[v], cam, params, settings, space)
                     ms = 1000 * (time.perf_counter() - t0)
                 out[name] = (img, ms, count.samples, float(grid.float().mean()))
-            field.occupancy = union
             mse = float(((out["union"][0] - out["setting"][0]) ** 2).mean())
             rows.append({
                 "view": views.frame_indices[v], "build_ms": build_ms,
@@ -136,6 +122,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--views", type=int, default=6)
     ap.add_argument("--size", type=int, default=256)
     ap.add_argument("--threads", type=int, default=None)
+    ap.add_argument("--samples-per-axis", type=int, default=2, help="density samples per cell and axis (default 2)")
     ap.add_argument("--out-dir", default=str(RESULTS))
     args = ap.parse_args(argv)
     configure(args.threads)
@@ -147,7 +134,7 @@ def main(argv: list[str] | None = None) -> int:
         if not (Path(case.checkpoint).is_file() and Path(case.data).is_dir()):
             print(f"{case.name}: skipped, {case.checkpoint} or {case.data} is missing", flush=True)
             continue
-        record["cases"].append(measure(case, args.views, args.size))
+        record["cases"].append(measure(case, args.views, args.size, args.samples_per_axis))
         print(f"{case.name}: {record['cases'][-1]['median']}", flush=True)
     record["load_average_1min"] = {"before": before, "after": load_average()}
     out = Path(args.out_dir)

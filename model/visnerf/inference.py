@@ -21,6 +21,7 @@ import torch
 from visnerf.checkpoint import CheckpointError, CheckpointMeta, load_checkpoint
 from visnerf.data.cameras import Intrinsics, check_rigid_c2w
 from visnerf.rendering.renderer import RenderSettings, render_image_scaled
+from visnerf.rendering.setting_occupancy import SettingOccupancy, SettingOccupancyConfig
 from visnerf.representation.field import VisNerfField
 
 Quality = Literal["preview", "full"]
@@ -77,12 +78,22 @@ def _scene_info(meta: CheckpointMeta) -> SceneInfo:
 class SceneRenderer:
     """A loaded scene. ``render`` is thread safe (renders are serialised by a lock)."""
 
-    def __init__(self, field: VisNerfField, meta: CheckpointMeta, device: torch.device) -> None:
+    def __init__(
+        self,
+        field: VisNerfField,
+        meta: CheckpointMeta,
+        device: torch.device,
+        setting_occupancy: SettingOccupancyConfig | None = None,
+    ) -> None:
         self.field = field.eval()
         self.meta = meta
         self.device = device
         self.info = _scene_info(meta)
         self._lock = threading.Lock()
+        cfg = setting_occupancy or SettingOccupancyConfig(threshold=meta.render.occupancy_threshold)
+        self.setting_occupancy = SettingOccupancy(self.field, cfg)
+        """Full-quality frames at a parameter tuple asked for more than once march that tuple's own
+        occupancy grid (``rendering.setting_occupancy``); previews march the union grid."""
 
     def resolve_params(self, params: Mapping[str, float]) -> list[float]:
         """Parameter values in axis order; missing names take their default.
@@ -138,7 +149,10 @@ class SceneRenderer:
         normalized = [axis.normalize(v) for axis, v in zip(self.meta.param_axes, values, strict=True)]
         params_t = torch.tensor(normalized, dtype=torch.float32, device=self.device)
         with self._lock, torch.inference_mode():
-            rgb = render_image_scaled(self.field, c2w_t, intrinsics, params_t, settings)  # [h, w, 3]
+            own = None
+            if quality == "full" and settings.use_occupancy:
+                own = self.setting_occupancy.lookup(params_t, self.field.voxel_size() * settings.step_ratio)
+            rgb = render_image_scaled(self.field, c2w_t, intrinsics, params_t, settings, own)  # [h, w, 3]
             out = (rgb.clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
         return out
 

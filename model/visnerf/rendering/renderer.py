@@ -326,12 +326,16 @@ def render_image(
     intrinsics: Intrinsics,
     params: Float[Tensor, " k"],
     settings: RenderSettings,
+    empty_space: EmptySpace | None = None,
 ) -> Float[Tensor, "h w 3"]:
-    """Render one image at normalised parameters (inference; call under ``torch.inference_mode``)."""
+    """Render one image at normalised parameters (inference; call under ``torch.inference_mode``).
+
+    ``empty_space`` replaces the field's union grid (a grid for these parameters,
+    ``rendering.setting_occupancy``); it is ignored when the settings use no occupancy."""
     rays_o, rays_d = image_rays(c2w, intrinsics)
     rays_o, rays_d = rays_o.reshape(-1, 3), rays_d.reshape(-1, 3)
     background = torch.tensor(settings.background, dtype=rays_o.dtype, device=rays_o.device)
-    empty = empty_space_of(field) if settings.use_occupancy else None
+    empty = (empty_space or empty_space_of(field)) if settings.use_occupancy else None
     q_d, q_a = field.param_features(params[None].to(rays_o.dtype))  # [1, c] each
     dtype = torch.bfloat16 if settings.bf16 and bf16_native(rays_o.device) else rays_o.dtype
     frame = FrameField(field, q_d, q_a, dtype)
@@ -355,6 +359,7 @@ def render_image_scaled(
     intrinsics: Intrinsics,
     params: Float[Tensor, " k"],
     settings: RenderSettings,
+    empty_space: EmptySpace | None = None,
 ) -> Float[Tensor, "h w 3"]:
     """``render_image`` marched at ``settings.resolution_scale`` of the camera's size and upsampled
     bilinearly to that size (the preview quality); the full size itself when the scale is 1."""
@@ -362,8 +367,8 @@ def render_image_scaled(
     w_r = max(1, round(width * settings.resolution_scale))
     h_r = max(1, round(height * settings.resolution_scale))
     if (w_r, h_r) == (width, height):
-        return render_image(field, c2w, intrinsics, params, settings)
-    rgb = render_image(field, c2w, intrinsics.scaled(w_r, h_r), params, settings)  # [h_r, w_r, 3]
+        return render_image(field, c2w, intrinsics, params, settings, empty_space)
+    rgb = render_image(field, c2w, intrinsics.scaled(w_r, h_r), params, settings, empty_space)  # [h_r, w_r, 3]
     return F.interpolate(rgb.permute(2, 0, 1)[None], size=(height, width), mode="bilinear",
                          align_corners=False)[0].permute(1, 2, 0)
 

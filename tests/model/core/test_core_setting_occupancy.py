@@ -1,0 +1,131 @@
+"""Occupancy grids per parameter tuple: the cache serves each tuple its own grid and no other,
+builds only for tuples asked for again, evicts the least recently used, never holds a cell the
+union lacks, and frames marched with it match frames marched with the union."""
+
+import dataclasses
+import math
+
+import pytest
+import torch
+
+from visnerf.data.cameras import Intrinsics, orbit_c2w
+from visnerf.rendering.empty_space import EmptySpace
+from visnerf.rendering.occupancy import build_occupancy, parameter_settings
+from visnerf.rendering.renderer import RenderSettings, render_image
+from visnerf.rendering.setting_occupancy import (
+    SettingOccupancy,
+    SettingOccupancyConfig,
+    build_setting_grid,
+    param_key,
+)
+from visnerf.testing import make_tiny_field
+
+STEP_RATIO = 1.0
+
+
+@pytest.fixture()
+def field():
+    """A tiny field whose visible cells change with the parameter: its raw density scaled by 60
+    and shifted by -20, so that at a = 0 half the cells are visible and at a = 1 all (the union)."""
+    f, _ = make_tiny_field([("a", [0.0, 0.5, 1.0])], seed=11, resolution=12)
+    f.cfg = dataclasses.replace(f.cfg, density_shift=-20.0)
+    with torch.no_grad():
+        f.density_decoder.out.weight.mul_(60.0)
+        f.density_decoder.out.bias.mul_(60.0)
+    f = f.eval()
+    settings = parameter_settings([f.density_params.knots(0)], 64)
+    step = f.voxel_size() * STEP_RATIO
+    f.set_occupancy(build_occupancy(f, (12, 12, 12), settings, step, threshold=1e-4))
+    return f
+
+
+def grid_of(space: EmptySpace) -> torch.Tensor:
+    return space.occupied.bool().reshape(space.shape)
+
+
+def test_each_tuple_gets_its_own_grid_and_no_other(field) -> None:
+    step = field.voxel_size() * STEP_RATIO
+    cache = SettingOccupancy(field, SettingOccupancyConfig(capacity=4, build_after=2, background=False))
+    a, b = torch.tensor([-1.0]), torch.tensor([1.0])
+    own_a, own_b = (build_setting_grid(field, p, step, 1e-4) for p in (a, b))
+    assert not torch.equal(own_a, own_b), "the test needs settings whose grids differ"
+    assert cache.lookup(a, step) is None  # asked once: the union serves
+    first = cache.lookup(a, step)
+    assert first is not None and torch.equal(grid_of(first), own_a)
+    assert cache.lookup(b, step) is None
+    assert torch.equal(grid_of(cache.lookup(b, step)), own_b)
+    again = cache.lookup(a, step)
+    assert again is first and torch.equal(grid_of(again), own_a)
+    # A tuple that differs by the least amount is another key: not served A's grid.
+    nudged = torch.tensor([math.nextafter(-1.0, 0.0)], dtype=torch.float64)
+    assert param_key(nudged) != param_key(a)
+    assert cache.lookup(nudged, step) is None
+    assert cache.builds == 2
+
+
+def test_background_builds_serve_the_union_until_ready_then_their_own_tuple(field) -> None:
+    step = field.voxel_size() * STEP_RATIO
+    cache = SettingOccupancy(field, SettingOccupancyConfig(capacity=4, build_after=2, background=True))
+    a, b = torch.tensor([-1.0]), torch.tensor([1.0])
+    assert cache.lookup(a, step) is None
+    assert cache.lookup(a, step) is None  # the build has started; the union serves meanwhile
+    assert cache.lookup(b, step) is None
+    assert cache.lookup(b, step) is None  # the worker is busy with a: b waits for a later frame
+    cache.wait()
+    assert cache.builds == 1
+    assert torch.equal(grid_of(cache.lookup(a, step)), build_setting_grid(field, a, step, 1e-4))
+    assert cache.lookup(b, step) is None  # now b's build starts
+    cache.wait()
+    assert torch.equal(grid_of(cache.lookup(b, step)), build_setting_grid(field, b, step, 1e-4))
+    assert cache.builds == 2
+
+
+def test_least_recently_used_grid_is_dropped(field) -> None:
+    step = field.voxel_size() * STEP_RATIO
+    cache = SettingOccupancy(field, SettingOccupancyConfig(capacity=2, build_after=1, background=False))
+    a, b, c = torch.tensor([-1.0]), torch.tensor([0.0]), torch.tensor([1.0])
+    cache.lookup(a, step)
+    cache.lookup(b, step)
+    cache.lookup(a, step)  # a is now the most recent
+    cache.lookup(c, step)  # drops b
+    assert len(cache) == 2 and cache.builds == 3
+    cache.lookup(a, step)
+    assert cache.builds == 3
+    assert torch.equal(grid_of(cache.lookup(b, step)), build_setting_grid(field, b, step, 1e-4))
+    assert cache.builds == 4
+
+
+def test_a_setting_grid_is_inside_the_union_and_narrower(field) -> None:
+    step = field.voxel_size() * STEP_RATIO
+    union = field.occupancy
+    counts = []
+    for value in (-1.0, -0.3, 0.0, 0.7, 1.0):
+        own = build_setting_grid(field, torch.tensor([value]), step, 1e-4)
+        assert not bool((own & ~union).any())
+        counts.append(int(own.sum()))
+    assert min(counts) < 0.6 * int(union.sum())
+
+
+def test_frames_with_a_setting_grid_match_frames_with_the_union(field) -> None:
+    settings = RenderSettings(step_ratio=STEP_RATIO, early_stop_eps=1e-4, weight_threshold=1e-4, first_segment_samples=4)
+    intr = Intrinsics.from_fov(32, 32, math.radians(40.0))
+    step = field.voxel_size() * STEP_RATIO
+    for value, azimuth in ((-1.0, 10.0), (0.4, 75.0), (1.0, -120.0)):
+        params = torch.tensor([value])
+        c2w = torch.from_numpy(orbit_c2w(azimuth, 25.0, 1.6)).float()
+        own = EmptySpace.of(build_setting_grid(field, params, step, 1e-4), field.aabb)
+        with torch.inference_mode():
+            union_frame = render_image(field, c2w, intr, params, settings)
+            own_frame = render_image(field, c2w, intr, params, settings, own)
+        assert (union_frame - 1.0).abs().max() > 0.05  # something is in the picture
+        assert float((union_frame - own_frame).abs().max()) < 2e-3
+
+
+def test_cache_off_and_bad_configs() -> None:
+    f, _ = make_tiny_field([("a", [0.0, 1.0])], seed=1, resolution=8)
+    assert SettingOccupancy(f, SettingOccupancyConfig(capacity=0)).lookup(torch.tensor([0.0]), 0.1) is None
+    assert SettingOccupancy(f, SettingOccupancyConfig(build_after=1)).lookup(torch.tensor([0.0]), 0.1) is None  # no grid
+    with pytest.raises(ValueError, match="capacity"):
+        SettingOccupancyConfig(capacity=-1)
+    with pytest.raises(ValueError, match="no occupancy grid"):
+        build_setting_grid(f, torch.tensor([0.0]), 0.1, 1e-4)
