@@ -133,6 +133,8 @@ def main() -> int:
     ap.add_argument("--carve-min-seen-fraction", type=float, default=TrainConfig.carve_min_seen_fraction,
                     help="fraction of a setting's views that must see a carved cell "
                          f"(default {TrainConfig.carve_min_seen_fraction:g}; 0 keeps every cell some view sees)")
+    ap.add_argument("--tv-density", type=float, default=TrainConfig.tv_weight_density,
+                    help=f"total-variation weight of the density factors (default {TrainConfig.tv_weight_density:g})")
     ap.add_argument("--threads", type=int, default=None, help="torch threads (default: all cores)")
     ap.add_argument("--bbox", type=parse_bbox, default=None, metavar="X0,Y0,Z0,X1,Y1,Z1",
                     help="content box (write --bbox=-0.2,...); default: carved from the images")
@@ -154,7 +156,7 @@ def main() -> int:
     cfg = TrainConfig(iterations=10**9, time_budget_s=args.minutes * 60, batch_rays=args.batch_rays,
                       micro_batch_samples=args.micro_batch_samples, resolution_final=args.resolution,
                       validate_every_s=args.validate_every, validate_max_images=6,
-                      carve_min_seen_fraction=args.carve_min_seen_fraction)
+                      carve_min_seen_fraction=args.carve_min_seen_fraction, tv_weight_density=args.tv_density)
     trainer = Trainer(train, val, cfg, device, field_cfg=FieldConfig(density_shift=args.density_shift),
                       render_cfg=RenderConfig())
     trainer.run(progress_bar=sys.stderr.isatty(), on_validate=lambda row: print(json.dumps(row), flush=True))

@@ -8,7 +8,10 @@ import math
 import pytest
 import torch
 
+from visnerf.checkpoint import CheckpointMeta, ParamAxis, save_checkpoint
+from visnerf.config import RenderConfig
 from visnerf.data.cameras import Intrinsics, orbit_c2w
+from visnerf.inference import load_scene
 from visnerf.rendering.empty_space import EmptySpace
 from visnerf.rendering.occupancy import build_occupancy, parameter_settings
 from visnerf.rendering.renderer import RenderSettings, render_image
@@ -129,3 +132,28 @@ def test_cache_off_and_bad_configs() -> None:
         SettingOccupancyConfig(capacity=-1)
     with pytest.raises(ValueError, match="no occupancy grid"):
         build_setting_grid(f, torch.tensor([0.0]), 0.1, 1e-4)
+
+
+def test_scene_renderer_builds_once_per_repeated_tuple_and_frames_agree(field, tmp_path) -> None:
+    """Through the public inference API, as the server renders: the first full frame at a tuple
+    uses the union, the second starts the build, later ones use the tuple's grid; previews never
+    build; the frames agree to within a level of 8 bits."""
+    meta = CheckpointMeta(
+        field=field.current_config(), render=RenderConfig(step_ratio=0.5), param_axes=(ParamAxis("a", 0.0, 1.0, (0.0, 0.5, 1.0), 0.5),),
+        bbox=((-0.5, -0.5, -0.5), (0.5, 0.5, 0.5)), camera={"azimuth": 30.0, "elevation": 20.0, "distance": 1.6, "fov_deg": 40.0},
+        image_width=32, image_height=32, title="Tiny", kind="dvr",
+        provenance={"dataset": "random", "iterations": 0, "train_seconds": 0.0, "val_psnr": None},
+    )
+    scene = load_scene(save_checkpoint(field, meta, tmp_path / "tiny.safetensors"))
+    c2w = orbit_c2w(40.0, 20.0, 1.6)
+    for _ in range(3):
+        scene.render(c2w, 40.0, 32, 32, {"a": 0.2}, "preview")
+    assert scene.setting_occupancy.builds == 0 and len(scene.setting_occupancy._asked) == 0
+    frames = [scene.render(c2w, 40.0, 32, 32, {"a": 0.2}, "full")]
+    frames.append(scene.render(c2w, 40.0, 32, 32, {"a": 0.2}, "full"))
+    scene.setting_occupancy.wait()
+    assert scene.setting_occupancy.builds == 1
+    frames.append(scene.render(c2w, 40.0, 32, 32, {"a": 0.2}, "full"))
+    assert len(scene.setting_occupancy) == 1
+    assert int(abs(frames[0].astype(int) - 255).max()) > 10  # content in the picture
+    assert max(int(abs(f.astype(int) - frames[0].astype(int)).max()) for f in frames) <= 1
