@@ -25,7 +25,10 @@ from visnerf.commands import parse_bbox, pick_device, with_bbox
 from visnerf.config import FieldConfig, HoldoutConfig, RenderConfig, TrainConfig
 from visnerf.data.holdout import split_holdout
 from visnerf.data.parsers.blender import load_dataset
+from visnerf.evaluation.colour_difference import luv_difference
+from visnerf.evaluation.evaluate import EvalConfig
 from visnerf.evaluation.metrics import psnr, ssim
+from visnerf.evaluation.plots import plot_difference
 from visnerf.inference import load_scene
 from visnerf.training.trainer import Trainer
 
@@ -38,8 +41,9 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def final_eval(ckpt: Path, val, n_frames: int) -> dict:
-    """Render ``n_frames`` evenly chosen held-out frames through the public inference API."""
+def final_eval(ckpt: Path, val, n_frames: int, figure: Path | None = None) -> dict:
+    """Render ``n_frames`` evenly chosen held-out frames through the public inference API; with
+    ``figure``, save the frame of median PSNR beside its ground truth and their CIELUV difference."""
     scene = load_scene(ckpt, torch.device("cpu"))
     idx = np.unique(np.linspace(0, val.n_frames - 1, n_frames).round().astype(int))
     names = [a.name for a in scene.info.params]
@@ -53,7 +57,15 @@ def final_eval(ckpt: Path, val, n_frames: int) -> dict:
         gt = val.images[i].numpy().astype(np.float32) / 255.0
         held_setting = any(np.allclose(val.params[i].numpy(), s, atol=1e-6) for s in HOLDOUT_SETTINGS)
         rows.append({"frame": int(i), "psnr": psnr(pred, gt), "ssim": ssim(pred, gt), "seconds": seconds,
-                     "held_out": "setting" if held_setting else "view"})
+                     "held_out": "setting" if held_setting else "view", "images": (pred, gt)})
+    if figure is not None:
+        median = sorted(rows, key=lambda r: r["psnr"])[len(rows) // 2]
+        pred, gt = median["images"]
+        plot_difference(figure, pred, gt, luv_difference(pred, gt), EvalConfig.difference_scale_max,
+                        f"held-out frame {median['frame']} (at a held-out {median['held_out']}), "
+                        f"the median of {len(rows)}: {median['psnr']:.2f} dB")
+    for r in rows:
+        del r["images"]
     return {
         "frames": len(rows),
         "psnr": float(np.mean([r["psnr"] for r in rows])),
@@ -94,7 +106,8 @@ def write_report(result: dict, out_dir: Path) -> None:
     for row in result["log"]:
         lines.append(f"| {row['train_seconds']:.0f} | {row['iteration']} | {row['train_psnr']:.2f} | "
                      f"{row.get('val_psnr', float('nan')):.2f} | {row.get('val_ssim', float('nan')):.3f} |")
-    lines += ["", "![validation PSNR against training time](nyx_train.png)", ""]
+    lines += ["", "![validation PSNR against training time](nyx_train.png)", "",
+              "![the held-out frame of median PSNR](nyx_heldout.png)", ""]
     (out_dir / "nyx_train.md").write_text("\n".join(lines))
     try:
         import matplotlib
@@ -135,9 +148,13 @@ def main() -> int:
                          f"(default {TrainConfig.carve_min_seen_fraction:g}; 0 keeps every cell some view sees)")
     ap.add_argument("--tv-density", type=float, default=TrainConfig.tv_weight_density,
                     help=f"total-variation weight of the density factors (default {TrainConfig.tv_weight_density:g})")
+    ap.add_argument("--step-ratio", type=float, default=RenderConfig.step_ratio,
+                    help=f"training sample spacing in voxels (default {RenderConfig.step_ratio:g})")
     ap.add_argument("--threads", type=int, default=None, help="torch threads (default: all cores)")
     ap.add_argument("--bbox", type=parse_bbox, default=None, metavar="X0,Y0,Z0,X1,Y1,Z1",
                     help="content box (write --bbox=-0.2,...); default: carved from the images")
+    ap.add_argument("--figure-only", metavar="CKPT", default=None,
+                    help="train nothing: write nyx_heldout.png for this checkpoint to --results")
     ap.add_argument("--out", default=str(ROOT / "runs" / "nyx.safetensors"))
     ap.add_argument("--results", default=str(ROOT / "bench" / "results"))
     args = ap.parse_args()
@@ -153,15 +170,21 @@ def main() -> int:
     train, val = split_holdout(scene, HoldoutConfig(views=HOLDOUT_VIEWS, settings=HOLDOUT_SETTINGS))
     del scene
     assert val is not None
+    if args.figure_only:
+        Path(args.results).mkdir(parents=True, exist_ok=True)
+        print(json.dumps(final_eval(Path(args.figure_only), val, args.eval_frames, Path(args.results) / "nyx_heldout.png")))
+        return 0
     cfg = TrainConfig(iterations=10**9, time_budget_s=args.minutes * 60, batch_rays=args.batch_rays,
                       micro_batch_samples=args.micro_batch_samples, resolution_final=args.resolution,
                       validate_every_s=args.validate_every, validate_max_images=6,
                       carve_min_seen_fraction=args.carve_min_seen_fraction, tv_weight_density=args.tv_density)
     trainer = Trainer(train, val, cfg, device, field_cfg=FieldConfig(density_shift=args.density_shift),
-                      render_cfg=RenderConfig())
+                      render_cfg=RenderConfig(step_ratio=args.step_ratio))
     trainer.run(progress_bar=sys.stderr.isatty(), on_validate=lambda row: print(json.dumps(row), flush=True))
     ckpt = trainer.save(args.out, dataset="shared/data/nyx")
-    final = final_eval(ckpt, val, args.eval_frames)
+    out_dir = Path(args.results)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    final = final_eval(ckpt, val, args.eval_frames, out_dir / "nyx_heldout.png")
     result = {
         "command": "python bench/nyx_train.py " + " ".join(sys.argv[1:]),
         "machine": f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} threads, torch {torch.__version__}",
@@ -185,8 +208,6 @@ def main() -> int:
         "final": final,
         "log": trainer.state.log,
     }
-    out_dir = Path(args.results)
-    out_dir.mkdir(parents=True, exist_ok=True)
     write_report(result, out_dir)
     print(json.dumps({k: v for k, v in result.items() if k != "log"}, indent=1))
     return 0
