@@ -335,7 +335,9 @@ def render_image(
     rays_o, rays_d = image_rays(c2w, intrinsics)
     rays_o, rays_d = rays_o.reshape(-1, 3), rays_d.reshape(-1, 3)
     background = torch.tensor(settings.background, dtype=rays_o.dtype, device=rays_o.device)
-    empty = (empty_space or empty_space_of(field)) if settings.use_occupancy else None
+    empty = None
+    if settings.use_occupancy:
+        empty = empty_space if empty_space is not None else empty_space_of(field)
     q_d, q_a = field.param_features(params[None].to(rays_o.dtype))  # [1, c] each
     dtype = torch.bfloat16 if settings.bf16 and bf16_native(rays_o.device) else rays_o.dtype
     frame = FrameField(field, q_d, q_a, dtype)

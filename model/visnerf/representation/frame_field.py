@@ -35,7 +35,7 @@ from torch import Tensor
 from visnerf.representation.decoders import Decoder, encode_position_into, encode_sh, padded_rows
 from visnerf.representation.field import VisNerfField
 from visnerf.representation.vm import VMGrid
-from visnerf.representation.vm_taps import TapLayout, VMTaps, take_rows
+from visnerf.representation.vm_taps import TapLayout, VMTaps, lookup_modes, take_rows
 
 SUB_CHUNK = 16384
 """Samples decoded per pass: the hidden activations of one pass stay in the core's cache."""
@@ -103,10 +103,7 @@ class ModeTables:
         """Write ``VMGrid.sample`` at the taps' samples (plane times line per mode, modes
         concatenated) into ``out[:, :3c]``, in ``out``'s dtype (lookups in the tables' dtype)."""
         m, c = len(taps), self.n_components
-        pf = F.embedding_bag(taps.plane_rows.view(-1, 4), self.plane_table,
-                             per_sample_weights=taps.plane_weights.view(-1, 4), mode="sum")  # [3m, c]
-        lf = F.embedding_bag(taps.line_rows.view(-1, 2), self.line_table,
-                             per_sample_weights=taps.line_weights.view(-1, 2), mode="sum")  # [3m, c]
+        pf, lf = lookup_modes(taps, self.plane_table, self.line_table)  # [3m, c] each
         torch.mul(pf.view(m, 3 * c), lf.view(m, 3 * c), out=out[:, : 3 * c])
 
     def features(self, coords: Float[Tensor, "m 3"], dtype: torch.dtype = torch.float32) -> Float[Tensor, "m f"]:

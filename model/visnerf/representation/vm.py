@@ -16,7 +16,7 @@ import torch.nn.functional as F
 from jaxtyping import Float
 from torch import Tensor, nn
 
-from visnerf.representation.vm_taps import MODES, TapLayout
+from visnerf.representation.vm_taps import MODES, TapLayout, lookup_modes
 
 
 def interpolate_lines(
@@ -82,11 +82,7 @@ class VMGrid(nn.Module):
         the factors only."""
         n, c = coords.shape[0], self.n_components
         taps = self.tap_layout().taps(coords.detach(), self.planes[0].dtype)
-        plane_table, line_table = self.row_tables()
-        pf = F.embedding_bag(taps.plane_rows.view(-1, 4), plane_table,
-                             per_sample_weights=taps.plane_weights.view(-1, 4), mode="sum")  # [3n, c]
-        lf = F.embedding_bag(taps.line_rows.view(-1, 2), line_table,
-                             per_sample_weights=taps.line_weights.view(-1, 2), mode="sum")  # [3n, c]
+        pf, lf = lookup_modes(taps, *self.row_tables())  # [3n, c] each
         return (pf * lf).view(n, 3 * c)
 
     def _sample(self, coords: Float[Tensor, "n 3"]) -> Float[Tensor, "n f"]:

@@ -9,18 +9,12 @@ border. A plane of mode ``i`` (axes ``(a, b)``) is stored ``[c, n_b, n_a]``; as 
 from dataclasses import dataclass
 
 import torch
+import torch.nn.functional as F
 from jaxtyping import Float, Int
 from torch import Tensor
 
 MODES: tuple[tuple[tuple[int, int], int], ...] = (((0, 1), 2), ((0, 2), 1), ((1, 2), 0))
 """(plane axes, line axis) of each mode, as indices into (x, y, z)."""
-
-PLANE_U = tuple(a for (a, _), _ in MODES)
-"""Grid axis along the width of each mode's plane: (0, 0, 1)."""
-PLANE_V = tuple(b for (_, b), _ in MODES)
-"""Grid axis along the height of each mode's plane: (1, 2, 2)."""
-LINE_AXIS = tuple(c for _, c in MODES)
-"""Grid axis of each mode's line: (2, 1, 0)."""
 
 
 def take_rows(t: Tensor, index: Int[Tensor, " k"] | slice) -> Tensor:
@@ -128,3 +122,16 @@ class TapLayout:
         plane_weights = torch.mul(picks[:, :12], picks[:, 12:24]).to(dtype).view(m, 3, 4)
         line_weights = picks[:, 24:].to(dtype).contiguous().view(m, 3, 2)
         return VMTaps(plane_rows, plane_weights, line_rows, line_weights)
+
+
+def lookup_modes(
+    taps: VMTaps, plane_table: Float[Tensor, "p c"], line_table: Float[Tensor, "l c"]
+) -> tuple[Float[Tensor, "n c"], Float[Tensor, "n c"]]:
+    """Plane and line features of the three modes at the taps' samples, ``[3m, c]`` each (row
+    ``3 * i + mode``): one weighted sum of rows per table (``embedding_bag``), differentiable in
+    the tables. Their product, viewed ``[m, 3c]``, is the VM feature (``VMGrid.sample``)."""
+    plane = F.embedding_bag(taps.plane_rows.view(-1, 4), plane_table,
+                            per_sample_weights=taps.plane_weights.view(-1, 4), mode="sum")
+    line = F.embedding_bag(taps.line_rows.view(-1, 2), line_table,
+                           per_sample_weights=taps.line_weights.view(-1, 2), mode="sum")
+    return plane, line
