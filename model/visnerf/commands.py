@@ -1,4 +1,4 @@
-"""Sub-commands ``train``, ``render`` and ``info``."""
+"""Sub-commands ``train``, ``render``, ``calibrate`` and ``info``."""
 
 import argparse
 import dataclasses
@@ -164,6 +164,58 @@ def _render(args: argparse.Namespace) -> int:
     return 0
 
 
+def frames_in_checkpoint_axes(scene: "SceneData", axes: tuple) -> "SceneData":
+    """``scene`` with its parameter columns reordered to a checkpoint's axes and normalised by
+    their ranges (a dataset split's own ranges may differ). Raises ValueError naming an axis the
+    frames do not vary, or a value outside the checkpoint's range."""
+    columns = {a.name: k for k, a in enumerate(scene.param_axes)}
+    missing = [a.name for a in axes if a.name not in columns]
+    extra = sorted(set(columns) - {a.name for a in axes})
+    if missing or extra:
+        raise ValueError(f"the frames' parameters {sorted(columns)} are not the checkpoint's {[a.name for a in axes]}")
+    params = scene.params[:, [columns[a.name] for a in axes]] if axes else scene.params[:, :0]
+    for k, a in enumerate(axes):
+        tol = 1e-6 * max(abs(a.min), abs(a.max), a.max - a.min, 1e-30)
+        outside = (params[:, k] < a.min - tol) | (params[:, k] > a.max + tol)
+        if bool(outside.any()):
+            raise ValueError(f"parameter {a.name!r} of the frames leaves the checkpoint's range [{a.min}, {a.max}]")
+    return dataclasses.replace(scene, params=params, param_axes=tuple(axes))
+
+
+def _calibrate(args: argparse.Namespace) -> int:
+    from visnerf.checkpoint import load_checkpoint, save_checkpoint
+    from visnerf.data.holdout import split_holdout
+    from visnerf.data.parsers.blender import DatasetError, load_dataset
+    from visnerf.rendering.spacing import choose_full_spacing
+
+    device = pick_device(args.device)
+    try:
+        field, meta = load_checkpoint(args.checkpoint, device)
+        if args.holdout_views or args.holdout_params:
+            scene = load_dataset(args.data, "train")
+            _, frames = split_holdout(scene, HoldoutConfig(views=args.holdout_views, settings=args.holdout_params))
+            if frames is None:
+                raise ValueError("the hold-out matches no frame of transforms_train.json")
+        elif (Path(args.data) / "transforms_val.json").is_file():
+            frames = load_dataset(args.data, "val")
+        else:
+            raise ValueError(f"{args.data} has no transforms_val.json: name the frames the checkpoint was not "
+                             "trained on with --holdout-views / --holdout-params")
+        frames = frames_in_checkpoint_axes(frames, meta.param_axes)
+        choice = choose_full_spacing(field, frames, meta.render, args.frames, args.tolerance)
+    except (CheckpointError, DatasetError, ValueError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    print(choice.describe())
+    if args.dry_run:
+        return 0
+    render = dataclasses.replace(meta.render, full_step_ratio=choice.ratio)
+    prov = dict(meta.provenance, full_spacing=choice.describe())
+    save_checkpoint(field, dataclasses.replace(meta, render=render, provenance=prov), args.checkpoint)
+    print(f"wrote full_step_ratio {choice.ratio:g} into {args.checkpoint}")
+    return 0
+
+
 def _info(args: argparse.Namespace) -> int:
     try:
         meta, tensors = read_checkpoint(args.checkpoint)
@@ -214,6 +266,20 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.add_argument("--device", default="auto")
     r.add_argument("-o", "--output", required=True)
     r.set_defaults(func=_render)
+
+    c = sub.add_parser("calibrate", help="choose a checkpoint's full-quality sample spacing on held-out frames")
+    c.add_argument("checkpoint", help="checkpoint to measure and update in place (written atomically)")
+    c.add_argument("data", help="dataset folder: transforms_val.json, or the training split with --holdout-*")
+    c.add_argument("--holdout-views", type=parse_views, default=(), metavar="I,J,..",
+                   help="the views held out in training (frames of transforms_train.json)")
+    c.add_argument("--holdout-params", type=parse_settings, default=(), metavar="A,B;C,D",
+                   help="the parameter settings held out in training")
+    c.add_argument("--frames", type=int, default=8, help="frames to measure on (evenly chosen, default 8)")
+    c.add_argument("--tolerance", type=float, default=0.1, metavar="DB",
+                   help="PSNR the full-quality frames may lose against exhaustive ones (default 0.1)")
+    c.add_argument("--dry-run", action="store_true", help="measure and print, leave the checkpoint alone")
+    c.add_argument("--device", default="auto")
+    c.set_defaults(func=_calibrate)
 
     i = sub.add_parser("info", help="print a checkpoint's metadata")
     i.add_argument("checkpoint")

@@ -73,7 +73,7 @@ class RenderSettings:
         settings = cls(
             step_ratio=cfg.full_step_ratio,
             max_samples=cfg.max_samples,
-            weight_threshold=cfg.weight_threshold,
+            weight_threshold=cfg.full_weight_threshold,
             early_stop_eps=cfg.early_stop_eps,
             background=background,
             bf16=cfg.bf16,
@@ -143,13 +143,14 @@ def _shade_frame_samples(
     valid: Bool[Tensor, "a s"],
     tau_before: Float[Tensor, " a"],
     weight_threshold: float,
-    rgb: Float[Tensor, "n 3"],
+    rgbw: Float[Tensor, "n 4"],
 ) -> Float[Tensor, " a"]:
     """Inference twin of ``_shade_samples`` at one parameter tuple, equal spacing ``step``, for
-    the segment ``points`` of rays ``rays`` (indices into ``ray_terms`` and ``rgb``).
+    the segment ``points`` of rays ``rays`` (indices into ``ray_terms`` and ``rgbw``).
 
     The VM taps of the valid samples are computed once; colour reuses those of the samples whose
-    weight matters. Adds the segment's colour into ``rgb``; returns its optical depth per ray.
+    weight matters. Adds the segment's weighted colour and the weight of its shaded samples into
+    ``rgbw`` (columns r, g, b, weight); returns its optical depth per ray.
     """
     a, s = valid.shape
     flat = valid.view(-1).nonzero()[:, 0]  # [m], into the a * s samples
@@ -166,7 +167,8 @@ def _shade_frame_samples(
     if shade.numel() > 0:
         ray_idx = rays.index_select(0, flat.index_select(0, shade) // s)
         colors = frame.color_at(samples.taps.select(shade), ray_terms.index_select(0, ray_idx))  # [k, 3]
-        rgb.index_add_(0, ray_idx, valid_weights.index_select(0, shade)[:, None] * colors)
+        shaded = valid_weights.index_select(0, shade)[:, None]  # [k, 1]
+        rgbw.index_add_(0, ray_idx, torch.cat([shaded * colors, shaded], dim=1))
     return tau.sum(dim=-1)
 
 
@@ -392,7 +394,7 @@ def march_rays(
     step = field.voxel_size() * settings.step_ratio
     if windows is None:
         windows = ray_windows(field, rays_o, rays_d, step, settings.max_samples, empty_space)
-    rgb = torch.zeros(n, 3, dtype=rays_o.dtype, device=rays_o.device)
+    rgbw = torch.zeros(n, 4, dtype=rays_o.dtype, device=rays_o.device)  # weighted colour, shaded weight
     tau_total = torch.zeros(n, dtype=rays_o.dtype, device=rays_o.device)
     active = (windows.first <= windows.last).nonzero()[:, 0]
     if active.numel() == 0:
@@ -422,7 +424,7 @@ def march_rays(
             valid = torch.zeros_like(valid).view(-1).index_copy_(
                 0, flat, empty_space.occupied_at(points.view(-1, 3).index_select(0, flat))).view_as(valid)
         tau_active += _shade_frame_samples(
-            frame, ray_terms, active, points, step, valid, tau_active, settings.weight_threshold, rgb,
+            frame, ray_terms, active, points, step, valid, tau_active, settings.weight_threshold, rgbw,
         )
         keep = ((tau_active < tau_stop) & (idx[:, -1] < last)).nonzero()[:, 0]
         if keep.numel() < active.numel():
@@ -436,4 +438,21 @@ def march_rays(
     if active.numel() > 0:
         tau_total.index_copy_(0, active, tau_active)
     opacity = -torch.expm1(-tau_total)
+    rgb = rgbw[:, :3]
+    if settings.weight_threshold > 0.0:
+        rgb = rgb * _unshaded_gain(opacity, rgbw[:, 3])[:, None]
     return rgb + background[None] * (1.0 - opacity)[:, None]
+
+
+def _unshaded_gain(opacity: Float[Tensor, " n"], shaded: Float[Tensor, " n"]) -> Float[Tensor, " n"]:
+    """Gain that gives the weight of the samples not shaded (weight at most ``weight_threshold``
+    each) the mean colour of the ray's shaded samples instead of black: ``opacity / shaded``.
+
+    The dropped weight ``opacity - shaded`` then costs at most that weight times the spread of the
+    colours about their mean, instead of that weight times the colour. The scaled colour is the
+    mean colour (each channel in [0, 1]) times ``opacity``, so it stays within [0, opacity] however
+    small ``shaded`` is. Rays with no shaded sample keep no colour (gain 1; their opacity is at
+    most the dropped weights).
+    """
+    safe = shaded > 0.0
+    return torch.where(safe, opacity / torch.where(safe, shaded, 1.0), 1.0)

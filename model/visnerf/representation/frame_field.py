@@ -3,9 +3,10 @@
 Within a frame every sample shares the same parameter features ``q``. The field scales spatial
 channel ``i`` by ``q[i % c]``, appends ``q`` and then applies the decoder's first linear layer, so
 both steps fold into that layer: the spatial columns of its weight are scaled by ``q`` once and the
-``q`` columns become part of the bias. The colour decoder's view-direction columns depend only on
-the ray, so their product is taken once per ray instead of once per sample. What is left per
-sample is the VM lookup and two matrix products; no ``[m, f]`` repeat or product with ``q``.
+``q`` columns become part of the bias. The view direction's spherical harmonics depend only on
+the ray: they are encoded once per ray and gathered per sample. What is left per sample is the VM
+lookup and two matrix products, the first fused with its bias and ReLU (``linear_relu``); no
+``[m, f]`` repeat or product with ``q``.
 
 Two more things are done once per frame:
 
@@ -34,6 +35,7 @@ from torch import Tensor
 
 from visnerf.representation.decoders import Decoder, encode_position_into, encode_sh, padded_rows
 from visnerf.representation.field import VisNerfField
+from visnerf.representation.linear_relu import linear_relu
 from visnerf.representation.vm import VMGrid
 from visnerf.representation.vm_taps import TapLayout, VMTaps, lookup_modes, take_rows
 
@@ -153,9 +155,14 @@ class FrameField:
         dd, cd = field.density_decoder.out, field.color_decoder.out
         self._density_out = (dd.weight.detach().to(dtype), dd.bias.detach().to(dtype))
         self._color_out = (cd.weight.detach().to(dtype), cd.bias.detach().to(dtype))
-        self._density_weight_t = torch.cat(  # [3c + e, h]: modes, then positional encoding
-            [self.density_layer.spatial_weight_t, self.density_layer.rest_weight_t.to(dtype)], dim=0)
+        # First layers as ``[h, inputs]`` for ``linear_relu``: the three modes, then the
+        # positional encoding (density) or the view direction's harmonics (colour).
+        self._density_weight = torch.cat(
+            [self.density_layer.spatial_weight_t, self.density_layer.rest_weight_t.to(dtype)], dim=0).t().contiguous()
         self._density_bias = self.density_layer.bias.to(dtype)
+        self._color_weight = torch.cat(
+            [self.color_layer.spatial_weight_t, self.color_layer.rest_weight_t.to(dtype)], dim=0).t().contiguous()
+        self._color_bias = self.color_layer.bias.to(dtype)
 
     def lookup(self, points: Float[Tensor, "m 3"]) -> SampleTaps:
         """Grid coordinates and VM taps of ``points``, shared by density and colour."""
@@ -165,7 +172,7 @@ class FrameField:
     def density(self, points: Float[Tensor, "m 3"]) -> Float[Tensor, " m"]:
         return self.density_at(self.lookup(points))
 
-    def color(self, points: Float[Tensor, "m 3"], ray_terms: Float[Tensor, "m h"]) -> Float[Tensor, "m 3"]:
+    def color(self, points: Float[Tensor, "m 3"], ray_terms: Float[Tensor, "m e"]) -> Float[Tensor, "m 3"]:
         """RGB at ``points``; ``ray_terms`` is ``direction_terms`` of each sample's ray."""
         return self.color_at(self.lookup(points).taps, ray_terms)
 
@@ -180,20 +187,22 @@ class FrameField:
         cfg = self.field.cfg
         m = coords.shape[0]
         n_spatial = 3 * self.density_tables.n_components
-        x = torch.empty(padded_rows(m), self._density_weight_t.shape[0], dtype=self.dtype, device=coords.device)
+        x = torch.empty(padded_rows(m), self._density_weight.shape[1], dtype=self.dtype, device=coords.device)
         x[m:].zero_()
         self.density_tables.features_into(taps, x[:m])
         encode_position_into(coords, cfg.pos_encoding_freqs, x[:m, n_spatial:])
-        hidden = torch.addmm(self._density_bias, x, self._density_weight_t)  # [padded, h]
-        raw = F.linear(hidden.relu_(), *self._density_out)[:m, 0].to(coords.dtype)
+        hidden = linear_relu(x, self._density_weight, self._density_bias)  # [padded, h]
+        raw = F.linear(hidden, *self._density_out)[:m, 0].to(coords.dtype)
         return F.softplus(raw + cfg.density_shift)
 
-    def direction_terms(self, directions: Float[Tensor, "a 3"]) -> Float[Tensor, "a h"]:
-        """Per-ray part of the colour decoder's first layer (bias included), in the compute dtype."""
-        sh = encode_sh(directions, self.field.cfg.sh_degree)
-        return torch.addmm(self.color_layer.bias, sh, self.color_layer.rest_weight_t).to(self.dtype)
+    def direction_terms(self, directions: Float[Tensor, "a 3"]) -> Float[Tensor, "a e"]:
+        """The view direction's spherical harmonics per ray, in the compute dtype: encoded once
+        per ray, gathered per sample into the colour decoder's input (``e`` = 16 columns at
+        degree 3; gathering the per-ray product with the first layer instead moved 128 columns
+        per sample and cost more than the product it saved)."""
+        return encode_sh(directions, self.field.cfg.sh_degree).to(self.dtype)
 
-    def color_at(self, taps: VMTaps, ray_terms: Float[Tensor, "m h"]) -> Float[Tensor, "m 3"]:
+    def color_at(self, taps: VMTaps, ray_terms: Float[Tensor, "m e"]) -> Float[Tensor, "m 3"]:
         """RGB at samples with VM taps ``taps`` (``lookup(points).taps``); ``ray_terms`` is
         ``direction_terms`` of each sample's ray."""
         out = torch.empty(len(taps), 3, dtype=torch.float32, device=ray_terms.device)
@@ -202,13 +211,13 @@ class FrameField:
             out[sl] = self._color(taps.select(sl), ray_terms[sl])
         return out
 
-    def _color(self, taps: VMTaps, ray_terms: Float[Tensor, "m h"]) -> Float[Tensor, "m 3"]:
+    def _color(self, taps: VMTaps, ray_terms: Float[Tensor, "m e"]) -> Float[Tensor, "m 3"]:
         m = len(taps)
-        feats = torch.empty(padded_rows(m), 3 * self.appearance_tables.n_components, dtype=self.dtype,
-                            device=ray_terms.device)
-        feats[m:].zero_()
-        self.appearance_tables.features_into(taps, feats[:m])  # [m, 3c]
-        hidden = torch.mm(feats, self.color_layer.spatial_weight_t)  # [padded, h]
-        hidden[:m] += ray_terms
-        raw = F.linear(hidden.relu_(), *self._color_out)[:m]
+        n_spatial = 3 * self.appearance_tables.n_components
+        x = torch.empty(padded_rows(m), self._color_weight.shape[1], dtype=self.dtype, device=ray_terms.device)
+        x[m:].zero_()
+        self.appearance_tables.features_into(taps, x[:m])  # [m, 3c]
+        x[:m, n_spatial:] = ray_terms
+        hidden = linear_relu(x, self._color_weight, self._color_bias)  # [padded, h]
+        raw = F.linear(hidden, *self._color_out)[:m]
         return torch.sigmoid(raw.float())

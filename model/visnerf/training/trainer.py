@@ -11,7 +11,7 @@ import json
 import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -37,6 +37,7 @@ from visnerf.rendering.occupancy import (
     query_occupancy,
 )
 from visnerf.rendering.renderer import RenderSettings, empty_space_of, render_image, render_rays
+from visnerf.rendering.spacing import choose_full_spacing
 from visnerf.representation.field import VisNerfField
 from visnerf.runtime import bf16_native, release_free_memory
 from visnerf.training.regularizers import RegularizerWeights, regularization
@@ -116,6 +117,8 @@ class Trainer:
     ) -> None:
         self.scene, self.val_scene, self.cfg, self.device = train_scene, val_scene, cfg, device
         self.render_cfg = render_cfg or RenderConfig()
+        self.spacing_note: str | None = None
+        """How the full-quality spacing was chosen (None: not chosen, the configured one)."""
         torch.manual_seed(cfg.seed)
         self.generator = torch.Generator().manual_seed(cfg.seed)
         self.setup_seconds = 0.0
@@ -309,6 +312,12 @@ class Trainer:
                 self._record(mse_to_psnr(ema_mse), wall0, on_validate)
         bar.close()
         self.update_occupancy(shrink=False)  # final grid, for fast inference
+        if self.val_scene is not None and cfg.choose_full_spacing:
+            choice = choose_full_spacing(self.field, self.val_scene, self.render_cfg, cfg.validate_max_images)
+            self.render_cfg = replace(self.render_cfg, full_step_ratio=choice.ratio)
+            self.spacing_note = choice.describe()
+            if progress_bar:
+                tqdm.write(self.spacing_note)
         self._record(mse_to_psnr(ema_mse) if ema_mse else float("nan"), wall0, on_validate)
         return self.state.log
 
@@ -343,7 +352,7 @@ class Trainer:
                         "train_seconds": round(self.state.train_seconds, 1),
                         "val_psnr": last.get("val_psnr"), "val_ssim": last.get("val_ssim"),
                         "seed": self.cfg.seed, "upsamples_done": self.state.upsamples_done,
-                        "occupancy_done": self.state.occupancy_done},
+                        "occupancy_done": self.state.occupancy_done, "full_spacing": self.spacing_note},
         )
         save_checkpoint(self.field, meta, path)
         write_log(self.state.log, path.with_suffix(".log.csv"))

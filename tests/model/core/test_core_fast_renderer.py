@@ -110,3 +110,50 @@ def test_rays_grazing_the_box_match_the_exhaustive_march(shell_field) -> None:
     assert float((a - b).abs().max()) < 2e-3
     assert float((a[-1] - 1.0).abs().max()) > 0.05  # the ray through the centre meets the shell
     assert float((a[-3] - 1.0).abs().max()) > 0.05  # and the one through the sheet meets the sheet
+
+
+def _haze_density(points: torch.Tensor) -> torch.Tensor:
+    """The opaque shell wrapped in a faint haze out to radius 0.45 (optical depth 0.03 in front
+    of the shell): at a quarter-voxel step every haze sample weighs below 4.2e-3."""
+    r = points.norm(dim=-1)
+    return shell_density(points) + 0.2 * ((r > RADIUS) & (r < 0.45)).float()
+
+
+def test_unshaded_weight_takes_the_mean_colour_of_the_shaded_samples(shell_field, monkeypatch) -> None:
+    """Skipping colour below the threshold while giving the skipped weight the ray's mean colour
+    is exact for a colour that does not vary, on every ray that meets the shell; giving it black
+    (no gain) is off by the skipped weight, the haze in front of the shell."""
+    colour = torch.tensor([0.2, 0.6, 0.9])
+    monkeypatch.setattr(FrameField, "density_at", lambda self, samples: _haze_density(samples.points))
+    monkeypatch.setattr(FrameField, "color_at", lambda self, taps, ray_terms: colour.expand(len(taps), 3))
+    import visnerf.rendering.renderer as renderer
+
+    intr = Intrinsics.from_fov(24, 24, math.radians(35.0))
+    c2w = torch.from_numpy(orbit_c2w(20.0, 15.0, 2.0)).float()
+    params = torch.tensor([0.3])
+    exhaustive = RenderSettings(use_occupancy=False, early_termination=False, weight_threshold=0.0, step_ratio=0.25)
+    skipping = replace(exhaustive, weight_threshold=5e-3)
+    with torch.inference_mode():
+        a = render_image(shell_field, c2w, intr, params, exhaustive)
+        b = render_image(shell_field, c2w, intr, params, skipping)
+        monkeypatch.setattr(renderer, "_unshaded_gain", lambda opacity, shaded: torch.ones_like(opacity))
+        black = render_image(shell_field, c2w, intr, params, skipping)
+    opacity = (1.0 - a[..., 0]) / (1.0 - colour[0])  # background white
+    hits = opacity > 0.999
+    assert hits.float().mean() > 0.2
+    assert float((a - b)[hits].abs().max()) < 1e-5
+    assert float((a - black)[hits].abs().max()) > 0.01  # what the gain corrects
+    # Rays through the haze alone shade nothing and keep black for its weight, as before.
+    assert float((a - b).abs().max()) <= float((a - black).abs().max()) + 1e-6
+
+
+def test_unshaded_gain_is_guarded() -> None:
+    from visnerf.rendering.renderer import _unshaded_gain
+
+    opacity = torch.tensor([0.5, 0.5, 1e-5, 0.0, 0.9])
+    shaded = torch.tensor([0.5, 0.25, 0.0, 0.0, 1e-30])
+    gain = _unshaded_gain(opacity, shaded)
+    assert torch.isfinite(gain).all()
+    assert gain.tolist()[:4] == [1.0, 2.0, 1.0, 1.0]
+    # The scaled colour of a ray (mean colour times opacity) never exceeds its opacity.
+    assert float(1e-30 * gain[4]) <= 0.9 + 1e-6

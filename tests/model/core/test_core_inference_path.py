@@ -170,3 +170,45 @@ def test_qualities_derive_from_the_checkpoint_render_config() -> None:
     assert (preview.step_ratio, preview.resolution_scale) == (1.0, 0.5)
     with pytest.raises(ValueError, match="quality must be"):
         RenderSettings.from_config(cfg, (1.0, 1.0, 1.0), "fast")
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
+@pytest.mark.parametrize("rows", [1, 37, 1024])
+def test_linear_relu_equals_the_plain_product(dtype, rows, monkeypatch) -> None:
+    from visnerf.representation import linear_relu as lr
+
+    g = torch.Generator().manual_seed(rows)
+    x, w, b = (torch.randn(*s, generator=g).to(dtype) for s in ((rows, 63), (128, 63), (128,)))
+    expected = torch.relu(x.double() @ w.double().t() + b.double())
+    with torch.inference_mode():
+        got = lr.linear_relu(x, w, b)
+        monkeypatch.setattr(lr, "_fused_ok", False)  # the fallback where oneDNN's fused op is missing
+        plain = lr.linear_relu(x, w, b)
+    assert got.dtype == plain.dtype == dtype and got.shape == (rows, 128)
+    assert (got >= 0).all() and (plain >= 0).all()
+    tol = 1e-4 if dtype == torch.float32 else 0.1  # bf16 rounds the output to 8 bits (values up to ~30)
+    assert torch.allclose(got.double(), expected, atol=tol, rtol=1e-2 if dtype == torch.bfloat16 else 1e-5)
+    assert torch.allclose(plain.double(), expected, atol=tol, rtol=1e-2 if dtype == torch.bfloat16 else 1e-5)
+
+
+def test_linear_relu_keeps_gradients_on_the_plain_path() -> None:
+    from visnerf.representation.linear_relu import linear_relu
+
+    w = torch.randn(8, 5, requires_grad=True)
+    y = linear_relu(torch.randn(4, 5), w, torch.zeros(8))
+    y.sum().backward()
+    assert w.grad is not None and torch.isfinite(w.grad).all()
+
+
+@pytest.mark.parametrize("n_freqs", [0, 2, 4])
+def test_position_encoding_written_in_place_equals_the_reference(n_freqs) -> None:
+    from visnerf.representation.decoders import encode_position, encode_position_into, positional_encoding_dim
+
+    points = torch.rand(500, 3, generator=torch.Generator().manual_seed(3)) * 2 - 1
+    out = torch.empty(500, positional_encoding_dim(n_freqs))
+    encode_position_into(points, n_freqs, out)
+    # The cosines are sines a quarter turn on: one float32 rounding of angles up to 2^L pi.
+    assert torch.allclose(out, encode_position(points, n_freqs), atol=2e-6 * 2.0**n_freqs, rtol=0)
+    half = torch.empty(500, positional_encoding_dim(n_freqs), dtype=torch.bfloat16)
+    encode_position_into(points, n_freqs, half)
+    assert torch.allclose(half.float(), encode_position(points, n_freqs), atol=8e-3, rtol=0)

@@ -32,6 +32,10 @@ def test_tiny_scene_trains_and_generalises_to_unseen_views(tmp_path):
     assert log[-1]["val_psnr"] > MIN_HELD_OUT_PSNR, log
     assert (tmp_path / "plume.log.csv").exists()
     loaded = load_scene(ckpt)
+    # The full-quality spacing was chosen on the held-out frames (rendering.spacing).
+    assert "full_spacing" in loaded.meta.provenance and "exhaustive" in loaded.meta.provenance["full_spacing"]
+    assert trainer.render_cfg.full_step_ratio in (1.0, 0.75, 0.5)
+    assert loaded.meta.render.full_step_ratio == trainer.render_cfg.full_step_ratio
     names = [a.name for a in loaded.info.params]
     img = loaded.render(val.c2w[0].double().numpy(), val.intrinsics.fov_x_deg, 32, 32,
                         dict(zip(names, val.params[0].tolist(), strict=True)))

@@ -1,0 +1,117 @@
+"""Choosing the full-quality sample spacing (``rendering.spacing``) and ``visnerf calibrate``."""
+
+import math
+import subprocess
+import sys
+
+import pytest
+import torch
+
+from visnerf.checkpoint import read_checkpoint
+from visnerf.config import RenderConfig
+from visnerf.data.cameras import Intrinsics, orbit_c2w
+from visnerf.data.parsers.blender import load_dataset
+from visnerf.data.scene import SceneData
+from visnerf.rendering import spacing
+from visnerf.testing import make_tiny_checkpoint, make_tiny_field
+
+# Frame error per spacing of the stub renderer below: PSNR 40 dB at the exhaustive half voxel,
+# 40 - 20 log10(1.01) = 39.914 dB (0.086 dB lost) at 0.75, 26 dB at one voxel.
+ERRORS = {0.5: 0.01, 0.75: 0.0101, 1.0: 0.05}
+
+
+def _scene(n: int = 3) -> SceneData:
+    field, axes = make_tiny_field([("a", [0.0, 1.0])])
+    c2w = torch.stack([torch.from_numpy(orbit_c2w(30.0 * i, 10.0, 2.0)).float() for i in range(n)])
+    return SceneData(
+        images=torch.full((n, 6, 6, 3), 128, dtype=torch.uint8), c2w=c2w,
+        intrinsics=Intrinsics.from_fov(6, 6, math.radians(40.0)), params=torch.zeros(n, 1),
+        param_axes=axes, view_ids=torch.arange(n),
+    )
+
+
+@pytest.fixture()
+def stub_render(monkeypatch):
+    """Frames that are the ground truth (128/255) plus a known error per spacing."""
+    calls = []
+
+    def render_image(field, c2w, intrinsics, params, settings, empty_space=None):
+        calls.append(settings)
+        return torch.full((intrinsics.height, intrinsics.width, 3), 128 / 255 + ERRORS[settings.step_ratio])
+
+    monkeypatch.setattr(spacing, "render_image", render_image)
+    return calls
+
+
+@pytest.mark.parametrize(("tolerance", "expected"), [(0.1, 0.75), (0.08, 0.5), (20.0, 1.0)])
+def test_the_coarsest_spacing_within_the_tolerance_is_chosen(stub_render, tolerance, expected) -> None:
+    field, _ = make_tiny_field([("a", [0.0, 1.0])])
+    choice = spacing.choose_full_spacing(field, _scene(), RenderConfig(step_ratio=0.5), tolerance_db=tolerance)
+    assert choice.ratio == expected
+    assert choice.exhaustive_psnr == pytest.approx(40.0, abs=1e-3)
+    assert choice.candidate_psnr[1.0] == pytest.approx(20 * math.log10(1 / 0.05), abs=1e-3)
+    if expected != 1.0:
+        assert choice.candidate_psnr[0.75] == pytest.approx(40.0 - 20 * math.log10(1.01), abs=1e-3)
+    # The exhaustive reference is really exhaustive; the candidates are full-quality frames.
+    assert stub_render[0].use_occupancy is False and stub_render[0].weight_threshold == 0.0
+    assert all(s.use_occupancy and s.early_termination for s in stub_render[3:])
+    assert field.training  # left in the mode it was found in
+
+
+def test_spacing_rejects_what_it_cannot_measure(stub_render) -> None:
+    field, _ = make_tiny_field([("a", [0.0, 1.0])])
+    with pytest.raises(ValueError, match="tolerance_db"):
+        spacing.choose_full_spacing(field, _scene(), RenderConfig(), tolerance_db=float("nan"))
+    with pytest.raises(ValueError, match="max_frames"):
+        spacing.choose_full_spacing(field, _scene(), RenderConfig(), max_frames=0)
+
+
+@pytest.fixture(scope="module")
+def plume(tmp_path_factory):
+    data = tmp_path_factory.mktemp("calib") / "plume"
+    subprocess.run([sys.executable, "-m", "visnerf.cli", "make-scene", "plume_time", "--out", str(data),
+                    "--res", "24", "--test-views", "2", "--quiet"], check=True)
+    return data
+
+
+def _calibrate(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "visnerf.cli", "calibrate", *args], capture_output=True, text=True)
+
+
+def test_calibrate_writes_the_spacing_and_nothing_else(plume, tmp_path) -> None:
+    axes = load_dataset(plume).param_axes
+    ckpt = make_tiny_checkpoint(tmp_path / "tiny.safetensors", [(a.name, list(a.values)) for a in axes])
+    before_meta, before = read_checkpoint(ckpt)
+    dry = _calibrate(str(ckpt), str(plume), "--holdout-views", "1,3", "--frames", "2", "--dry-run")
+    assert dry.returncode == 0, dry.stderr
+    assert "full-quality spacing" in dry.stdout and "wrote" not in dry.stdout
+    run = _calibrate(str(ckpt), str(plume), "--holdout-views", "1,3", "--frames", "2", "--device", "cpu")
+    assert run.returncode == 0, run.stderr
+    meta, after = read_checkpoint(ckpt)
+    chosen = float(run.stdout.split("wrote full_step_ratio ")[1].split()[0])
+    assert meta.render.full_step_ratio == chosen and chosen in (1.0, 0.75, 0.5)
+    assert "full_spacing" in meta.provenance
+    assert meta.render == RenderConfig(**{**before_meta.render.__dict__, "full_step_ratio": chosen})
+    assert after.keys() == before.keys() and all(torch.equal(after[k], before[k]) for k in before)
+
+
+@pytest.mark.parametrize(("extra", "message"), [
+    ((), "no transforms_val.json"),
+    (("--holdout-views", "999"), "matches no frame"),
+    (("--holdout-views", "1", "--tolerance", "-1"), "tolerance_db"),
+])
+def test_calibrate_errors_change_nothing(plume, tmp_path, extra, message) -> None:
+    axes = load_dataset(plume).param_axes
+    ckpt = make_tiny_checkpoint(tmp_path / "tiny.safetensors", [(a.name, list(a.values)) for a in axes])
+    blob = ckpt.read_bytes()
+    run = _calibrate(str(ckpt), str(plume), *extra)
+    assert run.returncode == 2 and message in run.stderr, run.stderr
+    assert ckpt.read_bytes() == blob
+
+
+def test_calibrate_rejects_frames_of_other_parameters(plume, tmp_path) -> None:
+    ckpt = make_tiny_checkpoint(tmp_path / "tiny.safetensors", [("isovalue", [0.0, 1.0])])
+    blob = ckpt.read_bytes()
+    run = _calibrate(str(ckpt), str(plume), "--holdout-views", "1")
+    assert run.returncode == 2 and "not the checkpoint's" in run.stderr, run.stderr
+    assert ckpt.read_bytes() == blob
