@@ -7,8 +7,10 @@ with the camera and parameters of those frames, are rendered at each size with t
 
 - plain: quality ``exhaustive``: the training sample spacing (half a voxel), no occupancy grid, no
   early ray termination, every sample's colour decoded and float32 decoders: the exhaustive renderer;
-- fast: the checkpoint's full settings (``RenderSettings.from_meta``), as the server renders (one
-  voxel spacing, empty-space skipping, early termination, bf16 lookups and decoders where the CPU has bf16 instructions);
+- fast: the checkpoint's full settings (``RenderSettings.from_meta``), as the server renders (the
+  checkpoint's full-quality spacing, chosen on held-out frames by ``rendering.spacing``; empty-space
+  skipping, early termination, colour decoded only above a weight threshold, bf16 lookups and
+  decoders where the CPU has bf16 instructions);
 - preview: quality ``preview`` (half resolution, larger steps), bilinearly upsampled to the size.
 
 Per view the three run back to back (fast, plain, preview, then the next view), so machine noise
@@ -51,17 +53,25 @@ from bench_common import (
     write_json,
 )
 from matplotlib.figure import Figure
+from matplotlib.ticker import NullFormatter
 
 from visnerf.data.cameras import Intrinsics
 from visnerf.evaluation.metrics import mse_to_psnr, psnr
 from visnerf.inference import SceneRenderer, load_scene
+from visnerf.rendering.empty_space import EmptySpace
 from visnerf.rendering.renderer import RenderSettings, render_image_scaled
+from visnerf.rendering.setting_occupancy import build_setting_grid
 from visnerf.runtime import configure
 
-MODES = ("fast", "fast_intraop", "plain", "preview")
-"""Render order within each view. ``fast_intraop`` is ``fast`` with the frame's chunks marched one
-after another, the torch threads sharing each operation (``threaded_chunks=False``): the same frame,
-timed to show what marching chunks on one thread per core pays."""
+MODES = ("fast", "fast_own", "fast_intraop", "plain", "preview")
+"""Render order within each view. ``fast`` marches the checkpoint's occupancy grid, the union over
+its parameter space: a frame at a setting seen for the first time (a slider being dragged).
+``fast_own`` is the same frame marching the grid of the view's own setting
+(``rendering.setting_occupancy``, built beforehand and timed apart): what the server serves from
+the second frame at one setting on (orbiting). ``fast_intraop`` is ``fast`` with the frame's
+chunks marched one after another, the torch threads sharing each operation
+(``threaded_chunks=False``): the same frame, timed to show what marching chunks on one thread per
+core pays."""
 TARGET_FULL_256_MS = 500.0
 TARGET_PREVIEW_128_MS = 80.0
 TARGET_PSNR_DROP_DB = 0.1
@@ -134,6 +144,8 @@ class CaseResult:
     """(width, height) of the ground truth."""
     settings: dict[str, dict] = dataclasses.field(default_factory=dict)
     results: tuple[ModeResult, ...] = ()
+    own_grid_build_ms: tuple[float, ...] = ()
+    """Build time of each view's own occupancy grid (what ``SettingOccupancy`` builds)."""
 
     def result(self, mode: str, size: int) -> ModeResult | None:
         return next((r for r in self.results if r.mode == mode and r.size == size), None)
@@ -155,7 +167,8 @@ def default_cases() -> tuple[Case, ...]:
 def render_settings(scene: SceneRenderer) -> dict[str, RenderSettings]:
     full = RenderSettings.from_meta(scene.meta, "full")
     plain = RenderSettings.from_meta(scene.meta, "exhaustive")
-    return {"fast": full, "fast_intraop": dataclasses.replace(full, threaded_chunks=False), "plain": plain,
+    return {"fast": full, "fast_own": full, "fast_intraop": dataclasses.replace(full, threaded_chunks=False),
+            "plain": plain,
             "preview": RenderSettings.from_meta(scene.meta, "preview")}
 
 
@@ -179,28 +192,52 @@ def load_views(scene: SceneRenderer, folder: Path, count: int) -> Views:
 
 def render_frame(
     scene: SceneRenderer, c2w: torch.Tensor, intrinsics: Intrinsics, params: torch.Tensor,
-    settings: RenderSettings, size: int,
+    settings: RenderSettings, size: int, empty_space: EmptySpace | None = None,
 ) -> tuple[np.ndarray, float]:
-    """One ``size`` x ``size`` frame (float [0, 1]) and the seconds it took."""
+    """One ``size`` x ``size`` frame (float [0, 1]) and the seconds it took; ``empty_space``
+    replaces the checkpoint's union grid."""
     cam = intrinsics.scaled(size, size)
     t0 = time.perf_counter()
     with torch.inference_mode():
-        rgb = render_image_scaled(scene.field, c2w.to(scene.device), cam, params.to(scene.device), settings)
+        rgb = render_image_scaled(scene.field, c2w.to(scene.device), cam, params.to(scene.device), settings,
+                                  empty_space)
     seconds = time.perf_counter() - t0
     return rgb.clamp(0, 1).cpu().numpy().astype(np.float32), seconds
 
 
+def own_grids(
+    scene: SceneRenderer, views: Views, settings: RenderSettings
+) -> tuple[list[EmptySpace | None], list[float]]:
+    """Each view's own occupancy grid (None where the checkpoint has no grid) and ms to build it."""
+    if scene.field.occupancy is None:
+        return [None] * views.c2w.shape[0], []
+    grids, ms = [], []
+    step = scene.field.voxel_size() * settings.step_ratio
+    cfg = scene.setting_occupancy.cfg
+    for v in range(views.c2w.shape[0]):
+        t0 = time.perf_counter()
+        with torch.inference_mode():
+            grid = build_setting_grid(scene.field, views.params[v].to(scene.device), step, cfg.threshold,
+                                      cfg.samples_per_axis)
+            grids.append(EmptySpace.of(grid, scene.field.aabb))
+        ms.append(1000.0 * (time.perf_counter() - t0))
+    return grids, ms
+
+
 def time_size(
-    scene: SceneRenderer, views: Views, settings: dict[str, RenderSettings], size: int
+    scene: SceneRenderer, views: Views, settings: dict[str, RenderSettings], size: int,
+    own: list[EmptySpace | None],
 ) -> tuple[dict[str, list[float]], dict[str, list[np.ndarray]]]:
-    """ms and frames of every mode at ``size``, interleaved per view."""
+    """ms and frames of every mode at ``size``, interleaved per view (``own``: each view's grid)."""
     for mode in MODES:  # warm-up: allocator and caches, not timed
-        render_frame(scene, views.c2w[0], views.intrinsics, views.params[0], settings[mode], size)
+        render_frame(scene, views.c2w[0], views.intrinsics, views.params[0], settings[mode], size,
+                     own[0] if mode == "fast_own" else None)
     ms: dict[str, list[float]] = {m: [] for m in MODES}
     frames: dict[str, list[np.ndarray]] = {m: [] for m in MODES}
     for v in range(views.c2w.shape[0]):
         for mode in MODES:
-            img, seconds = render_frame(scene, views.c2w[v], views.intrinsics, views.params[v], settings[mode], size)
+            img, seconds = render_frame(scene, views.c2w[v], views.intrinsics, views.params[v], settings[mode], size,
+                                        own[v] if mode == "fast_own" else None)
             ms[mode].append(1000.0 * seconds)
             frames[mode].append(img)
     return ms, frames
@@ -232,9 +269,10 @@ def measure_case(case: Case, opts: Options) -> CaseResult:
     native = (views.intrinsics.width, views.intrinsics.height)
     truth_all = [im.numpy().astype(np.float32) / 255.0 for im in views.images]
     results: list[ModeResult] = []
+    own, build_ms = own_grids(scene, views, settings["fast"])
     for size in opts.sizes:
         t0 = time.perf_counter()
-        ms, frames = time_size(scene, views, settings, size)
+        ms, frames = time_size(scene, views, settings, size, own)
         truth = truth_all if (size, size) == native else None
         results += [summarize(m, size, settings[m], ms[m], frames[m], frames["plain"], truth) for m in MODES]
         line = ", ".join(f"{m} {np.median(ms[m]):.1f} ms" for m in MODES)
@@ -244,6 +282,7 @@ def measure_case(case: Case, opts: Options) -> CaseResult:
         name=case.name, checkpoint=str(case.checkpoint), data=str(case.data), split=views.split,
         frame_indices=views.frame_indices, native_size=native,
         settings={m: dataclasses.asdict(s) for m, s in settings.items()}, results=tuple(results),
+        own_grid_build_ms=tuple(round(t, 1) for t in build_ms),
     )
 
 
@@ -280,17 +319,19 @@ def psnr_delta(case: CaseResult, size: int) -> float | None:
 
 def table_rows(case: CaseResult, sizes: tuple[int, ...]) -> list[str]:
     if case.skipped:
-        return [f"| {case.name} | skipped: {case.skipped} |" + " |" * 11]
+        return [f"| {case.name} | skipped: {case.skipped} |" + " |" * 12]
     rows = []
     for size in sizes:
         plain, fast, prev = (case.result(m, size) for m in ("plain", "fast", "preview"))
         if plain is None or fast is None or prev is None:
             continue
-        intra = case.result("fast_intraop", size)
+        intra, own = case.result("fast_intraop", size), case.result("fast_own", size)
         gt = " / ".join(fmt(r.psnr_vs_gt, 2) for r in (plain, fast, prev))
         rows.append(
             f"| {case.name} | {size}x{size} | {fmt(plain.ms_median)} / {fmt(plain.ms_p95)} | "
             f"{fmt(fast.ms_median)} / {fmt(fast.ms_p95)} | {fmt(ratio(plain, fast), 2)} | "
+            f"{fmt(own.ms_median if own else None)} / {fmt(own.ms_p95 if own else None)} "
+            f"({fmt(ratio(fast, own), 2)}x) | "
             f"{fmt(intra.ms_median if intra else None)} ({fmt(ratio(intra, fast), 2)}x) | "
             f"{fmt(prev.ms_median)} / {fmt(prev.ms_p95)} ({prev.render_size}px) | {fmt(ratio(plain, prev), 2)} | "
             f"{fmt(fast.psnr_vs_plain, 2)} | {fmt(fast.max_abs_diff_vs_plain, 4)} | {fmt(prev.psnr_vs_plain, 2)} | "
@@ -303,7 +344,7 @@ def target_rows(case: CaseResult) -> list[str]:
     """Each target against what was measured (only where the measurement exists)."""
     if case.skipped:
         return []
-    fast256, prev128 = case.result("fast", 256), case.result("preview", 128)
+    fast256, prev128, own256 = case.result("fast", 256), case.result("preview", 128), case.result("fast_own", 256)
     native = case.native_size[0] if case.native_size and case.native_size[0] == case.native_size[1] else None
     delta = psnr_delta(case, native) if native else None
 
@@ -315,6 +356,7 @@ def target_rows(case: CaseResult) -> list[str]:
     delta_ok = None if delta is None else delta >= -TARGET_PSNR_DROP_DB
     return [
         f"| {case.name} | {fmt(fast256.ms_median if fast256 else None)} ms: {verdict(full_ok)} | "
+        f"{fmt(own256.ms_median if own256 else None)} ms | "
         f"{fmt(delta, 3)} dB at {native or '-'}px: {verdict(delta_ok)} | "
         f"{fmt(fast256.psnr_vs_plain if fast256 else None, 2)} dB | "
         f"{fmt(prev128.ms_median if prev128 else None)} ms: {verdict(prev_ok)} |"
@@ -326,31 +368,40 @@ def write_markdown(path: Path, record: dict, cases: list[CaseResult], sizes: tup
         *markdown_header("Render speed: plain exhaustive renderer against the fast one", record),
         "",
         f"{record['views']} held-out views per checkpoint (camera and parameters of those frames), rendered at each "
-        "size by each setting, interleaved per view (fast, plain, preview), one untimed warm-up render per setting "
+        "size by each setting, interleaved per view (fast, own grid, chunks in turn, plain, preview), one untimed warm-up render per setting "
         "and size first. ms per frame: median / p95 of the render call (the preview's upsampling included). "
         "\"Chunks in turn\": the fast setting with the frame's chunks of rays marched one after another, the torch "
         "threads sharing each operation, instead of one chunk per thread (the same frame). "
+        "\"Own grid\": the fast setting marching the occupancy grid of the view's own parameter setting instead of "
+        "the union over the parameter space, as the server does from the second frame at one setting on "
+        "(fast / own grid in brackets; the grids' build is timed apart, below the table). "
         "Ratios are plain median / other median. PSNR against plain pools the squared error of all views "
         "(\"identical\": no difference at all); max |diff| is the largest channel difference in [0, 1]. PSNR against "
         "ground truth is the mean over views and is given only at the dataset's native image size (the frames "
         "are not resampled for it); delta = fast minus plain, against ground truth.",
         "",
-        "| checkpoint | size | plain ms | fast ms | plain/fast | fast, chunks in turn ms (/fast) | preview ms "
+        "| checkpoint | size | plain ms | fast ms | plain/fast | fast, own grid ms | fast, chunks in turn ms (/fast) "
+        "| preview ms "
         "| plain/preview | fast vs plain dB | fast max abs diff | preview vs plain dB "
         "| vs ground truth dB: plain / fast / preview | delta dB |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for case in cases:
         lines += table_rows(case, sizes)
+    builds = [c for c in cases if c.own_grid_build_ms]
+    if builds:
+        lines += ["", "Own grids, ms to build one (median / p95 over the views): " + "; ".join(
+            f"{c.name} {fmt(float(np.median(c.own_grid_build_ms)))} / "
+            f"{fmt(float(np.percentile(c.own_grid_build_ms, 95)))}" for c in builds) + "."]
     lines += [
         "",
         f"Targets: full quality 256x256 median at most {TARGET_FULL_256_MS:.0f} ms, within "
         f"{TARGET_PSNR_DROP_DB} dB of the plain renderer (against ground truth, at the native size), "
         f"preview 128x128 median at most {TARGET_PREVIEW_128_MS:.0f} ms.",
         "",
-        "| checkpoint | fast 256x256 median | fast minus plain vs ground truth | fast vs plain at 256x256 "
-        "| preview 128x128 median |",
-        "| --- | --- | --- | --- | --- |",
+        "| checkpoint | fast 256x256 median | with the setting's own grid | fast minus plain vs ground truth "
+        "| fast vs plain at 256x256 | preview 128x128 median |",
+        "| --- | --- | --- | --- | --- | --- |",
     ]
     for case in cases:
         lines += target_rows(case)
@@ -368,9 +419,9 @@ def write_markdown(path: Path, record: dict, cases: list[CaseResult], sizes: tup
 
 def plot(path: Path, cases: list[CaseResult]) -> None:
     """PSNR against median ms per frame: against ground truth (native size) and against plain."""
-    fig = Figure(figsize=(10, 4.2), layout="constrained")
+    fig = Figure(figsize=(12, 4.6), layout="constrained")
     ax_gt, ax_plain = fig.subplots(1, 2)
-    markers = {"plain": "s", "fast": "o", "fast_intraop": "x", "preview": "^"}
+    markers = {"plain": "s", "fast": "o", "fast_own": "D", "fast_intraop": "x", "preview": "^"}
     colours = [f"C{i}" for i in range(10)]
     measured = [c for c in cases if not c.skipped]
     for i, case in enumerate(measured):
@@ -390,11 +441,14 @@ def plot(path: Path, cases: list[CaseResult]) -> None:
         ax.axvline(TARGET_PREVIEW_128_MS, color="gray", ls=":", lw=0.8, label="preview 128px target")
         ax.axvline(TARGET_FULL_256_MS, color="gray", ls="--", lw=0.8, label="full 256px target")
         ax.set_xscale("log")
+        ax.xaxis.set_minor_formatter(NullFormatter())
         ax.set_xlabel("ms per frame (median)")
         ax.set_ylabel("PSNR (dB)")
         ax.set_title(title, fontsize="medium")
         ax.grid(alpha=0.3)
-        ax.legend(fontsize="x-small", loc="best")
+    ax_gt.legend(fontsize="x-small", loc="best")
+    handles, labels = ax_plain.get_legend_handles_labels()
+    ax_plain.legend(handles, labels, fontsize="x-small", loc="center left", bbox_to_anchor=(1.02, 0.5), ncol=1)
     save_figure(fig, path)
 
 
