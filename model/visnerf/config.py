@@ -75,7 +75,8 @@ class RenderConfig:
     """How rays are marched at inference and in training."""
 
     step_ratio: float = 0.5
-    """Sample spacing as a fraction of the grid's voxel size (training, and the exhaustive reference)."""
+    """Sample spacing of training as a fraction of the grid's voxel size; the exhaustive reference
+    samples at the finer of this and half a voxel (``renderer.exhaustive_step_ratio``)."""
     full_step_ratio: float = 0.75
     """Sample spacing of full-quality inference frames (stored with each checkpoint), chosen per
     checkpoint from measured frames at the end of training or by ``visnerf calibrate``

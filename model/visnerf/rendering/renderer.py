@@ -34,6 +34,16 @@ if TYPE_CHECKING:
     from visnerf.checkpoint import CheckpointMeta
 
 
+EXHAUSTIVE_STEP_RATIO = 0.5
+"""Sample spacing of the exhaustive reference, in voxels, at most: the paper's training spacing."""
+
+
+def exhaustive_step_ratio(cfg: RenderConfig) -> float:
+    """The exhaustive reference's spacing: the finer of the training spacing and half a voxel, so
+    that a model trained with coarser samples is still judged against finely sampled frames."""
+    return min(cfg.step_ratio, EXHAUSTIVE_STEP_RATIO)
+
+
 @dataclass(frozen=True)
 class RenderSettings:
     """Settings of one render call (derived from the checkpoint's RenderConfig and a quality)."""
@@ -67,7 +77,7 @@ class RenderSettings:
         cls, cfg: RenderConfig, background: tuple[float, float, float], quality: str = "full"
     ) -> "RenderSettings":
         """``full``: as the server renders; ``preview``: smaller and coarser; ``exhaustive``: the
-        plain reference (training spacing, every sample, float32)."""
+        plain reference (``exhaustive_step_ratio``, every sample, float32)."""
         if quality not in ("full", "preview", "exhaustive"):
             raise ValueError(f"quality must be 'full', 'preview' or 'exhaustive', got {quality!r}")
         settings = cls(
@@ -79,8 +89,8 @@ class RenderSettings:
             bf16=cfg.bf16,
         )
         if quality == "exhaustive":
-            settings = replace(settings, step_ratio=cfg.step_ratio, use_occupancy=False, early_termination=False,
-                               weight_threshold=0.0, bf16=False)
+            settings = replace(settings, step_ratio=exhaustive_step_ratio(cfg), use_occupancy=False,
+                               early_termination=False, weight_threshold=0.0, bf16=False)
         elif quality == "preview":
             settings = replace(
                 settings,

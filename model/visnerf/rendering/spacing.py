@@ -1,15 +1,15 @@
 """Choosing a checkpoint's full-quality sample spacing from measured frames.
 
 Full-quality frames march with ``RenderConfig.full_step_ratio`` voxels between samples; training
-and the exhaustive reference use ``step_ratio`` (half a voxel). How coarse a spacing a model
-tolerates depends on the model: on the bundled scenes one voxel is as good as half a voxel
-against ground truth, on a Nyx model with sharp filaments one voxel lost 0.3 dB and three quarters
-0.07 dB. Each voxel of spacing saved is frame time saved (one voxel takes about 0.75 of the time
-of three quarters), so the spacing is chosen per checkpoint: render held-out frames exhaustively
-and at each candidate, and keep the coarsest candidate whose mean PSNR against the ground truth is
-within ``tolerance_db`` (default 0.1 dB, the fast renderer's accuracy target) of the exhaustive
-frames'. Training does it on its validation frames at
-the end (``Trainer.run``); ``visnerf calibrate`` does it for an existing checkpoint.
+uses ``step_ratio`` and the exhaustive reference the finer of that and half a voxel. How coarse a
+spacing a model tolerates depends on the model: on the bundled scenes one voxel is as good as
+half a voxel against ground truth, on a Nyx model with sharp filaments one voxel lost 0.3 dB and
+three quarters 0.07 dB. Each voxel of spacing saved is frame time saved (one voxel takes about
+0.75 of the time of three quarters), so the spacing is chosen per checkpoint: render held-out
+frames exhaustively and at each candidate, and keep the coarsest candidate whose mean PSNR
+against the ground truth is within ``tolerance_db`` (default 0.1 dB, the fast renderer's accuracy
+target) of the exhaustive frames'. Training does it on its validation frames at the end
+(``Trainer.run``); ``visnerf calibrate`` does it for an existing checkpoint.
 """
 
 from dataclasses import dataclass, replace
@@ -20,11 +20,11 @@ import torch
 from visnerf.config import RenderConfig
 from visnerf.data.scene import SceneData
 from visnerf.evaluation.metrics import psnr
-from visnerf.rendering.renderer import RenderSettings, render_image
+from visnerf.rendering.renderer import RenderSettings, exhaustive_step_ratio, render_image
 from visnerf.representation.field import VisNerfField
 
 CANDIDATES = (1.0, 0.75)
-"""Spacings tried, coarsest first, in voxels; the training spacing is the fallback."""
+"""Spacings tried, coarsest first, in voxels; the exhaustive spacing is the fallback."""
 
 
 @dataclass(frozen=True)
@@ -54,7 +54,7 @@ def choose_full_spacing(
 ) -> SpacingChoice:
     """The coarsest of ``candidates`` whose frames of ``scene`` (up to ``max_frames``, evenly
     chosen) lose at most ``tolerance_db`` mean PSNR against the exhaustive frames, both against
-    the ground truth; ``render_cfg.step_ratio`` when none does. Renders with the full-quality
+    the ground truth; the exhaustive spacing (``exhaustive_step_ratio``) when none does. Renders with the full-quality
     settings of ``render_cfg`` otherwise (occupancy, early termination, colour threshold)."""
     if scene.n_frames == 0:
         raise ValueError("no frames to choose the full-quality spacing on")
@@ -81,8 +81,8 @@ def choose_full_spacing(
         exhaustive = mean_psnr(RenderSettings.from_config(render_cfg, scene.background, "exhaustive"))
         full = RenderSettings.from_config(render_cfg, scene.background, "full")
         tried: dict[float, float] = {}
-        chosen = render_cfg.step_ratio
-        for ratio in sorted((c for c in candidates if c > render_cfg.step_ratio), reverse=True):
+        chosen = exhaustive_step_ratio(render_cfg)
+        for ratio in sorted((c for c in candidates if c > chosen), reverse=True):
             tried[ratio] = mean_psnr(replace(full, step_ratio=ratio))
             if tried[ratio] >= exhaustive - tolerance_db:
                 chosen = ratio

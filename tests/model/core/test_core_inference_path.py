@@ -171,6 +171,10 @@ def test_qualities_derive_from_the_checkpoint_render_config() -> None:
     assert (preview.step_ratio, preview.resolution_scale) == (1.0, 0.5)
     with pytest.raises(ValueError, match="quality must be"):
         RenderSettings.from_config(cfg, (1.0, 1.0, 1.0), "fast")
+    # A model trained with coarser samples is still judged against frames sampled half a voxel apart.
+    coarse = RenderConfig(step_ratio=1.0)
+    assert RenderSettings.from_config(coarse, (1.0, 1.0, 1.0), "exhaustive").step_ratio == 0.5
+    assert RenderSettings.from_config(RenderConfig(step_ratio=0.25), (1.0, 1.0, 1.0), "exhaustive").step_ratio == 0.25
 
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
