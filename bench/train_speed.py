@@ -85,6 +85,8 @@ class RunResult:
     samples_per_iteration: float | None
     """Valid ray samples evaluated per iteration (mean), as the trainer's step reports them."""
     curve: tuple[dict, ...]
+    full_step_ratio: float | None = None
+    """Full-quality spacing the run chose at its end (the last validation renders at it)."""
     """Logged rows: train_seconds, iteration, val_psnr, val_ssim, ..."""
 
 
@@ -123,12 +125,14 @@ def variants(opts: Options) -> tuple[tuple[str, TrainConfig], ...]:
     return ("plain", dataclasses.replace(base, carve=False, mixed_precision=False)), ("accelerated", base)
 
 
-def train_once(name: str, cfg: TrainConfig, train: SceneData, val: SceneData) -> RunResult:
+def train_once(
+    name: str, cfg: TrainConfig, train: SceneData, val: SceneData, render_cfg: RenderConfig | None = None
+) -> RunResult:
     device = torch.device("cpu")
     print(f"{name}: {cfg.time_budget_s:.0f} s budget, carve={cfg.carve}, mixed_precision={cfg.mixed_precision}",
           flush=True)
     t0 = time.perf_counter()
-    trainer = CountingTrainer(train, val, cfg, device, render_cfg=RenderConfig())
+    trainer = CountingTrainer(train, val, cfg, device, render_cfg=render_cfg or RenderConfig())
     trainer.run(progress_bar=False, on_validate=lambda row: print(f"  {name}: {row}", flush=True))
     wall = time.perf_counter() - t0
     state = trainer.state
@@ -138,6 +142,7 @@ def train_once(name: str, cfg: TrainConfig, train: SceneData, val: SceneData) ->
         iterations=state.iteration, train_seconds=state.train_seconds, setup_seconds=trainer.setup_seconds,
         wall_seconds=wall, iterations_per_second=state.iteration / max(state.train_seconds, 1e-9),
         samples_per_iteration=samples, curve=tuple(dict(row) for row in state.log),
+        full_step_ratio=trainer.render_cfg.full_step_ratio,
     )
     del trainer
     gc.collect()
