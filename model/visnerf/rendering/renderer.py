@@ -94,7 +94,7 @@ class RenderSettings:
         elif quality == "preview":
             settings = replace(
                 settings,
-                step_ratio=cfg.step_ratio * cfg.preview_step_factor,
+                step_ratio=exhaustive_step_ratio(cfg) * cfg.preview_step_factor,
                 resolution_scale=cfg.preview_scale,
             )
         return settings

@@ -174,6 +174,7 @@ def test_qualities_derive_from_the_checkpoint_render_config() -> None:
     # A model trained with coarser samples is still judged against frames sampled half a voxel apart.
     coarse = RenderConfig(step_ratio=1.0)
     assert RenderSettings.from_config(coarse, (1.0, 1.0, 1.0), "exhaustive").step_ratio == 0.5
+    assert RenderSettings.from_config(coarse, (1.0, 1.0, 1.0), "preview").step_ratio == 1.0
     assert RenderSettings.from_config(RenderConfig(step_ratio=0.25), (1.0, 1.0, 1.0), "exhaustive").step_ratio == 0.25
 
 

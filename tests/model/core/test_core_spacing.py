@@ -58,6 +58,13 @@ def test_the_coarsest_spacing_within_the_tolerance_is_chosen(stub_render, tolera
     assert field.training  # left in the mode it was found in
 
 
+def test_a_model_trained_one_voxel_apart_is_judged_against_half_a_voxel(stub_render) -> None:
+    field, _ = make_tiny_field([("a", [0.0, 1.0])])
+    choice = spacing.choose_full_spacing(field, _scene(), RenderConfig(step_ratio=1.0), tolerance_db=0.1)
+    assert stub_render[0].step_ratio == 0.5
+    assert choice.ratio == 0.75 and choice.exhaustive_psnr == pytest.approx(40.0, abs=1e-3)
+
+
 def test_spacing_rejects_what_it_cannot_measure(stub_render) -> None:
     field, _ = make_tiny_field([("a", [0.0, 1.0])])
     with pytest.raises(ValueError, match="tolerance_db"):
