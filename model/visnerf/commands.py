@@ -274,9 +274,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="the views held out in training (frames of transforms_train.json)")
     c.add_argument("--holdout-params", type=parse_settings, default=(), metavar="A,B;C,D",
                    help="the parameter settings held out in training")
-    c.add_argument("--frames", type=int, default=8, help="frames to measure on (evenly chosen, default 8)")
-    c.add_argument("--tolerance", type=float, default=0.1, metavar="DB",
-                   help="PSNR the full-quality frames may lose against exhaustive ones (default 0.1)")
+    c.add_argument("--frames", type=int, default=16, help="frames to measure on (evenly chosen, default 16)")
+    c.add_argument("--tolerance", type=float, default=0.05, metavar="DB",
+                   help="PSNR the full-quality frames may lose against exhaustive ones (default 0.05)")
     c.add_argument("--dry-run", action="store_true", help="measure and print, leave the checkpoint alone")
     c.add_argument("--device", default="auto")
     c.set_defaults(func=_calibrate)

@@ -43,11 +43,15 @@ def stub_render(monkeypatch):
     return calls
 
 
-@pytest.mark.parametrize(("tolerance", "expected"), [(0.1, 0.75), (0.08, 0.5), (20.0, 1.0)])
-def test_the_coarsest_spacing_within_the_tolerance_is_chosen(stub_render, tolerance, expected) -> None:
+@pytest.mark.parametrize(("tolerance", "agreement", "expected"),
+                         [(0.1, 38.0, 0.75), (0.08, 38.0, 0.5), (20.0, 38.0, 0.75), (20.0, 0.0, 1.0)])
+def test_the_coarsest_spacing_within_the_tolerance_is_chosen(stub_render, tolerance, agreement, expected) -> None:
+    """One voxel is 28 dB from the exhaustive frames (0.05 against 0.01 off), three quarters 80 dB."""
     field, _ = make_tiny_field([("a", [0.0, 1.0])])
-    choice = spacing.choose_full_spacing(field, _scene(), RenderConfig(step_ratio=0.5), tolerance_db=tolerance)
+    choice = spacing.choose_full_spacing(field, _scene(), RenderConfig(step_ratio=0.5), tolerance_db=tolerance,
+                                         min_agreement_db=agreement)
     assert choice.ratio == expected
+    assert choice.agreement_db[1.0] == pytest.approx(20 * math.log10(1 / 0.04), abs=1e-2)
     assert choice.exhaustive_psnr == pytest.approx(40.0, abs=1e-3)
     assert choice.candidate_psnr[1.0] == pytest.approx(20 * math.log10(1 / 0.05), abs=1e-3)
     if expected != 1.0:
