@@ -46,30 +46,28 @@ SUB_CHUNK = 16384
 
 @dataclass(frozen=True)
 class FoldedLayer:
-    """First decoder layer with the parameter features folded in, transposed for ``x @ w``."""
+    """First decoder layer with the parameter features folded in, as ``linear_relu`` takes it."""
 
-    spatial_weight_t: Float[Tensor, "f h"]
-    """Columns of the three VM modes, scaled by the parameter features (compute dtype)."""
-    rest_weight_t: Float[Tensor, "e h"]
-    """Columns of the trailing encoding (positional or spherical harmonics), float32."""
+    weight: Float[Tensor, "h i"]
+    """Columns of the three VM modes, scaled by the parameter features, then those of the trailing
+    encoding (positional or spherical harmonics); compute dtype."""
     bias: Float[Tensor, " h"]
-    """Layer bias plus the product of the ``q`` columns with ``q``, float32."""
+    """Layer bias plus the product of the ``q`` columns with ``q`` (summed in float32); compute dtype."""
 
 
 def fold_first_layer(decoder: Decoder, q: Float[Tensor, " c"], n_components: int, dtype: torch.dtype) -> FoldedLayer:
     """Fold parameter features ``q`` into ``decoder.hidden``.
 
     The layer's input is ``[spatial * q_rep, q, rest]`` with ``spatial`` the three VM modes of
-    ``n_components`` channels each, concatenated.
+    ``n_components`` channels each, concatenated; the folded layer's input is ``[spatial, rest]``.
     """
     w, b = decoder.hidden.weight.detach(), decoder.hidden.bias.detach()  # [h, n_in], [h]
     c = q.shape[0]
     n_spatial = 3 * n_components
     scaled = w[:, :n_spatial] * q.repeat(n_spatial // c)[None]  # [h, f]
     return FoldedLayer(
-        spatial_weight_t=scaled.t().contiguous().to(dtype),
-        rest_weight_t=w[:, n_spatial + c:].t().contiguous(),
-        bias=b + w[:, n_spatial:n_spatial + c] @ q,
+        weight=torch.cat([scaled, w[:, n_spatial + c:]], dim=1).to(dtype).contiguous(),
+        bias=(b + w[:, n_spatial:n_spatial + c] @ q).to(dtype),
     )
 
 
@@ -155,14 +153,6 @@ class FrameField:
         dd, cd = field.density_decoder.out, field.color_decoder.out
         self._density_out = (dd.weight.detach().to(dtype), dd.bias.detach().to(dtype))
         self._color_out = (cd.weight.detach().to(dtype), cd.bias.detach().to(dtype))
-        # First layers as ``[h, inputs]`` for ``linear_relu``: the three modes, then the
-        # positional encoding (density) or the view direction's harmonics (colour).
-        self._density_weight = torch.cat(
-            [self.density_layer.spatial_weight_t, self.density_layer.rest_weight_t.to(dtype)], dim=0).t().contiguous()
-        self._density_bias = self.density_layer.bias.to(dtype)
-        self._color_weight = torch.cat(
-            [self.color_layer.spatial_weight_t, self.color_layer.rest_weight_t.to(dtype)], dim=0).t().contiguous()
-        self._color_bias = self.color_layer.bias.to(dtype)
 
     def lookup(self, points: Float[Tensor, "m 3"]) -> SampleTaps:
         """Grid coordinates and VM taps of ``points``, shared by density and colour."""
@@ -187,11 +177,11 @@ class FrameField:
         cfg = self.field.cfg
         m = coords.shape[0]
         n_spatial = 3 * self.density_tables.n_components
-        x = torch.empty(padded_rows(m), self._density_weight.shape[1], dtype=self.dtype, device=coords.device)
+        x = torch.empty(padded_rows(m), self.density_layer.weight.shape[1], dtype=self.dtype, device=coords.device)
         x[m:].zero_()
         self.density_tables.features_into(taps, x[:m])
         encode_position_into(coords, cfg.pos_encoding_freqs, x[:m, n_spatial:])
-        hidden = linear_relu(x, self._density_weight, self._density_bias)  # [padded, h]
+        hidden = linear_relu(x, self.density_layer.weight, self.density_layer.bias)  # [padded, h]
         raw = F.linear(hidden, *self._density_out)[:m, 0].to(coords.dtype)
         return F.softplus(raw + cfg.density_shift)
 
@@ -214,10 +204,10 @@ class FrameField:
     def _color(self, taps: VMTaps, ray_terms: Float[Tensor, "m e"]) -> Float[Tensor, "m 3"]:
         m = len(taps)
         n_spatial = 3 * self.appearance_tables.n_components
-        x = torch.empty(padded_rows(m), self._color_weight.shape[1], dtype=self.dtype, device=ray_terms.device)
+        x = torch.empty(padded_rows(m), self.color_layer.weight.shape[1], dtype=self.dtype, device=ray_terms.device)
         x[m:].zero_()
         self.appearance_tables.features_into(taps, x[:m])  # [m, 3c]
         x[:m, n_spatial:] = ray_terms
-        hidden = linear_relu(x, self._color_weight, self._color_bias)  # [padded, h]
+        hidden = linear_relu(x, self.color_layer.weight, self.color_layer.bias)  # [padded, h]
         raw = F.linear(hidden, *self._color_out)[:m]
         return torch.sigmoid(raw.float())
