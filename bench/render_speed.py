@@ -60,7 +60,6 @@ from visnerf.evaluation.metrics import mse_to_psnr, psnr
 from visnerf.inference import SceneRenderer, load_scene
 from visnerf.rendering.empty_space import EmptySpace
 from visnerf.rendering.renderer import RenderSettings, render_image_scaled
-from visnerf.rendering.setting_occupancy import build_setting_grid
 from visnerf.runtime import configure
 
 MODES = ("fast", "fast_own", "fast_intraop", "plain", "preview")
@@ -213,13 +212,9 @@ def own_grids(
         return [None] * views.c2w.shape[0], []
     grids, ms = [], []
     step = scene.field.voxel_size() * settings.step_ratio
-    cfg = scene.setting_occupancy.cfg
     for v in range(views.c2w.shape[0]):
         t0 = time.perf_counter()
-        with torch.inference_mode():
-            grid = build_setting_grid(scene.field, views.params[v].to(scene.device), step, cfg.threshold,
-                                      cfg.samples_per_axis)
-            grids.append(EmptySpace.of(grid, scene.field.aabb))
+        grids.append(scene.setting_occupancy.build(views.params[v].to(scene.device), step))
         ms.append(1000.0 * (time.perf_counter() - t0))
     return grids, ms
 

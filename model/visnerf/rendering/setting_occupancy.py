@@ -86,7 +86,8 @@ class SettingOccupancy:
     def __len__(self) -> int:
         return len(self._grids)
 
-    def _build(self, params: Tensor, step: float) -> EmptySpace:
+    def build(self, params: Tensor, step: float) -> EmptySpace:
+        """The empty space of ``params`` as the cache builds it, not stored (benchmarks time it)."""
         with torch.inference_mode():
             grid = build_setting_grid(self.field, params, step, self.cfg.threshold, self.cfg.samples_per_axis)
             return EmptySpace.of(grid, self.field.aabb)
@@ -137,11 +138,11 @@ class SettingOccupancy:
                 self._asked.popitem(last=False)
             return None
         if not self.cfg.background:
-            return self._store(key, self._build(params, step))
+            return self._store(key, self.build(params, step))
         if self._pending is None:  # one build at a time; a busy worker leaves this tuple for later
             if self._pool is None:
                 self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="occupancy")
-            self._pending = (key, self._pool.submit(self._build, params.detach().clone(), step))
+            self._pending = (key, self._pool.submit(self.build, params.detach().clone(), step))
         else:
             self._asked[key] = asked
         return None
