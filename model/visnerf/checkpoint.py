@@ -39,6 +39,12 @@ class ParamAxis:
     values: tuple[float, ...]
     default: float
 
+    def contains(self, value: float) -> bool:
+        """Whether ``value`` lies in [min, max], allowing the rounding of a float32 at this
+        magnitude (0.12 read back from float32 is 0.1199999973: the end of the range, not outside)."""
+        tol = 1e-6 * max(abs(self.min), abs(self.max), self.max - self.min, 1e-30)
+        return self.min - tol <= value <= self.max + tol
+
     def normalize(self, value: float) -> float:
         """Map [min, max] to [-1, 1]."""
         span = self.max - self.min

@@ -175,9 +175,7 @@ def frames_in_checkpoint_axes(scene: "SceneData", axes: tuple) -> "SceneData":
         raise ValueError(f"the frames' parameters {sorted(columns)} are not the checkpoint's {[a.name for a in axes]}")
     params = scene.params[:, [columns[a.name] for a in axes]] if axes else scene.params[:, :0]
     for k, a in enumerate(axes):
-        tol = 1e-6 * max(abs(a.min), abs(a.max), a.max - a.min, 1e-30)
-        outside = (params[:, k] < a.min - tol) | (params[:, k] > a.max + tol)
-        if bool(outside.any()):
+        if not all(a.contains(float(v)) for v in params[:, k]):
             raise ValueError(f"parameter {a.name!r} of the frames leaves the checkpoint's range [{a.min}, {a.max}]")
     return dataclasses.replace(scene, params=params, param_axes=tuple(axes))
 

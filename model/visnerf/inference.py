@@ -106,14 +106,11 @@ class SceneRenderer:
         if unknown:
             raise ValueError(f"unknown parameter(s) {unknown}; this scene has {sorted(known)}")
         values = []
-        for axis in self.info.params:
+        for axis in self.meta.param_axes:
             value = float(params.get(axis.name, axis.default))
             if not math.isfinite(value):
                 raise ValueError(f"parameter {axis.name!r} must be finite, got {value}")
-            # A value read back from float32 (0.12 -> 0.1199999973) is the end of the range, not
-            # outside it: allow the rounding of a float32 at this magnitude.
-            tol = 1e-6 * max(abs(axis.min), abs(axis.max), axis.max - axis.min, 1e-30)
-            if value < axis.min - tol or value > axis.max + tol:
+            if not axis.contains(value):
                 raise ValueError(
                     f"parameter {axis.name!r}={value} is outside its range [{axis.min}, {axis.max}]"
                 )
