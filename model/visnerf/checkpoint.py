@@ -17,7 +17,7 @@ import torch
 from safetensors.torch import load as load_safetensors_bytes
 from safetensors.torch import save as save_safetensors_bytes
 
-from visnerf.config import FieldConfig, RenderConfig
+from visnerf.config import FACTOR_STORAGE_DTYPES, FieldConfig, RenderConfig
 from visnerf.representation.field import VisNerfField
 
 FORMAT_VERSION = 1
@@ -121,11 +121,27 @@ class CheckpointMeta:
         return meta
 
 
+FACTOR_PREFIXES = ("density_grid.", "appearance_grid.")
+"""State-dict prefixes of the VM planes and lines, stored in ``FieldConfig.factor_storage``."""
+
+
+def stored_dtype(name: str, dtype: torch.dtype, cfg: FieldConfig) -> torch.dtype:
+    """The dtype tensor ``name`` (of ``dtype`` in the field) has in a checkpoint file."""
+    if name.startswith(FACTOR_PREFIXES):
+        return FACTOR_STORAGE_DTYPES[cfg.factor_storage]
+    return torch.uint8 if name == "occupancy" else dtype
+
+
 def field_tensors(model: VisNerfField) -> dict[str, torch.Tensor]:
-    """The tensors stored for a field (occupancy as uint8)."""
-    tensors = {k: v.detach().cpu().contiguous() for k, v in model.state_dict().items()}
-    if "occupancy" in tensors:
-        tensors["occupancy"] = tensors["occupancy"].to(torch.uint8)
+    """The tensors stored for a field: factors in the configured storage dtype, occupancy as
+    uint8. A factor that does not fit the storage dtype is an error, not a silent infinity."""
+    tensors = {}
+    for name, value in model.state_dict().items():
+        stored = value.detach().cpu().to(stored_dtype(name, value.dtype, model.cfg)).contiguous()
+        if stored.is_floating_point() and not bool(torch.isfinite(stored).all()):
+            raise CheckpointError(f"tensor {name!r} has values that {stored.dtype} cannot hold "
+                                  f"(largest magnitude {float(value.abs().max()):.3g})")
+        tensors[name] = stored
     return tensors
 
 
@@ -168,7 +184,7 @@ def expected_shapes(meta: CheckpointMeta) -> dict[str, tuple[tuple[int, ...], to
     """Tensor names, shapes and dtypes that a checkpoint with this configuration must hold."""
     with torch.device("meta"):
         model = VisNerfField(meta.field, torch.zeros(2, 3))
-    shapes = {k: (tuple(v.shape), v.dtype) for k, v in model.state_dict().items()}
+    shapes = {k: (tuple(v.shape), stored_dtype(k, v.dtype, meta.field)) for k, v in model.state_dict().items()}
     if meta.occupancy_resolution is not None:
         shapes["occupancy"] = (tuple(meta.occupancy_resolution), torch.uint8)
     return shapes
@@ -216,6 +232,6 @@ def load_checkpoint(path: str | Path, device: torch.device) -> tuple[VisNerfFiel
     meta, tensors = read_checkpoint(path)
     model = VisNerfField(meta.field, tensors["aabb"])
     occupancy = tensors.pop("occupancy", None)
-    model.load_state_dict(tensors, strict=True)
+    model.load_state_dict(tensors, strict=True)  # copies into the field's float32 tensors
     model.set_occupancy(None if occupancy is None else occupancy.bool())
     return model.to(device).eval(), meta

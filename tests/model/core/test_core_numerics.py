@@ -133,6 +133,51 @@ def test_checkpoint_round_trip_is_exact(tmp_path):
     assert meta2 == meta
 
 
+def _save_with_storage(field, path, storage):
+    import dataclasses
+
+    from visnerf.checkpoint import save_checkpoint
+
+    meta = read_checkpoint(make_tiny_checkpoint(path.with_suffix(".base.safetensors")))[0]
+    field.cfg = dataclasses.replace(field.cfg, factor_storage=storage)
+    return save_checkpoint(field, dataclasses.replace(meta, field=field.cfg), path)
+
+
+def test_half_precision_factors_round_trip_and_halve_the_file(tmp_path):
+    """Factors stored as float16 load back as exactly the float16-rounded values of the field
+    (in float32, the field's dtype); everything else is stored unchanged."""
+    from visnerf.testing import make_tiny_field
+
+    field, _ = make_tiny_field([("a", [0.0, 1.0])], resolution=16)
+    full = _save_with_storage(field, tmp_path / "f32.safetensors", "float32")
+    half = _save_with_storage(field, tmp_path / "f16.safetensors", "float16")
+    loaded, meta = load_checkpoint(half, torch.device("cpu"))
+    assert meta.field.factor_storage == "float16"
+    for name, value in field.state_dict().items():
+        got = loaded.state_dict()[name]
+        assert got.dtype == value.dtype
+        if name.startswith(("density_grid.", "appearance_grid.")):
+            assert torch.equal(got, value.half().float())
+            assert not torch.equal(got, value)  # the rounding is real
+        else:
+            assert torch.equal(got, value)
+    factor_bytes = sum(v.numel() * 2 for k, v in field.state_dict().items() if "_grid." in k)
+    saved = full.stat().st_size - half.stat().st_size
+    assert abs(saved - factor_bytes) <= 64  # the header's offsets are shorter too
+
+
+def test_factors_outside_half_precision_are_refused(tmp_path):
+    from visnerf.testing import make_tiny_field
+
+    field, _ = make_tiny_field([("a", [0.0, 1.0])])
+    with torch.no_grad():
+        field.appearance_grid.planes[1][0, 0, 0] = 1e5  # beyond float16's 65504
+    target = tmp_path / "big.safetensors"
+    with pytest.raises(CheckpointError, match="appearance_grid.planes.1.*cannot hold"):
+        _save_with_storage(field, target, "float16")
+    assert not target.exists()
+
+
 def _tamper(path, tmp_path, edit):
     from safetensors.torch import load_file, safe_open, save_file
 
@@ -152,6 +197,11 @@ def _tamper(path, tmp_path, edit):
         (lambda t, m: t.__setitem__("extra", torch.zeros(1)), "unexpected"),
         (lambda t, m: t.__setitem__("density_decoder.out.bias", torch.zeros(2)), "shape"),
         (lambda t, m: t["density_decoder.out.bias"].fill_(float("nan")), "non-finite"),
+        (lambda t, m: t.__setitem__("density_grid.planes.0", t["density_grid.planes.0"].half()), "dtype"),
+        (lambda t, m: m.__setitem__("visnerf", m["visnerf"].replace('"factor_storage": "float32"',
+                                                                    '"factor_storage": "float16"')), "dtype"),
+        (lambda t, m: m.__setitem__("visnerf", m["visnerf"].replace('"factor_storage": "float32"',
+                                                                    '"factor_storage": "int8"')), "factor_storage"),
         (lambda t, m: m.__setitem__("visnerf", m["visnerf"].replace('"format_version": 1', '"format_version": 9')), "version"),
     ],
 )
