@@ -92,9 +92,8 @@ class ModeTables:
     def of(cls, grid: VMGrid, dtype: torch.dtype = torch.float32) -> "ModeTables":
         """Tables of ``grid`` in ``dtype``: in bfloat16 the lookups read half the bytes and their
         products are written in the decoders' compute type without a conversion."""
-        with torch.no_grad():
-            planes, lines = grid.row_tables()
-        return cls(planes.to(dtype).contiguous(), lines.to(dtype).contiguous(), grid.tap_layout(), grid.n_components)
+        planes, lines = (t.detach().to(dtype).contiguous() for t in grid.row_tables())
+        return cls(planes, lines, grid.tap_layout(), grid.n_components)
 
     def taps(self, coords: Float[Tensor, "m 3"]) -> VMTaps:
         return self.layout.taps(coords, self.plane_table.dtype)

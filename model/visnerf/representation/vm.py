@@ -42,31 +42,63 @@ def sample_plane(
 
 
 class VMGrid(nn.Module):
-    """Planes and lines of one VM grid; ``sample(coords) -> [n, 3 * n_components]``."""
+    """Planes and lines of one VM grid; ``sample(coords) -> [n, 3 * n_components]``.
+
+    The factors are held as the two row tables that ``sample`` reads (``plane_table`` and
+    ``line_table``, the layout of ``TapLayout``), so neither training nor inference copies them
+    per lookup, and the lookups' gradients land in the parameters as they are. ``planes`` and
+    ``lines`` are views of the tables in the ``[c, h, w]`` and ``[c, r]`` layout of a TensoRF
+    grid, which is also how they are stored in a state dict (and a checkpoint).
+    """
 
     def __init__(self, n_components: int, resolution: tuple[int, int, int], init_scale: float) -> None:
         super().__init__()
         self.n_components = n_components
         planes, lines = [], []
         for (a, b), c in MODES:
-            planes.append(nn.Parameter(init_scale * torch.randn(n_components, resolution[b], resolution[a])))
-            lines.append(nn.Parameter(init_scale * torch.randn(n_components, resolution[c])))
-        self.planes = nn.ParameterList(planes)
-        self.lines = nn.ParameterList(lines)
+            planes.append(init_scale * torch.randn(n_components, resolution[b], resolution[a]))
+            lines.append(init_scale * torch.randn(n_components, resolution[c]))
+        self._set_factors(planes, lines)
+        self.register_state_dict_post_hook(_factors_to_state_dict)
+        self.register_load_state_dict_pre_hook(_factors_from_state_dict)
+
+    def _set_factors(self, planes: list[Tensor], lines: list[Tensor]) -> None:
+        """Replace the factors by ``planes`` ([c, h, w] each, in ``MODES`` order) and ``lines``
+        ([c, r] each): new parameters, so an optimizer must be rebuilt."""
+        self._plane_shapes = tuple((p.shape[1], p.shape[2]) for p in planes)
+        self._line_lengths = tuple(line.shape[1] for line in lines)
+        self.plane_table = nn.Parameter(torch.cat([p.permute(1, 2, 0).reshape(-1, p.shape[0]) for p in planes]))
+        self.line_table = nn.Parameter(torch.cat([line.t() for line in lines]).contiguous())
+
+    @property
+    def planes(self) -> list[Float[Tensor, "c h w"]]:
+        """The three planes as views of ``plane_table`` (writing into them writes the table)."""
+        out, start = [], 0
+        for h, w in self._plane_shapes:
+            out.append(self.plane_table[start : start + h * w].view(h, w, -1).permute(2, 0, 1))
+            start += h * w
+        return out
+
+    @property
+    def lines(self) -> list[Float[Tensor, "c r"]]:
+        """The three lines as views of ``line_table``."""
+        out, start = [], 0
+        for r in self._line_lengths:
+            out.append(self.line_table[start : start + r].t())
+            start += r
+        return out
 
     @property
     def resolution(self) -> tuple[int, int, int]:
         res = [0, 0, 0]
-        for ((a, b), c), plane, line in zip(MODES, self.planes, self.lines, strict=True):
-            res[a], res[b], res[c] = plane.shape[2], plane.shape[1], line.shape[1]
+        for ((a, b), c), (h, w), r in zip(MODES, self._plane_shapes, self._line_lengths, strict=True):
+            res[a], res[b], res[c] = w, h, r
         return (res[0], res[1], res[2])
 
     def row_tables(self) -> tuple[Float[Tensor, "p c"], Float[Tensor, "l c"]]:
         """The three planes stacked as rows ``[sum h * w, c]`` and the three lines as ``[sum r, c]``
-        (the layout of ``TapLayout``); differentiable copies of the factors."""
-        planes = torch.cat([p.permute(1, 2, 0).reshape(-1, p.shape[0]) for p in self.planes])
-        lines = torch.cat([line.t() for line in self.lines])
-        return planes, lines
+        (the layout of ``TapLayout``): the parameters themselves."""
+        return self.plane_table, self.line_table
 
     def tap_layout(self) -> TapLayout:
         """Tap layout of the current resolution (cached; resampling changes it)."""
@@ -96,18 +128,19 @@ class VMGrid(nn.Module):
         return torch.cat(feats, dim=-1)
 
     def l1(self) -> Tensor:
-        """Mean absolute value of planes and lines (sparsity prior)."""
+        """Mean absolute value of planes and lines (sparsity prior), each factor weighted alike."""
         total = sum(p.abs().mean() for p in self.planes) + sum(line.abs().mean() for line in self.lines)
-        return total / (2 * len(self.planes))
+        return total / (2 * len(MODES))
 
     def total_variation(self) -> Tensor:
         """Mean squared difference of neighbouring entries of planes and lines."""
-        total = torch.zeros((), device=self.planes[0].device)
+        total = torch.zeros((), device=self.plane_table.device)
         for plane, line in zip(self.planes, self.lines, strict=True):
-            total = total + (plane[:, 1:, :] - plane[:, :-1, :]).pow(2).mean()
-            total = total + (plane[:, :, 1:] - plane[:, :, :-1]).pow(2).mean()
+            rows = plane.permute(1, 2, 0)  # [h, w, c], contiguous: the table's own layout
+            total = total + (rows[1:] - rows[:-1]).pow(2).mean()
+            total = total + (rows[:, 1:] - rows[:, :-1]).pow(2).mean()
             total = total + (line[:, 1:] - line[:, :-1]).pow(2).mean()
-        return total / len(self.planes)
+        return total / len(MODES)
 
     @torch.no_grad()
     def resample(
@@ -121,14 +154,37 @@ class VMGrid(nn.Module):
         Upsampling (same box, more nodes) and box shrinking (a sub-box) are both resampling. The
         parameters are replaced, so the optimizer must be rebuilt afterwards.
         """
-        device = self.planes[0].device
+        device = self.plane_table.device
         lower = torch.full((3,), -1.0, device=device) if lower is None else lower
         upper = torch.full((3,), 1.0, device=device) if upper is None else upper
         axes = [torch.linspace(float(lower[i]), float(upper[i]), resolution[i], device=device) for i in range(3)]
-        for i, ((a, b), c) in enumerate(MODES):
+        planes, lines = [], []
+        for ((a, b), c), plane, line in zip(MODES, self.planes, self.lines, strict=True):
             gy, gx = torch.meshgrid(axes[b], axes[a], indexing="ij")
             pts = torch.stack([gx.reshape(-1), gy.reshape(-1)], dim=-1)  # [hb * wa, 2]
-            new_plane = sample_plane(self.planes[i].data, pts).t().reshape(-1, resolution[b], resolution[a])
-            new_line = interpolate_lines(self.lines[i].data, axes[c]).t()
-            self.planes[i] = nn.Parameter(new_plane.contiguous())
-            self.lines[i] = nn.Parameter(new_line.contiguous())
+            planes.append(sample_plane(plane.detach(), pts).t().reshape(-1, resolution[b], resolution[a]))
+            lines.append(interpolate_lines(line.detach(), axes[c]).t())
+        self._set_factors(planes, lines)
+
+
+def _factors_to_state_dict(module: VMGrid, state: dict, prefix: str, _meta: object) -> None:
+    """State-dict hook: the tables leave as ``planes.i`` ``[c, h, w]`` and ``lines.i`` ``[c, r]``."""
+    del state[prefix + "plane_table"], state[prefix + "line_table"]
+    for i, (plane, line) in enumerate(zip(module.planes, module.lines, strict=True)):
+        state[f"{prefix}planes.{i}"] = plane.detach().contiguous()
+        state[f"{prefix}lines.{i}"] = line.detach().contiguous()
+
+
+def _factors_from_state_dict(module: VMGrid, state: dict, prefix: str, *_: object) -> None:
+    """Load pre-hook: ``planes.i`` and ``lines.i``, of the module's shapes, become the tables."""
+    names = [f"{prefix}{kind}.{i}" for kind in ("planes", "lines") for i in range(len(MODES))]
+    if not all(n in state for n in names):
+        return  # load_state_dict reports the missing table entries
+    planes = [state.pop(f"{prefix}planes.{i}") for i in range(len(MODES))]
+    lines = [state.pop(f"{prefix}lines.{i}") for i in range(len(MODES))]
+    for name, given, own in zip(names, planes + lines, module.planes + module.lines, strict=True):
+        if given.shape != own.shape:
+            raise RuntimeError(f"size mismatch for {name}: copying a param with shape {list(given.shape)}, "
+                               f"the module has {list(own.shape)}")
+    state[prefix + "plane_table"] = torch.cat([p.permute(1, 2, 0).reshape(-1, p.shape[0]) for p in planes])
+    state[prefix + "line_table"] = torch.cat([line.t() for line in lines])
