@@ -166,6 +166,22 @@ def test_half_precision_factors_round_trip_and_halve_the_file(tmp_path):
     assert abs(saved - factor_bytes) <= 64  # the header's offsets are shorter too
 
 
+def test_checkpoints_from_before_factor_storage_read_as_float32(tmp_path):
+    from visnerf.testing import make_tiny_field
+
+    field, _ = make_tiny_field([("a", [0.0, 1.0])])
+    path = _save_with_storage(field, tmp_path / "old.safetensors", "float32")
+    old = _tamper(path, tmp_path, lambda t, m: m.__setitem__("visnerf", m["visnerf"].replace(
+        ', "factor_storage": "float32"', "")))
+    from safetensors.torch import safe_open
+
+    with safe_open(str(old), "pt") as fh:
+        assert "factor_storage" not in fh.metadata()["visnerf"]
+    meta, tensors = read_checkpoint(old)
+    assert meta.field.factor_storage == "float32"
+    assert tensors["density_grid.planes.0"].dtype == torch.float32
+
+
 def test_factors_outside_half_precision_are_refused(tmp_path):
     from visnerf.testing import make_tiny_field
 
@@ -176,6 +192,13 @@ def test_factors_outside_half_precision_are_refused(tmp_path):
     with pytest.raises(CheckpointError, match="appearance_grid.planes.1.*cannot hold"):
         _save_with_storage(field, target, "float16")
     assert not target.exists()
+
+
+def _swap_factor_storage(meta_json: str) -> str:
+    """The metadata claiming the other factor dtype than the file holds."""
+    f16, f32 = '"factor_storage": "float16"', '"factor_storage": "float32"'
+    assert (f16 in meta_json) != (f32 in meta_json)
+    return meta_json.replace(f16, f32) if f16 in meta_json else meta_json.replace(f32, f16)
 
 
 def _tamper(path, tmp_path, edit):
@@ -197,11 +220,10 @@ def _tamper(path, tmp_path, edit):
         (lambda t, m: t.__setitem__("extra", torch.zeros(1)), "unexpected"),
         (lambda t, m: t.__setitem__("density_decoder.out.bias", torch.zeros(2)), "shape"),
         (lambda t, m: t["density_decoder.out.bias"].fill_(float("nan")), "non-finite"),
-        (lambda t, m: t.__setitem__("density_grid.planes.0", t["density_grid.planes.0"].half()), "dtype"),
-        (lambda t, m: m.__setitem__("visnerf", m["visnerf"].replace('"factor_storage": "float32"',
-                                                                    '"factor_storage": "float16"')), "dtype"),
-        (lambda t, m: m.__setitem__("visnerf", m["visnerf"].replace('"factor_storage": "float32"',
-                                                                    '"factor_storage": "int8"')), "factor_storage"),
+        (lambda t, m: t.__setitem__("density_grid.planes.0", t["density_grid.planes.0"].double()), "dtype"),
+        (lambda t, m: m.__setitem__("visnerf", _swap_factor_storage(m["visnerf"])), "dtype"),
+        (lambda t, m: m.__setitem__("visnerf", m["visnerf"].replace('"factor_storage": "float', '"factor_storage": "int')),
+         "factor_storage"),
         (lambda t, m: m.__setitem__("visnerf", m["visnerf"].replace('"format_version": 1', '"format_version": 9')), "version"),
     ],
 )
