@@ -33,8 +33,9 @@ voxel apart was 0.31 dB above the exhaustive frames on its 24 validation frames 
 exhaustive ones; at three quarters of a voxel 40 dB, and 0.005 dB above on those 20. The bundled
 scenes' one-voxel frames are 52 to 54 dB from theirs."""
 
-CANDIDATES = (1.0, 0.75)
-"""Spacings tried, coarsest first, in voxels; the exhaustive spacing is the fallback."""
+CANDIDATES = (1.5, 1.25, 1.0, 0.75)
+"""Spacings tried, coarsest first, in voxels; the exhaustive spacing is the fallback. Those above
+one voxel are for models trained with samples more than a voxel apart (``RenderConfig.step_ratio``)."""
 
 
 @dataclass(frozen=True)
