@@ -50,6 +50,28 @@ def parse_views(text: str) -> tuple[int, ...]:
         raise argparse.ArgumentTypeError(f"cannot read view indices {text!r}: use '0,7,21'") from None
 
 
+def positive_float(text: str) -> float:
+    """A finite number above zero."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not (math.isfinite(value) and value > 0):
+        raise argparse.ArgumentTypeError(f"expected a finite number above 0, got {text!r}")
+    return value
+
+
+def unit_fraction(text: str) -> float:
+    """A number in [0, 1]."""
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not 0.0 <= value <= 1.0:
+        raise argparse.ArgumentTypeError(f"expected a fraction in [0, 1], got {text!r}")
+    return value
+
+
 def parse_bbox(text: str) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
     """``"-0.2,-0.2,-0.2,0.2,0.2,0.2"`` -> ((x0, y0, z0), (x1, y1, z1)), finite with x1 > x0 etc."""
     try:
@@ -96,8 +118,9 @@ def _train(args: argparse.Namespace) -> int:
     cfg = TrainConfig(
         iterations=args.iterations, time_budget_s=args.time_budget * 60 if args.time_budget else None,
         batch_rays=args.batch_rays, seed=args.seed, resolution_final=args.resolution,
-        validate_every_s=args.validate_every,
+        validate_every_s=args.validate_every, carve_min_seen_fraction=args.carve_min_seen_fraction,
     )
+    render_cfg = RenderConfig()
     init_field, start = None, None
     if args.resume:
         from visnerf.checkpoint import load_checkpoint
@@ -109,12 +132,15 @@ def _train(args: argparse.Namespace) -> int:
             print(f"error: {exc}", file=sys.stderr)
             return 2
         prov = meta.provenance
+        render_cfg = meta.render  # the resumed model's sample spacing, unless --step-ratio says otherwise
         start = TrainState(iteration=int(prov.get("iterations", 0)), train_seconds=float(prov.get("train_seconds", 0.0)),
                            upsamples_done=int(prov.get("upsamples_done", 0)),
                            occupancy_done=int(prov.get("occupancy_done", 0)))
     print(f"training on {train.n_frames} frames ({val.n_frames if val else 0} held out), "
           f"K={train.n_params}, {train.intrinsics.width}x{train.intrinsics.height}, device {device}", file=sys.stderr)
-    trainer = Trainer(train, val, cfg, device, render_cfg=RenderConfig(), init_field=init_field, start=start)
+    if args.step_ratio is not None:
+        render_cfg = dataclasses.replace(render_cfg, step_ratio=args.step_ratio)
+    trainer = Trainer(train, val, cfg, device, render_cfg=render_cfg, init_field=init_field, start=start)
 
     def report(row: dict) -> None:
         print("  " + json.dumps(row), file=sys.stderr)
@@ -236,6 +262,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--batch-rays", type=int, default=4096)
     p.add_argument("--resolution", type=int, default=TrainConfig.resolution_final,
                    help="final voxels per axis (cube root of the grid size)")
+    p.add_argument("--step-ratio", type=positive_float, default=None, metavar="VOXELS",
+                   help=f"training sample spacing in voxels (default {RenderConfig.step_ratio:g}; "
+                        "with --resume, the checkpoint's)")
+    p.add_argument("--carve-min-seen-fraction", type=unit_fraction, default=TrainConfig.carve_min_seen_fraction,
+                   metavar="F", help="fraction of a setting's views that must see a cell for the image carving "
+                                     f"to keep it (default {TrainConfig.carve_min_seen_fraction:g}: any view; "
+                                     "0.75 when every view sees all of the content)")
     p.add_argument("--holdout-views", type=parse_views, default=(), metavar="I,J,..",
                    help="view indices held out for validation at every parameter setting")
     p.add_argument("--holdout-params", type=parse_settings, default=(), metavar="A,B;C,D",

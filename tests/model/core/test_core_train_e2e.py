@@ -10,6 +10,7 @@ from visnerf.config import HoldoutConfig, TrainConfig
 from visnerf.data.holdout import split_holdout
 from visnerf.data.parsers.blender import load_dataset
 from visnerf.inference import load_scene
+from visnerf.rendering.spacing import CANDIDATES
 from visnerf.training.trainer import Trainer
 
 # The run prints its final log row (held-out PSNR) with `pytest -s`; the bound is a floor, not the typical value.
@@ -34,7 +35,7 @@ def test_tiny_scene_trains_and_generalises_to_unseen_views(tmp_path):
     loaded = load_scene(ckpt)
     # The full-quality spacing was chosen on the held-out frames (rendering.spacing).
     assert "full_spacing" in loaded.meta.provenance and "exhaustive" in loaded.meta.provenance["full_spacing"]
-    assert trainer.render_cfg.full_step_ratio in (1.0, 0.75, 0.5)
+    assert trainer.render_cfg.full_step_ratio in (*CANDIDATES, 0.5)
     assert loaded.meta.render.full_step_ratio == trainer.render_cfg.full_step_ratio
     names = [a.name for a in loaded.info.params]
     img = loaded.render(val.c2w[0].double().numpy(), val.intrinsics.fov_x_deg, 32, 32,

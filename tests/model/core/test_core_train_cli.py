@@ -1,0 +1,48 @@
+"""``visnerf train``: the sample spacing and carving options, and what ``--resume`` keeps."""
+
+import subprocess
+import sys
+
+import pytest
+
+from visnerf.checkpoint import read_checkpoint
+
+
+def _visnerf(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "visnerf.cli", *args], capture_output=True, text=True)
+
+
+@pytest.fixture(scope="module")
+def plume(tmp_path_factory):
+    data = tmp_path_factory.mktemp("train_cli") / "plume"
+    made = _visnerf("make-scene", "plume_time", "--out", str(data), "--res", "16", "--views", "12",
+                    "--test-views", "2", "--quiet")
+    assert made.returncode == 0, made.stderr
+    return data
+
+
+def test_step_ratio_is_stored_and_kept_on_resume(plume, tmp_path) -> None:
+    first = tmp_path / "m.safetensors"
+    run = _visnerf("train", str(plume), "--out", str(first), "--iterations", "6", "--resolution", "16",
+                   "--step-ratio", "1.25", "--carve-min-seen-fraction", "0.5", "--device", "cpu", "--quiet")
+    assert run.returncode == 0, run.stderr
+    meta, _ = read_checkpoint(first)
+    assert meta.render.step_ratio == 1.25 and meta.provenance["iterations"] == 6
+    resumed = tmp_path / "r.safetensors"
+    run = _visnerf("train", str(plume), "--out", str(resumed), "--iterations", "9", "--resume", str(first),
+                   "--device", "cpu", "--quiet")
+    assert run.returncode == 0, run.stderr
+    meta, _ = read_checkpoint(resumed)
+    assert meta.render.step_ratio == 1.25 and meta.provenance["iterations"] == 9
+
+
+@pytest.mark.parametrize(("option", "value", "message"), [
+    ("--step-ratio", "0", "above 0"),
+    ("--step-ratio", "nan", "above 0"),
+    ("--carve-min-seen-fraction", "1.5", "fraction in [0, 1]"),
+])
+def test_bad_training_options_are_refused(plume, tmp_path, option, value, message) -> None:
+    out = tmp_path / "m.safetensors"
+    run = _visnerf("train", str(plume), "--out", str(out), option, value, "--quiet")
+    assert run.returncode == 2 and message in run.stderr, run.stderr
+    assert not out.exists()
