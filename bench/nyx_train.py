@@ -36,6 +36,18 @@ ROOT = Path(__file__).resolve().parents[1]
 HOLDOUT_SETTINGS = ((0.12, 0.0235, 0.625), (0.1375, 0.0215, 0.775), (0.1375, 0.0225, 0.7), (0.155, 0.0225, 0.625))
 HOLDOUT_VIEWS = (5, 17, 29, 40)
 
+# The Nyx recipe, where it differs from the library's defaults (TrainConfig, RenderConfig), and why.
+NYX_CARVE_MIN_SEEN_FRACTION = 0.75
+"""Every view sees all of Nyx, so a cell that a quarter of a setting's views do not see is not
+content: the box carves to +-0.19 instead of +-0.31 on two axes (data/carving.py). The library
+keeps 0, which cannot carve content that only a few views see."""
+NYX_RESOLUTION = 170
+"""Voxels per axis at the end. Nyx's filaments are a pixel wide: a ground-truth frame downsampled
+1.5 and 2 times and upsampled again is 24.6 and 24.0 dB from itself. 170 on the carved box is
+0.0023 world units a voxel (a pixel is 0.0021 at the origin), and 12.1 MB with float16 factors."""
+NYX_STEP_RATIO = 1.4
+"""Training samples 1.4 voxels apart: 0.0032 world units, the spacing the 160-voxel trial ran at."""
+
 
 def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
@@ -96,6 +108,7 @@ def write_report(result: dict, out_dir: Path) -> None:
         f"| peak RSS | {result['peak_rss_mb']:.0f} MB |",
         f"| checkpoint size | {result['checkpoint_mb']:.2f} MB |",
         f"| model box (after carving) | {result['box'][0]} to {result['box'][1]}, grid {result['final_resolution']} |",
+        f"| recipe | {', '.join(f'{k} {v}' for k, v in result.get('recipe', {}).items())} |",
         f"| seconds per 256x256 frame (median) | {f['seconds_per_frame_256_median']:.2f} s |",
         "",
         "Validation PSNR against training time:",
@@ -135,7 +148,8 @@ def main() -> int:
     ap.add_argument("--data", default=str(ROOT.parent / "shared" / "data" / "nyx"))
     ap.add_argument("--minutes", type=float, default=60.0)
     ap.add_argument("--batch-rays", type=int, default=4096)
-    ap.add_argument("--resolution", type=int, default=TrainConfig.resolution_final)
+    ap.add_argument("--resolution", type=int, default=NYX_RESOLUTION,
+                    help=f"final voxels per axis (default {NYX_RESOLUTION})")
     ap.add_argument("--validate-every", type=float, default=300.0, help="seconds of training")
     ap.add_argument("--eval-frames", type=int, default=24)
     ap.add_argument("--micro-batch-samples", type=int, default=TrainConfig.micro_batch_samples,
@@ -143,13 +157,13 @@ def main() -> int:
                          f"default {TrainConfig.micro_batch_samples})")
     ap.add_argument("--density-shift", type=float, default=FieldConfig.density_shift,
                     help=f"bias of the density activation of a fresh field (default {FieldConfig.density_shift:g})")
-    ap.add_argument("--carve-min-seen-fraction", type=float, default=TrainConfig.carve_min_seen_fraction,
+    ap.add_argument("--carve-min-seen-fraction", type=float, default=NYX_CARVE_MIN_SEEN_FRACTION,
                     help="fraction of a setting's views that must see a carved cell "
-                         f"(default {TrainConfig.carve_min_seen_fraction:g}; 0 keeps every cell some view sees)")
+                         f"(default {NYX_CARVE_MIN_SEEN_FRACTION:g}; 0 keeps every cell some view sees)")
     ap.add_argument("--tv-density", type=float, default=TrainConfig.tv_weight_density,
                     help=f"total-variation weight of the density factors (default {TrainConfig.tv_weight_density:g})")
-    ap.add_argument("--step-ratio", type=float, default=RenderConfig.step_ratio,
-                    help=f"training sample spacing in voxels (default {RenderConfig.step_ratio:g})")
+    ap.add_argument("--step-ratio", type=float, default=NYX_STEP_RATIO,
+                    help=f"training sample spacing in voxels (default {NYX_STEP_RATIO:g})")
     ap.add_argument("--threads", type=int, default=None, help="torch threads (default: all cores)")
     ap.add_argument("--bbox", type=parse_bbox, default=None, metavar="X0,Y0,Z0,X1,Y1,Z1",
                     help="content box (write --bbox=-0.2,...); default: carved from the images")
@@ -204,6 +218,9 @@ def main() -> int:
         "peak_rss_mb": peak_rss_mb(),
         "checkpoint_mb": ckpt.stat().st_size / 1e6,
         "final_resolution": trainer.field.resolution,
+        "recipe": {"carve_min_seen_fraction": args.carve_min_seen_fraction, "resolution": args.resolution,
+                   "step_ratio": args.step_ratio, "full_step_ratio": trainer.render_cfg.full_step_ratio,
+                   "factor_storage": trainer.field.cfg.factor_storage},
         "box": [[round(float(x), 4) for x in row] for row in trainer.field.aabb.cpu()],
         "final": final,
         "log": trainer.state.log,
