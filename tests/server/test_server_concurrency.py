@@ -74,12 +74,14 @@ def test_renders_during_upload_and_delete(client: TestClient, ckpt_dir: Path, te
 
     with ThreadPoolExecutor(max_workers=6) as pool:
         workers = [pool.submit(renderer, w) for w in range(4)]
-        assert started.wait(30)  # renders are under way before the folder changes
-        uploaded = pool.submit(upload)
-        deleted = pool.submit(delete)
-        assert uploaded.result(60) == 201
-        assert deleted.result(60) == 204
-        stop.set()
+        try:
+            assert started.wait(30), problems[:3]  # renders are under way before the folder changes
+            uploaded = pool.submit(upload)
+            deleted = pool.submit(delete)
+            assert uploaded.result(60) == 201
+            assert deleted.result(60) == 204
+        finally:
+            stop.set()  # a failure above must not leave the renderers looping (the pool waits for them)
         for w in workers:
             w.result(60)
 
