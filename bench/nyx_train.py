@@ -42,9 +42,11 @@ NYX_CARVE_MIN_SEEN_FRACTION = 0.75
 content: the box carves to +-0.19 instead of +-0.31 on two axes (data/carving.py). The library
 keeps 0, which cannot carve content that only a few views see."""
 NYX_RESOLUTION = 170
-"""Voxels per axis at the end. Nyx's filaments are a pixel wide: a ground-truth frame downsampled
-1.5 and 2 times and upsampled again is 24.6 and 24.0 dB from itself. 170 on the carved box is
-0.0023 world units a voxel (a pixel is 0.0021 at the origin), and 12.1 MB with float16 factors."""
+"""Voxels per axis at the end. Nyx's detail sits at the pixel scale: its images downsampled 1.5
+and 2 times and upsampled back are 24.48 and 23.92 dB from themselves
+(bench/results/resolution_ceiling.md), and 160 beat 120 on the carved box at every validation
+(bench/results/nyx_train_box/). 170 is 0.0023 world units a voxel (a pixel is 0.0021 at the
+origin), and 12.1 MB with float16 factors."""
 NYX_STEP_RATIO = 1.4
 """Training samples 1.4 voxels apart: 0.0032 world units, the spacing the 160-voxel trial ran at."""
 
