@@ -41,6 +41,13 @@ def sample_plane(
     return out[0, :, :, 0].t()
 
 
+def factor_tables(planes: list[Tensor], lines: list[Tensor]) -> tuple[Float[Tensor, "p c"], Float[Tensor, "l c"]]:
+    """Planes ``[c, h, w]`` and lines ``[c, r]`` (in ``MODES`` order) stacked as the row tables of ``TapLayout``: plane row
+    ``y * w + x`` holds node ``(x, y)``, line row ``z`` node ``z``."""
+    plane_table = torch.cat([p.permute(1, 2, 0).reshape(-1, p.shape[0]) for p in planes])
+    return plane_table, torch.cat([line.t() for line in lines]).contiguous()
+
+
 class VMGrid(nn.Module):
     """Planes and lines of one VM grid; ``sample(coords) -> [n, 3 * n_components]``.
 
@@ -67,12 +74,13 @@ class VMGrid(nn.Module):
         ([c, r] each): new parameters, so an optimizer must be rebuilt."""
         self._plane_shapes = tuple((p.shape[1], p.shape[2]) for p in planes)
         self._line_lengths = tuple(line.shape[1] for line in lines)
-        self.plane_table = nn.Parameter(torch.cat([p.permute(1, 2, 0).reshape(-1, p.shape[0]) for p in planes]))
-        self.line_table = nn.Parameter(torch.cat([line.t() for line in lines]).contiguous())
+        plane_table, line_table = factor_tables(planes, lines)
+        self.plane_table, self.line_table = nn.Parameter(plane_table), nn.Parameter(line_table)
 
     @property
-    def planes(self) -> list[Float[Tensor, "c h w"]]:
-        """The three planes as views of ``plane_table`` (writing into them writes the table)."""
+    def planes(self) -> list[Tensor]:
+        """The three planes, ``[c, h, w]`` each, as views of ``plane_table`` (writing into them writes
+        the table)."""
         out, start = [], 0
         for h, w in self._plane_shapes:
             out.append(self.plane_table[start : start + h * w].view(h, w, -1).permute(2, 0, 1))
@@ -80,8 +88,8 @@ class VMGrid(nn.Module):
         return out
 
     @property
-    def lines(self) -> list[Float[Tensor, "c r"]]:
-        """The three lines as views of ``line_table``."""
+    def lines(self) -> list[Tensor]:
+        """The three lines, ``[c, r]`` each, as views of ``line_table``."""
         out, start = [], 0
         for r in self._line_lengths:
             out.append(self.line_table[start : start + r].t())
@@ -103,7 +111,7 @@ class VMGrid(nn.Module):
     def tap_layout(self) -> TapLayout:
         """Tap layout of the current resolution (cached; resampling changes it)."""
         layout = getattr(self, "_layout", None)
-        device = self.planes[0].device
+        device = self.plane_table.device
         if layout is None or layout.resolution != self.resolution or layout.half_span.device != device:
             layout = TapLayout.of(self.resolution, device)
             self._layout = layout
@@ -186,5 +194,4 @@ def _factors_from_state_dict(module: VMGrid, state: dict, prefix: str, *_: objec
         if given.shape != own.shape:
             raise RuntimeError(f"size mismatch for {name}: copying a param with shape {list(given.shape)}, "
                                f"the module has {list(own.shape)}")
-    state[prefix + "plane_table"] = torch.cat([p.permute(1, 2, 0).reshape(-1, p.shape[0]) for p in planes])
-    state[prefix + "line_table"] = torch.cat([line.t() for line in lines])
+    state[prefix + "plane_table"], state[prefix + "line_table"] = factor_tables(planes, lines)
