@@ -50,12 +50,17 @@ def parse_views(text: str) -> tuple[int, ...]:
         raise argparse.ArgumentTypeError(f"cannot read view indices {text!r}: use '0,7,21'") from None
 
 
+def _number(text: str) -> float:
+    """``text`` as a float, NaN when it is not a number (the callers' range checks reject NaN)."""
+    try:
+        return float(text)
+    except ValueError:
+        return float("nan")
+
+
 def positive_float(text: str) -> float:
     """A finite number above zero."""
-    try:
-        value = float(text)
-    except ValueError:
-        value = float("nan")
+    value = _number(text)
     if not (math.isfinite(value) and value > 0):
         raise argparse.ArgumentTypeError(f"expected a finite number above 0, got {text!r}")
     return value
@@ -63,10 +68,7 @@ def positive_float(text: str) -> float:
 
 def unit_fraction(text: str) -> float:
     """A number in [0, 1]."""
-    try:
-        value = float(text)
-    except ValueError:
-        value = float("nan")
+    value = _number(text)
     if not 0.0 <= value <= 1.0:
         raise argparse.ArgumentTypeError(f"expected a fraction in [0, 1], got {text!r}")
     return value
