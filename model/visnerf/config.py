@@ -169,7 +169,10 @@ class TrainConfig:
     resolution_init: int = 64
     """Voxels per axis (cube root of the voxel count) at the start."""
     resolution_final: int = 120
-    """Voxels per axis at the end: 120^3 keeps the model under 13 MB."""
+    """Voxels per axis at the end: at 120^3 the planes are 5.5 MB as float16
+    (``FieldConfig.factor_storage``). A finer grid holds finer detail and, with samples a fixed
+    number of voxels apart (``RenderConfig.step_ratio``), takes more samples per ray;
+    bench/nyx_train.py uses 170 with samples 1.4 voxels apart."""
     upsample_at: tuple[float, ...] = (0.067, 0.1, 0.133, 0.183, 0.233)
     """Progress fractions at which planes and lines are upsampled (log-spaced resolutions)."""
     occupancy_at: tuple[float, ...] = (0.067, 0.133)
@@ -192,12 +195,12 @@ class TrainConfig:
     """A carved cell must be in the image of at least this fraction of its setting's views (0: of
     one view). The few views that see a far corner of the camera box all look through it at the
     content behind, so at 0 such corners survive carving: on Nyx they stretch the box from +-0.19
-    to +-0.31 on two axes (see data/carving.py), and 0.75 gives the content's +-0.19. With the
-    voxel count fixed (``resolution_final``), the tighter box has finer voxels and more samples
-    per ray (475k against 291k per 4096-ray step): it was behind at equal training time, 16.27
-    against 17.47 dB after 8 minutes and 18.43 against 18.87 dB after 5 minutes of a 60-minute
-    run, each side by side on one thread. So 0 stays the default; the tight box at a smaller
-    voxel count (the same voxels at half the model size) is not measured yet."""
+    to +-0.31 on two axes (see data/carving.py), and 0.75 gives the content's +-0.19 cube. Where
+    every view sees all of the content, as on Nyx, the tight box is better: at the same voxel
+    count (finer voxels) 60 minutes on one thread reached 25.17 against 24.35 dB held-out, ahead at
+    every validation (bench/results/nyx_train_box/). The default stays 0 because a fraction above
+    0 carves away content that only a few views see (close-ups, partial views); ``visnerf train
+    --carve-min-seen-fraction`` and bench/nyx_train.py set it."""
     mixed_precision: bool = True
     """Decoder matrix products in bfloat16 where the device supports it (weights stay float32)."""
     l1_weight_initial: float = 1e-4
