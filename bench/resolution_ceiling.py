@@ -1,7 +1,8 @@
 """How much detail a dataset's images hold at the pixel scale: each image is downsampled by a
-factor (area average) and upsampled back (bilinear), and compared with itself. A model whose
-voxels project to ``factor`` pixels cannot be expected to do much better than that PSNR, whatever
-its training time.
+factor (area average) and upsampled back (bilinear), and compared with itself: an indication of
+how much of the images' detail lies at the scale of ``factor`` pixels, where a model whose voxels
+project to that many pixels has trouble holding it. Not a bound: a model renders, it does not
+upsample.
 
     .venv/bin/python bench/resolution_ceiling.py                 # shared/data/nyx
     .venv/bin/python bench/resolution_ceiling.py --data data/vortex_tf1
@@ -58,8 +59,9 @@ def main() -> int:
     store.write_text(json.dumps(everything, indent=1))
     lines = ["# Detail at the pixel scale", "",
              "Each image area-downsampled by the factor and bilinearly upsampled back, PSNR against itself "
-             "(`python bench/resolution_ceiling.py --data DATA`). A model whose voxels project to that many "
-             "pixels loses about this much detail.", "",
+             "(`python bench/resolution_ceiling.py --data DATA`). How much of the images' detail lies at that "
+             "scale: a crude indication for a model whose voxels project to that many pixels, not a bound (a model "
+             "renders, it does not upsample).", "",
              "| dataset | images | " + " | ".join(f"x{f:g}" for f in FACTORS) + " |",
              "| --- | --- | " + " | ".join("---" for _ in FACTORS) + " |"]
     for key, entry in sorted(everything.items()):
