@@ -9,15 +9,17 @@ Writes bench/results/factor_storage.md and .json.
 """
 
 import argparse
+import dataclasses
 import json
 import sys
+import tempfile
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from visnerf.checkpoint import load_checkpoint
+from visnerf.checkpoint import load_checkpoint, save_checkpoint
 from visnerf.commands import parse_settings, parse_views
 from visnerf.config import HoldoutConfig
 from visnerf.data.holdout import split_holdout
@@ -52,17 +54,18 @@ def main() -> int:
     idx = np.unique(np.linspace(0, val.n_frames - 1, args.frames).round().astype(int))
     truth = [val.images[i].numpy().astype(np.float32) / 255.0 for i in idx]
 
-    def frames() -> list[np.ndarray]:
+    def frames(model: torch.nn.Module) -> list[np.ndarray]:
         with torch.inference_mode():
-            return [render_image(field, val.c2w[i], val.intrinsics, params[i], settings).clamp(0, 1).numpy()
+            return [render_image(model, val.c2w[i], val.intrinsics, params[i], settings).clamp(0, 1).numpy()
                     for i in idx]
 
-    stored = frames()
-    with torch.no_grad():
-        for name, tensor in field.named_parameters():
-            if name.startswith(("density_grid.", "appearance_grid.")):
-                tensor.copy_(tensor.half().float())
-    rounded = frames()
+    stored = frames(field)
+    # Round through the checkpoint code itself: save with float16 factors, load back.
+    field.cfg = dataclasses.replace(meta.field, factor_storage="float16")
+    with tempfile.TemporaryDirectory() as tmp:
+        half_path = save_checkpoint(field, dataclasses.replace(meta, field=field.cfg), Path(tmp) / "half.safetensors")
+        half, _ = load_checkpoint(half_path, torch.device("cpu"))
+    rounded = frames(half)
     result = {
         "command": "python bench/factor_storage.py " + " ".join(sys.argv[1:]),
         "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),

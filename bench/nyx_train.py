@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from visnerf.commands import parse_bbox, pick_device, with_bbox
+from visnerf.commands import parse_bbox, pick_device, positive_float, unit_fraction, with_bbox
 from visnerf.config import FieldConfig, HoldoutConfig, RenderConfig, TrainConfig
 from visnerf.data.holdout import split_holdout
 from visnerf.data.parsers.blender import load_dataset
@@ -160,12 +160,12 @@ def main() -> int:
                          f"default {TrainConfig.micro_batch_samples})")
     ap.add_argument("--density-shift", type=float, default=FieldConfig.density_shift,
                     help=f"bias of the density activation of a fresh field (default {FieldConfig.density_shift:g})")
-    ap.add_argument("--carve-min-seen-fraction", type=float, default=NYX_CARVE_MIN_SEEN_FRACTION,
+    ap.add_argument("--carve-min-seen-fraction", type=unit_fraction, default=NYX_CARVE_MIN_SEEN_FRACTION,
                     help="fraction of a setting's views that must see a carved cell "
                          f"(default {NYX_CARVE_MIN_SEEN_FRACTION:g}; 0 keeps every cell some view sees)")
     ap.add_argument("--tv-density", type=float, default=TrainConfig.tv_weight_density,
                     help=f"total-variation weight of the density factors (default {TrainConfig.tv_weight_density:g})")
-    ap.add_argument("--step-ratio", type=float, default=NYX_STEP_RATIO,
+    ap.add_argument("--step-ratio", type=positive_float, default=NYX_STEP_RATIO,
                     help=f"training sample spacing in voxels (default {NYX_STEP_RATIO:g})")
     ap.add_argument("--threads", type=int, default=None, help="torch threads (default: all cores)")
     ap.add_argument("--bbox", type=parse_bbox, default=None, metavar="X0,Y0,Z0,X1,Y1,Z1",
