@@ -55,10 +55,11 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 
 
-def final_eval(ckpt: Path, val, n_frames: int, figure: Path | None = None) -> dict:
+def final_eval(ckpt: Path, val, n_frames: int, figure: Path | None = None,
+               device: torch.device | None = None) -> dict:
     """Render ``n_frames`` evenly chosen held-out frames through the public inference API; with
     ``figure``, save the frame of median PSNR beside its ground truth and their CIELUV difference."""
-    scene = load_scene(ckpt, torch.device("cpu"))
+    scene = load_scene(ckpt, device or torch.device("cpu"))
     idx = np.unique(np.linspace(0, val.n_frames - 1, n_frames).round().astype(int))
     names = [a.name for a in scene.info.params]
     rows = []
@@ -94,14 +95,16 @@ def write_report(result: dict, out_dir: Path) -> None:
     (out_dir / "nyx_train.json").write_text(json.dumps(result, indent=1))
     f = result["final"]
     lines = [
-        "# Nyx training on this CPU",
+        "# Nyx training on " + ("this CPU" if result.get("device", "cpu") == "cpu" else result["device"]),
         "",
         f"Command: `{result['command']}`  ",
         f"Machine: {result['machine']}",
         "",
         "| what | value |",
         "| --- | --- |",
-        f"| training budget | {result['budget_minutes']} min, space carving ({result['carve_seconds']} s) included, validation excluded |",
+        (f"| training budget | {result['budget_minutes']} min, space carving ({result['carve_seconds']} s) included, validation excluded |"
+         if result.get("budget_minutes") else
+         f"| training budget | {result['budget_iterations']} iterations ({result['train_seconds'] / 60:.1f} min) |"),
         f"| 1-min load average before / after | {result['load_average_before_after'][0]} / {result['load_average_before_after'][1]} |",
         f"| iterations | {result['iterations']} ({result['iterations_per_second']:.2f} it/s) |",
         f"| held-out PSNR / SSIM ({f['frames']} frames) | {f['psnr']:.2f} dB / {f['ssim']:.3f} |",
@@ -150,6 +153,10 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", default=str(ROOT.parent / "shared" / "data" / "nyx"))
     ap.add_argument("--minutes", type=float, default=60.0)
+    ap.add_argument("--iterations", type=int, default=None,
+                    help="schedule by this many iterations instead of --minutes (a GPU run, to see "
+                         "what more iterations of the same recipe reach)")
+    ap.add_argument("--device", default="cpu", help="cpu (default), cuda or auto")
     ap.add_argument("--batch-rays", type=int, default=4096)
     ap.add_argument("--resolution", type=int, default=NYX_RESOLUTION,
                     help=f"final voxels per axis (default {NYX_RESOLUTION})")
@@ -176,7 +183,7 @@ def main() -> int:
     ap.add_argument("--results", default=str(ROOT / "bench" / "results"))
     args = ap.parse_args()
 
-    device = pick_device("cpu")
+    device = pick_device(args.device)
     if args.threads:
         torch.set_num_threads(args.threads)
     load_before = os.getloadavg()
@@ -191,7 +198,9 @@ def main() -> int:
         Path(args.results).mkdir(parents=True, exist_ok=True)
         print(json.dumps(final_eval(Path(args.figure_only), val, args.eval_frames, Path(args.results) / "nyx_heldout.png")))
         return 0
-    cfg = TrainConfig(iterations=10**9, time_budget_s=args.minutes * 60, batch_rays=args.batch_rays,
+    by_iterations = args.iterations is not None
+    cfg = TrainConfig(iterations=args.iterations if by_iterations else 10**9,
+                      time_budget_s=None if by_iterations else args.minutes * 60, batch_rays=args.batch_rays,
                       micro_batch_samples=args.micro_batch_samples, resolution_final=args.resolution,
                       validate_every_s=args.validate_every, validate_max_images=6,
                       carve_min_seen_fraction=args.carve_min_seen_fraction, tv_weight_density=args.tv_density)
@@ -201,11 +210,14 @@ def main() -> int:
     ckpt = trainer.save(args.out, dataset="shared/data/nyx")
     out_dir = Path(args.results)
     out_dir.mkdir(parents=True, exist_ok=True)
-    final = final_eval(ckpt, val, args.eval_frames, out_dir / "nyx_heldout.png")
+    final = final_eval(ckpt, val, args.eval_frames, out_dir / "nyx_heldout.png", device)
     result = {
         "command": "python bench/nyx_train.py " + " ".join(sys.argv[1:]),
-        "machine": f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} threads, torch {torch.__version__}",
-        "budget_minutes": args.minutes,
+        "machine": (f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} threads, torch {torch.__version__}"
+                    + (f", {torch.cuda.get_device_name(device)}" if device.type == "cuda" else "")),
+        "device": device.type,
+        "budget_minutes": None if by_iterations else args.minutes,
+        "budget_iterations": args.iterations,
         "train_frames": train.n_frames,
         "val_frames": val.n_frames,
         "holdout_settings": HOLDOUT_SETTINGS,

@@ -24,7 +24,7 @@ from visnerf.rendering.aabb import intersect_aabb
 from visnerf.rendering.empty_space import EmptySpace
 from visnerf.rendering.occupancy import query_occupancy
 from visnerf.rendering.parallel import chunk_workers, map_chunks
-from visnerf.rendering.sampling import deltas_from_samples, sample_pdf, uniform_samples
+from visnerf.rendering.sampling import deltas_from_samples, sample_pdf, uniform_noise, uniform_samples
 from visnerf.rendering.volume import render_alpha_from_density
 from visnerf.representation.field import VisNerfField
 from visnerf.representation.frame_field import FrameField
@@ -226,7 +226,7 @@ def render_rays(
         n_samples = max(1, min(max_samples, math.ceil(span / step)))
         jitter = None
         if generator is not None:
-            jitter = torch.rand(rays_o.shape[0], generator=generator, device=rays_o.device)
+            jitter = uniform_noise((rays_o.shape[0],), generator, rays_o.device)
         if windows is None:
             t = uniform_samples(t_near, n_samples, step, jitter)  # [n, s]
             valid = (t < t_far[:, None]) & hit[:, None]

@@ -5,6 +5,14 @@ from jaxtyping import Float
 from torch import Tensor
 
 
+def uniform_noise(
+    shape: tuple[int, ...], generator: torch.Generator, device: torch.device, dtype: torch.dtype = torch.float32
+) -> Tensor:
+    """U[0, 1) of ``shape`` on ``device``, drawn where ``generator`` lives (the trainer's is a CPU
+    generator, also when it trains on CUDA): a seed gives the same samples on every device."""
+    return torch.rand(shape, generator=generator, device=generator.device, dtype=dtype).to(device)
+
+
 def uniform_samples(
     t_near: Float[Tensor, " n"],
     n_samples: int,
@@ -37,7 +45,7 @@ def sample_pdf(
     cdf = cdf.clamp(max=1.0)  # [n, b + 1]
     base = (torch.arange(n_samples, device=w.device, dtype=w.dtype) + 0.5) / n_samples
     if generator is not None:
-        jitter = (torch.rand(n, n_samples, generator=generator, device=w.device, dtype=w.dtype) - 0.5) / n_samples
+        jitter = (uniform_noise((n, n_samples), generator, w.device, w.dtype) - 0.5) / n_samples
         u = (base[None] + jitter).clamp(0.0, 1.0 - 1e-6)
     else:
         u = base.expand(n, n_samples).contiguous()
