@@ -1,11 +1,15 @@
 """Small helpers for tests and demos: a tiny, valid, randomly initialised checkpoint."""
 
+import math
 from pathlib import Path
 
+import numpy as np
 import torch
 
 from visnerf.checkpoint import CheckpointMeta, ParamAxis, save_checkpoint
 from visnerf.config import FieldConfig, RenderConfig
+from visnerf.data.cameras import Intrinsics, orbit_c2w
+from visnerf.data.scene import SceneData, axes_from_values
 from visnerf.representation.field import VisNerfField
 
 
@@ -66,3 +70,20 @@ def make_tiny_checkpoint(
         provenance={"dataset": "random", "iterations": 0, "train_seconds": 0.0, "val_psnr": None},
     )
     return save_checkpoint(field, meta, path)
+
+
+def make_noise_scene(n_views: int = 6, size: int = 16) -> SceneData:
+    """``n_views`` orbit views of random pixels at alternating settings of one parameter ``t``."""
+    g = torch.Generator().manual_seed(0)
+    values = np.array([[float(i % 2)] for i in range(n_views)])
+    _, axes = axes_from_values(["t"], values)
+    c2w = torch.stack([torch.from_numpy(orbit_c2w(360.0 / n_views * i, 20.0, 2.0)).float() for i in range(n_views)])
+    return SceneData(
+        images=torch.randint(0, 256, (n_views, size, size, 3), generator=g, dtype=torch.uint8),
+        c2w=c2w,
+        intrinsics=Intrinsics.from_fov(size, size, math.radians(40.0)),
+        params=torch.from_numpy(values).float(),
+        param_axes=axes,
+        view_ids=torch.arange(n_views),
+        bbox=torch.tensor([[-0.5, -0.5, -0.5], [0.5, 0.5, 0.5]]),
+    )

@@ -173,7 +173,7 @@ class Trainer:
         return query_occupancy(grid, box, centres).reshape(res).to(self.device)
 
     @torch.no_grad()
-    def _occupancy(self, res: tuple[int, int, int]) -> Tensor:
+    def density_occupancy(self, res: tuple[int, int, int]) -> Tensor:
         """Density occupancy (union over settings), inside the carved hull when there is one."""
         grid = build_occupancy(self.field, res, self.settings_all, self.step_size(),
                                self.render_cfg.occupancy_threshold,
@@ -183,7 +183,7 @@ class Trainer:
     @torch.no_grad()
     def update_occupancy(self, shrink: bool) -> None:
         res = self._occupancy_resolution()
-        grid = self._occupancy(res)
+        grid = self.density_occupancy(res)
         if not bool(grid.any()):
             return  # nothing is visible yet: skipping all space would stop training
         if shrink:
@@ -196,9 +196,30 @@ class Trainer:
                 self.field.resample(resolution_for_box(bounds[1] - bounds[0], voxels), bounds)
                 self.sampler.set_aabb(self.field.aabb)
                 res = self._occupancy_resolution()
-                grid = self._occupancy(res)
+                grid = self.density_occupancy(res)
                 self._rebuild_optimizer()
         self.field.set_occupancy(grid)
+
+    @torch.no_grad()
+    def finish_occupancy(self) -> None:
+        """The inference grid at the end of training: the density's occupancy now, within the
+        grid training last sampled.
+
+        Training evaluates density only in that grid's cells (``render_rays`` drops the rest), so
+        a cell outside it has had no photometric loss since the last occupancy milestone (on Nyx,
+        at 13 % of the run), while the shared plane and line factors went on changing its
+        density. A grid rebuilt from the density alone would render such cells wherever their
+        density has since grown past the threshold; intersected, inference renders only cells
+        that training kept fitting. Without a grid (no carve, no milestone) it is the density's.
+        """
+        trained = self.field.occupancy
+        if trained is None:
+            self.update_occupancy(shrink=False)
+            return
+        res = tuple(trained.shape)
+        grid = self.density_occupancy(res) & trained  # type: ignore[arg-type]
+        if bool(grid.any()):
+            self.field.set_occupancy(grid)
 
     def _milestones(self) -> None:
         p = self.progress()
@@ -311,7 +332,7 @@ class Trainer:
                 last_val = self.state.train_seconds
                 self._record(mse_to_psnr(ema_mse), wall0, on_validate)
         bar.close()
-        self.update_occupancy(shrink=False)  # final grid, for fast inference
+        self.finish_occupancy()  # final grid, for fast inference
         if self.val_scene is not None and cfg.choose_full_spacing:
             choice = choose_full_spacing(self.field, self.val_scene, self.render_cfg, cfg.validate_max_images)
             self.render_cfg = replace(self.render_cfg, full_step_ratio=choice.ratio)

@@ -2,32 +2,13 @@
 
 import math
 
-import numpy as np
 import pytest
 import torch
 
 import visnerf.training.trainer as trainer_module
 from visnerf.config import TrainConfig
-from visnerf.data.cameras import Intrinsics, orbit_c2w
-from visnerf.data.scene import SceneData, axes_from_values
+from visnerf.testing import make_noise_scene
 from visnerf.training.trainer import Trainer, micro_batches, occupied_windows
-
-
-def _scene() -> SceneData:
-    g = torch.Generator().manual_seed(0)
-    n = 6
-    values = np.array([[0.0], [1.0]] * 3)
-    _, axes = axes_from_values(["t"], values)
-    c2w = torch.stack([torch.from_numpy(orbit_c2w(60.0 * i, 20.0, 2.0)).float() for i in range(n)])
-    return SceneData(
-        images=torch.randint(0, 256, (n, 16, 16, 3), generator=g, dtype=torch.uint8),
-        c2w=c2w,
-        intrinsics=Intrinsics.from_fov(16, 16, math.radians(40.0)),
-        params=torch.from_numpy(values).float(),
-        param_axes=axes,
-        view_ids=torch.arange(n),
-        bbox=torch.tensor([[-0.5, -0.5, -0.5], [0.5, 0.5, 0.5]]),
-    )
 
 
 def _occupied_ball() -> torch.Tensor:
@@ -50,7 +31,7 @@ def _gradients(
     monkeypatch.setattr(trainer_module, "render_rays", deterministic)
     cfg = TrainConfig(iterations=1, batch_rays=256, resolution_init=12, resolution_final=12, carve=False,
                       mixed_precision=False, micro_batch_rays=micro_rays, micro_batch_samples=micro_samples)
-    trainer = Trainer(_scene(), None, cfg, torch.device("cpu"))
+    trainer = Trainer(make_noise_scene(), None, cfg, torch.device("cpu"))
     trainer.field.set_occupancy(occupancy)
     trainer.optimizer.step = lambda: None  # keep the gradients, change nothing
     trainer.train_step()
@@ -81,7 +62,7 @@ def test_chunks_counted_by_occupied_span_hold_the_samples_evaluated_within_the_b
     from visnerf.rendering.empty_space import EmptySpace
     from visnerf.rendering.renderer import render_rays
 
-    scene = _scene()
+    scene = make_noise_scene()
     field = Trainer(scene, None, TrainConfig(carve=False, resolution_init=12), torch.device("cpu")).field
     field.set_occupancy(_occupied_ball())
     g = torch.Generator().manual_seed(3)
@@ -112,7 +93,7 @@ def test_chunks_counted_by_occupied_span_hold_the_samples_evaluated_within_the_b
 
 
 def test_micro_batches_cover_the_batch_within_both_budgets() -> None:
-    scene = _scene()
+    scene = make_noise_scene()
     field = Trainer(scene, None, TrainConfig(carve=False, resolution_init=12), torch.device("cpu")).field
     g = torch.Generator().manual_seed(1)
     origins = torch.randn(500, 3, generator=g) * 0.2 + torch.tensor([0.0, 0.0, 2.0])
@@ -135,7 +116,7 @@ def test_a_step_whose_rays_meet_no_occupied_cell_does_not_fail() -> None:
     the occupied cells, its loss had no graph and ``backward`` raised."""
     cfg = TrainConfig(iterations=1, batch_rays=128, resolution_init=12, resolution_final=12, carve=False,
                       mixed_precision=False, micro_batch_rays=32)
-    trainer = Trainer(_scene(), None, cfg, torch.device("cpu"))
+    trainer = Trainer(make_noise_scene(), None, cfg, torch.device("cpu"))
     trainer.field.set_occupancy(torch.zeros(8, 8, 8, dtype=torch.bool))  # nothing occupied
     before = {n: p.detach().clone() for n, p in trainer.field.named_parameters()}
     stats = trainer.train_step()
