@@ -217,7 +217,7 @@ def main() -> int:
     # The same trained field with the inference grid the trainer built before finish_occupancy:
     # the density's occupancy now, not limited to the cells training last sampled.
     kept = trainer.field.occupancy
-    trainer.field.set_occupancy(trainer.density_occupancy(trainer._occupancy_resolution()))
+    trainer.update_occupancy(shrink=False)
     other = trainer.save(Path(args.out).with_name(Path(args.out).stem + "_unrestricted.safetensors"), dataset="shared/data/nyx")
     unrestricted = final_eval(other, val, args.eval_frames, None, device)
     grids = {"cells": None if kept is None else int(kept.sum()),
