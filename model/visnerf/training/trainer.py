@@ -39,7 +39,7 @@ from visnerf.rendering.occupancy import (
 from visnerf.rendering.renderer import RenderSettings, empty_space_of, render_image, render_rays
 from visnerf.rendering.spacing import choose_full_spacing
 from visnerf.representation.field import VisNerfField
-from visnerf.runtime import bf16_native, release_free_memory
+from visnerf.runtime import bf16_native, keep_freed_blocks, release_free_memory
 from visnerf.training.regularizers import RegularizerWeights, regularization
 
 
@@ -119,6 +119,8 @@ class Trainer:
         self.render_cfg = render_cfg or RenderConfig()
         self.spacing_note: str | None = None
         """How the full-quality spacing was chosen (None: not chosen, the configured one)."""
+        if device.type == "cpu":
+            keep_freed_blocks()  # table-sized tensors every step: no page faults for each (runtime.py)
         torch.manual_seed(cfg.seed)
         self.generator = torch.Generator().manual_seed(cfg.seed)
         self.setup_seconds = 0.0
