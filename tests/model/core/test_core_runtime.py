@@ -32,3 +32,14 @@ def test_without_an_explicit_count_the_default_is_used(restore_threads, monkeypa
 def test_a_thread_count_below_one_is_rejected(restore_threads) -> None:
     with pytest.raises(ValueError, match="at least 1"):
         runtime.configure(0)
+
+
+def test_keep_freed_blocks_applies_both_settings() -> None:
+    """glibc's mallopt returns 0 for a value it cannot apply (a mmap threshold above 32 MiB, for
+    one), so True means both settings took effect."""
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        pytest.skip("glibc only")
+    assert runtime.keep_freed_blocks()
+    assert runtime.KEEP_BLOCKS_BELOW <= 32 << 20
