@@ -10,6 +10,20 @@ import torch
 _libc: ctypes.CDLL | None = None
 
 
+def _glibc() -> ctypes.CDLL | None:
+    """The C library where it is glibc (has ``malloc_trim`` and ``mallopt``), else None."""
+    global _libc
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        if _libc is None:
+            _libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        _libc.malloc_trim, _libc.mallopt  # noqa: B018 (AttributeError where not glibc)
+    except (OSError, AttributeError):
+        return None
+    return _libc
+
+
 def release_free_memory() -> bool:
     """Return the allocator's free pages to the system (glibc ``malloc_trim``).
 
@@ -18,15 +32,10 @@ def release_free_memory() -> bool:
     resident against 1.4 GB live after 100 steps). Trimming between steps keeps resident memory
     near what is live. Returns False where there is no glibc.
     """
-    global _libc
-    if not sys.platform.startswith("linux"):
+    libc = _glibc()
+    if libc is None:
         return False
-    try:
-        if _libc is None:
-            _libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        _libc.malloc_trim(0)
-    except (OSError, AttributeError):
-        return False
+    libc.malloc_trim(0)
     return True
 
 
@@ -41,24 +50,19 @@ it between steps instead)."""
 def keep_freed_blocks() -> bool:
     """Serve blocks of up to 32 MiB from glibc's heap and keep them there once freed (``mallopt``).
 
-    By default glibc maps each large block afresh and unmaps it on free, so every use of a
-    table-sized tensor (a 170^3 appearance plane table is 16.6 MB: its gradient, Adam's
-    temporaries) faults all of its pages in again. On a trained Nyx step that was 80,000 page
-    faults and 0.12 s of system time per 0.39 s step; with the blocks kept, 1,400 faults, 0.005 s
-    and 0.31 s per step, peak RSS 60 to 120 MB higher (bench/results/train_step_speed.md).
+    With glibc's defaults (a sliding mmap threshold, and the heap's top handed back to the
+    system above twice that), the table-sized tensors of a training step (a 170^3 appearance
+    plane table is 16.6 MB: each micro-batch's gradient of it, Adam's temporaries) kept faulting
+    their pages in: on a trained Nyx step, 80,000 page faults and 0.12 s of system time per 0.39 s
+    step; with the blocks kept, 1,400 faults, 0.005 s and 0.31 s per step, peak RSS 60 to 120 MB
+    higher (bench/results/train_step_speed.md).
     ``release_free_memory`` still returns free pages between steps. Process-wide; returns False
     where there is no glibc.
     """
-    global _libc
-    if not sys.platform.startswith("linux"):
+    libc = _glibc()
+    if libc is None:
         return False
-    try:
-        if _libc is None:
-            _libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
-        return bool(_libc.mallopt(_M_MMAP_THRESHOLD, KEEP_BLOCKS_BELOW)) and bool(
-            _libc.mallopt(_M_TRIM_THRESHOLD, TRIM_ABOVE))
-    except (OSError, AttributeError):
-        return False
+    return bool(libc.mallopt(_M_MMAP_THRESHOLD, KEEP_BLOCKS_BELOW)) and bool(libc.mallopt(_M_TRIM_THRESHOLD, TRIM_ABOVE))
 
 
 def default_threads() -> int:
