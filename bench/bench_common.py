@@ -7,7 +7,9 @@ import json
 import math
 import os
 import platform
+import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -84,6 +86,14 @@ def finite_or_none(value: Any) -> Any:
 def write_json(path: Path, data: dict[str, Any]) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text(json.dumps(finite_or_none(data), indent=1, allow_nan=False) + "\n")
+
+
+def write_results(out_dir: Path, stem: str, record: dict[str, Any],
+                  write_markdown: Callable[[Path, dict[str, Any]], None]) -> None:
+    """``out_dir/stem.json`` (non-finite numbers as null) and ``out_dir/stem.md``, and say where."""
+    write_json(out_dir / f"{stem}.json", record)
+    write_markdown(out_dir / f"{stem}.md", record)
+    print(f"results -> {out_dir / stem}.json and .md", file=sys.stderr)
 
 
 def save_figure(fig: Figure, path: Path, dpi: int = 110) -> None:

@@ -23,7 +23,7 @@ import time
 from pathlib import Path
 
 import torch
-from bench_common import RESULTS, load_average, machine_record, markdown_header, write_json
+from bench_common import RESULTS, load_average, machine_record, markdown_header, write_results
 
 from visnerf.config import FieldConfig, TrainConfig
 from visnerf.rendering.renderer import render_rays
@@ -121,10 +121,7 @@ def main(argv: list[str] | None = None) -> int:
         "torch_threads": args.threads, "batch_rays": args.batch_rays, "repeats": args.repeats,
         "load_average_1min": {"before": load_before, "after": load_average()}, "rows": rows,
     }  # fmt: skip
-    args.out_dir.mkdir(parents=True, exist_ok=True)
-    write_json(args.out_dir / "train_step_memory.json", record)
-    write_markdown(args.out_dir / "train_step_memory.md", record)
-    print(f"results -> {args.out_dir / 'train_step_memory'}.json and .md", file=sys.stderr)
+    write_results(args.out_dir, "train_step_memory", record, write_markdown)
     return 0
 
 

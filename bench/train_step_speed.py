@@ -30,7 +30,7 @@ from pathlib import Path
 
 import torch
 import torch.nn.functional as F
-from bench_common import RESULTS, ROOT, holdout_for, load_average, machine_record, markdown_header, write_json
+from bench_common import RESULTS, ROOT, holdout_for, load_average, machine_record, markdown_header, write_results
 from nyx_train import NYX_STEP_RATIO
 
 CONFIGS = (("embedding_bag", "glibc default"), ("sparse product", "glibc default"),
@@ -188,9 +188,7 @@ def main(argv: list[str] | None = None) -> int:
         "lookup_repeats": args.lookup_repeats, "load_average_1min": {"before": load_before, "after": load_average()},
         "lookups": lookups, "steps_rows": rows, "summary": summary,
     }  # fmt: skip
-    write_json(args.out_dir / "train_step_speed.json", record)
-    write_markdown(args.out_dir / "train_step_speed.md", record)
-    print(f"results -> {args.out_dir / 'train_step_speed'}.json and .md", file=sys.stderr)
+    write_results(args.out_dir, "train_step_speed", record, write_markdown)
     return 0
 
 
