@@ -40,6 +40,11 @@ LOOKUPS = (("appearance plane", 86700, 48, 4), ("density plane", 86700, 16, 4),
 """(table, rows, channels, taps per bag) of a 170^3 model; 74000 bags (3 modes of ~24700 samples)."""
 
 
+def embedding_bag_sum(rows: torch.Tensor, weights: torch.Tensor, table: torch.Tensor) -> torch.Tensor:
+    """``vm_taps.weighted_row_sum`` with ``embedding_bag``'s own backward (what it replaced)."""
+    return F.embedding_bag(rows, table, per_sample_weights=weights, mode="sum")
+
+
 def time_lookups(bags: int, repeats: int) -> list[dict]:
     """Forward and backward of each table's lookup, both ways, interleaved; medians in ms."""
     from visnerf.representation.vm_taps import weighted_row_sum
@@ -51,8 +56,7 @@ def time_lookups(bags: int, repeats: int) -> list[dict]:
         weights = torch.rand(bags, taps, generator=g)
         cotangent = torch.randn(bags, channels, generator=g)
         table = torch.randn(n_rows, channels, generator=g).requires_grad_(True)
-        ways = {"embedding_bag": lambda r, w, t: F.embedding_bag(r, t, per_sample_weights=w, mode="sum"),
-                "sparse product": weighted_row_sum}
+        ways = {"embedding_bag": embedding_bag_sum, "sparse product": weighted_row_sum}
         times: dict[str, list[float]] = {k: [] for k in ways}
         for rep in range(repeats + 1):
             for way, lookup in ways.items():
@@ -78,8 +82,7 @@ def measure_step(backward: str, allocator: str, checkpoint: Path, data: Path, st
 
     torch.set_num_threads(threads)
     if backward == "embedding_bag":
-        vm_taps.weighted_row_sum = lambda rows, weights, table: F.embedding_bag(
-            rows, table, per_sample_weights=weights, mode="sum")
+        vm_taps.weighted_row_sum = embedding_bag_sum
     if allocator == "glibc default":
         trainer_module.keep_freed_blocks = lambda: False
     scene = load_dataset(data)

@@ -6,9 +6,10 @@ the three modes are concatenated: ``[n, 3 * n_components]``.
 
 ``VMGrid.sample`` reads the factors as row tables through ``embedding_bag`` (differentiable in the
 factors, not the coordinates: samples sit at fixed positions). Its backward is one sparse-dense
-product per table on the CPU (``vm_taps.weighted_row_sum``). ``grid_sample`` and advanced indexing, its slow reference twin
-``VMGrid._sample``, back-propagate through ``grid_sampler_2d_backward`` and
-``index_put_(accumulate=True)``, which took 46 % of a Nyx training step on the CPU.
+product per table on the CPU (``vm_taps.weighted_row_sum``). ``grid_sample`` and advanced
+indexing, its slow reference twin ``VMGrid._sample``, back-propagate through
+``grid_sampler_2d_backward`` and ``index_put_(accumulate=True)``, which took 46 % of a Nyx
+training step on the CPU.
 """
 
 import torch

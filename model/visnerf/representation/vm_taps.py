@@ -134,10 +134,10 @@ class _WeightedRowSum(torch.autograd.Function):
     ``embedding_bag``'s own CPU backward sorts the taps and adds one row per tap. On the lookups of
     a 170^3 model with Nyx-sized micro-batches, forward and backward take 16 against 19 ms (the
     appearance plane table) and 8 against 13 ms (the density plane table); a whole trained Nyx
-    step 0.205 against 0.222 s (median of 4 rounds), but only with ``runtime.keep_freed_blocks``: with glibc's default
-    the product's fresh output faults its pages in and the step is slower than with
-    ``embedding_bag`` (bench/results/train_step_speed.md). The
-    product is deterministic and independent of the thread count (tested)."""
+    step 0.205 against 0.222 s (median of 4 rounds), but only with ``runtime.keep_freed_blocks``:
+    with glibc's default the product's fresh output faults its pages in and the step is slower
+    than with ``embedding_bag`` (bench/results/train_step_speed.md). The product is deterministic
+    and independent of the thread count (tested)."""
 
     @staticmethod
     def forward(ctx, table: Tensor, rows: Tensor, weights: Tensor) -> Tensor:  # noqa: ANN001
