@@ -53,8 +53,8 @@ def keep_freed_blocks() -> bool:
     With glibc's defaults (a sliding mmap threshold, and the heap's top handed back to the
     system above twice that), the table-sized tensors of a training step (a 170^3 appearance
     plane table is 16.6 MB: each micro-batch's gradient of it, Adam's temporaries) kept faulting
-    their pages in: on a trained Nyx step, 35,000 to 85,000 page faults and 0.05 to 0.13 s of
-    system time per step; with the blocks kept, about 1,700 faults, 0.005 s, and the step 1.15 to
+    their pages in: on a trained Nyx step, 34,000 to 85,000 page faults and 0.05 to 0.13 s of
+    system time per step; with the blocks kept, about 1,700 faults, 0.005 s, and the step 1.14 to
     1.39 times faster; peak RSS within the spread of the runs (1030 to 1190 MB either way,
     bench/results/train_step_speed.md).
     ``release_free_memory`` still returns free pages between steps. Process-wide; returns False
