@@ -7,6 +7,8 @@ border. A plane of mode ``i`` (axes ``(a, b)``) is stored ``[c, n_b, n_a]``; as 
 """
 
 import warnings
+from collections.abc import Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import torch
@@ -125,36 +127,75 @@ class TapLayout:
         return VMTaps(plane_rows, plane_weights, line_rows, line_weights)
 
 
+_table_gradients_in_place = 0
+"""Depth of ``table_gradients_in_place`` contexts (module-wide: the CPU autograd engine runs a
+backward on the thread that called it, and a trainer has one)."""
+
+
+@contextmanager
+def table_gradients_in_place() -> Iterator[None]:
+    """Within this context, the backward of ``weighted_row_sum`` (CPU) adds its table gradient into
+    the table's ``.grad`` in place (created as zeros where None) and hands autograd none.
+
+    For ``Tensor.backward`` over micro-batches: autograd would otherwise allocate a zero-filled
+    gradient the size of the table for each micro-batch and add it into ``.grad`` (two passes over
+    16.6 MB for a 170^3 appearance plane table, per lookup). ``torch.autograd.grad`` sees no table
+    gradient inside the context, so only a trainer's ``backward`` calls belong in it; tables that
+    are not leaves (no ``.grad`` to accumulate into) get their gradient the usual way.
+    """
+    global _table_gradients_in_place
+    _table_gradients_in_place += 1
+    try:
+        yield
+    finally:
+        _table_gradients_in_place -= 1
+
+
+def transposed_taps(rows: Int[Tensor, "m k"], weights: Float[Tensor, "m k"], n_rows: int) -> Tensor:
+    """The transposed tap matrix ``T^T`` ``[n_rows, m]`` in compressed-row form: row ``r`` lists the
+    samples that read table row ``r`` (in sample order: a stable sort, so products with it are
+    deterministic) and their weights. Indices are int32 where they fit (faster products)."""
+    m, k = rows.shape
+    flat = rows.reshape(-1)
+    index_dtype = torch.int32 if m * k < 2**31 else torch.int64
+    order = torch.sort(flat, stable=True).indices  # [m * k]: taps grouped by table row
+    crow = torch.zeros(n_rows + 1, dtype=index_dtype, device=rows.device)
+    crow[1:] = torch.bincount(flat, minlength=n_rows).cumsum(0)
+    col = torch.div(order, k, rounding_mode="floor").to(index_dtype)
+    with warnings.catch_warnings():  # "sparse CSR support is in beta"
+        warnings.simplefilter("ignore", UserWarning)
+        return torch.sparse_csr_tensor(crow, col, weights.reshape(-1)[order], size=(n_rows, m), check_invariants=False)
+
+
 class _WeightedRowSum(torch.autograd.Function):
     """``embedding_bag`` sum of weighted rows ``out[i] = sum_k w[i, k] * table[rows[i, k]]``,
     differentiable in the table, whose backward on the CPU is one sparse-dense product.
 
-    The tap matrix ``T [m, n_rows]`` is already in compressed-row form (row ``i`` holds ``k``
-    taps), so building it costs nothing, and the table's gradient is ``T^T @ grad``.
-    ``embedding_bag``'s own CPU backward sorts the taps and adds one row per tap. On the lookups of
-    a 170^3 model with Nyx-sized micro-batches, forward and backward take 16 against 19 ms (the
-    appearance plane table) and 8 against 13 ms (the density plane table); a whole trained Nyx
-    step 0.205 against 0.222 s (median of 4 rounds), but only with ``runtime.keep_freed_blocks``:
-    with glibc's default the product's fresh output faults its pages in and the step is slower
-    than with ``embedding_bag`` (bench/results/train_step_speed.md). The product is deterministic
-    and independent of the thread count (tested)."""
+    The table's gradient is ``T^T @ grad`` for the tap matrix ``T [m, n_rows]``; ``T^T`` is built
+    in compressed-row form from a stable sort of the taps (``transposed_taps``), and within
+    ``table_gradients_in_place`` the product is added into ``.grad`` in place (``addmm_``).
+    ``embedding_bag``'s own CPU backward sorts the taps and adds one row per tap; transposing the
+    compressed-row ``T`` (the previous way) converts it at every call. The product is
+    deterministic and independent of the thread count (tested)."""
 
     @staticmethod
     def forward(ctx, table: Tensor, rows: Tensor, weights: Tensor) -> Tensor:  # noqa: ANN001
         ctx.save_for_backward(rows, weights)
-        ctx.n_rows = table.shape[0]
+        ctx.table = table
         return F.embedding_bag(rows, table, per_sample_weights=weights, mode="sum")
 
     @staticmethod
-    def backward(ctx, grad: Tensor) -> tuple[Tensor, None, None]:  # noqa: ANN001
+    def backward(ctx, grad: Tensor) -> tuple[Tensor | None, None, None]:  # noqa: ANN001
         rows, weights = ctx.saved_tensors
-        m, k = rows.shape
-        crow = torch.arange(0, m * k + 1, k, dtype=rows.dtype, device=rows.device)
-        with warnings.catch_warnings():  # "sparse CSR support is in beta"
-            warnings.simplefilter("ignore", UserWarning)
-            taps = torch.sparse_csr_tensor(crow, rows.reshape(-1), weights.reshape(-1).to(grad.dtype),
-                                           size=(m, ctx.n_rows), check_invariants=False)
-            return taps.t() @ grad.contiguous(), None, None
+        table: Tensor = ctx.table
+        taps_t = transposed_taps(rows, weights.to(table.dtype), table.shape[0])
+        grad = grad.to(table.dtype).contiguous()
+        if _table_gradients_in_place and table.is_leaf:
+            if table.grad is None:
+                table.grad = torch.zeros_like(table)
+            table.grad.addmm_(taps_t, grad)
+            return None, None, None
+        return taps_t @ grad, None, None
 
 
 def weighted_row_sum(

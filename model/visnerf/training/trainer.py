@@ -39,6 +39,7 @@ from visnerf.rendering.occupancy import (
 from visnerf.rendering.renderer import RenderSettings, empty_space_of, render_image, render_rays
 from visnerf.rendering.spacing import choose_full_spacing
 from visnerf.representation.field import VisNerfField
+from visnerf.representation.vm_taps import table_gradients_in_place
 from visnerf.runtime import bf16_native, keep_freed_blocks, release_free_memory
 from visnerf.training.regularizers import RegularizerWeights, regularization
 
@@ -291,7 +292,8 @@ class Trainer:
             if not torch.isfinite(part):
                 raise FloatingPointError(f"non-finite loss at iteration {self.state.iteration}")
             if part.requires_grad:  # a chunk whose rays meet no occupied cell has nothing to learn
-                part.backward()
+                with table_gradients_in_place():  # each chunk's factor gradients add into .grad
+                    part.backward()
             sq_error += float(part.detach())
             samples += int(out["n_samples"])
         terms = regularization(self.field, self._weights())
