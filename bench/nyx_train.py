@@ -6,7 +6,9 @@ iterations per second, peak RSS, checkpoint size and seconds per 256x256 frame.
 
     .venv/bin/python bench/nyx_train.py --minutes 60
 
-Writes bench/results/nyx_train.json, .md and .png, and the checkpoint to runs/nyx.safetensors.
+Writes the checkpoint to runs/nyx.safetensors (``--out``) and nyx_train.json, .md and .png to
+bench/results/nyx_train_nyx/ (``--results``; by default named after the checkpoint). It refuses,
+before training, to write over a checkpoint or a report that exists (``--force`` does).
 """
 
 import argparse
@@ -183,8 +185,17 @@ def main() -> int:
     ap.add_argument("--figure-only", metavar="CKPT", default=None,
                     help="train nothing: write nyx_heldout.png for this checkpoint to --results")
     ap.add_argument("--out", default=str(ROOT / "runs" / "nyx.safetensors"))
-    ap.add_argument("--results", default=str(ROOT / "bench" / "results"))
+    ap.add_argument("--results", default=None,
+                    help="folder of the report (default bench/results/nyx_train_<stem of --out>)")
+    ap.add_argument("--force", action="store_true", help="write over an existing --out and report")
     args = ap.parse_args()
+    if args.results is None:
+        args.results = str(ROOT / "bench" / "results" / f"nyx_train_{Path(args.out).stem}")
+    if not args.figure_only and not args.force:
+        taken = [p for p in (Path(args.out), Path(args.results) / "nyx_train.json") if p.exists()]
+        if taken:  # an hour of training must not end by writing over an earlier run
+            ap.error(f"{' and '.join(map(str, taken))} already exist{'s' if len(taken) == 1 else ''}: "
+                     "pass another --out / --results, or --force")
 
     device = pick_device(args.device)
     if args.threads:
