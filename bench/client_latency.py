@@ -31,6 +31,7 @@ import urllib.request
 from pathlib import Path
 
 import numpy as np
+from bench_common import write_json
 
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "bench" / "results"
@@ -305,7 +306,7 @@ def main(argv: list[str] | None = None) -> int:
             "slider_preview": (slider_median or 1e9) <= TARGET_PREVIEW_MS,
         },
     }
-    args.out.write_text(json.dumps(result, indent=2) + "\n")
+    write_json(args.out, result)
     write_markdown(result, args.out.with_suffix(".md"))
     print(json.dumps({k: result[k] for k in ("page_load", "meets_targets")}, indent=2))
     print(f"wrote {args.out} and {args.out.with_suffix('.md')}")

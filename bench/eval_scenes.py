@@ -26,6 +26,7 @@ import time
 from pathlib import Path
 
 import torch
+from bench_common import write_json
 
 from visnerf import runtime
 from visnerf.commands import pick_device
@@ -229,7 +230,7 @@ def main(argv: list[str] | None = None) -> int:
     plot_training_curves(figure, runs)
     record["training_figure"] = str(figure.relative_to(ROOT)) if figure.is_relative_to(ROOT) else str(figure)
     args.results.mkdir(parents=True, exist_ok=True)
-    (args.results / f"{stem}.json").write_text(json.dumps(record, indent=2, allow_nan=False) + "\n")
+    write_json(args.results / f"{stem}.json", record)
     write_markdown(args.results / f"{stem}.md", record)
     if full_run:
         update_readme(ROOT / "README.md", record)

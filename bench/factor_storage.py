@@ -10,7 +10,6 @@ Writes bench/results/factor_storage.md and .json.
 
 import argparse
 import dataclasses
-import json
 import sys
 import tempfile
 import time
@@ -18,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from bench_common import write_json
 
 from visnerf.checkpoint import load_checkpoint, save_checkpoint
 from visnerf.commands import parse_settings, parse_views
@@ -78,7 +78,7 @@ def main() -> int:
     }
     out = Path(args.results)
     out.mkdir(parents=True, exist_ok=True)
-    (out / "factor_storage.json").write_text(json.dumps(result, indent=1))
+    write_json(out / "factor_storage.json", result)
     lines = ["# Float16 factors in the checkpoint", "", f"Command: `{result['command']}`  ", f"Date: {result['date']}", "",
              "| frames | grid | PSNR against ground truth, float32 factors | float16 factors | float16 frames against float32 frames | largest channel difference |",
              "| --- | --- | --- | --- | --- | --- |",

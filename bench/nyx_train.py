@@ -94,7 +94,9 @@ def final_eval(ckpt: Path, val, n_frames: int, figure: Path | None = None,
 
 
 def write_report(result: dict, out_dir: Path) -> None:
-    (out_dir / "nyx_train.json").write_text(json.dumps(result, indent=1))
+    from bench_common import write_json  # bench_common imports this module
+
+    write_json(out_dir / "nyx_train.json", result)
     f = result["final"]
     lines = [
         "# Nyx training on " + ("this CPU" if result.get("device", "cpu") == "cpu" else result["device"]),

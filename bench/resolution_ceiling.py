@@ -18,6 +18,7 @@ from pathlib import Path
 import numpy as np
 import torch
 import torch.nn.functional as F
+from bench_common import write_json
 
 from visnerf.data.parsers.blender import load_dataset
 from visnerf.evaluation.metrics import psnr
@@ -56,7 +57,7 @@ def main() -> int:
     everything = json.loads(store.read_text()) if store.exists() else {}
     name = Path(args.data).name
     everything[name] = {"images": len(idx), "size": [scene.intrinsics.width, scene.intrinsics.height], "factors": rows}
-    store.write_text(json.dumps(everything, indent=1))
+    write_json(store, everything)
     lines = ["# Detail at the pixel scale", "",
              "Each image area-downsampled by the factor and bilinearly upsampled back, PSNR against itself "
              "(`python bench/resolution_ceiling.py --data DATA`). How much of the images' detail lies at that "

@@ -12,7 +12,6 @@ and test views of every scene into docs/images/scenes_contact_sheet.png.
 """
 
 import argparse
-import json
 import os
 import platform
 import shutil
@@ -22,6 +21,7 @@ import time
 from pathlib import Path
 
 import torch
+from bench_common import write_json
 
 from visnerf.scenes.catalog import scene_catalog
 from visnerf.scenes.contact_sheet import make_contact_sheet
@@ -141,7 +141,7 @@ def main(argv: list[str] | None = None) -> int:
     record["total_seconds"] = round(time.perf_counter() - started, 1)
     args.results.mkdir(parents=True, exist_ok=True)
     stem = "scene_gen" if full_run else "scene_gen.partial"  # a partial run never replaces the record
-    (args.results / f"{stem}.json").write_text(json.dumps(record, indent=2) + "\n")
+    write_json(args.results / f"{stem}.json", record)
     write_markdown(args.results / f"{stem}.md", record)
     print(f"results -> {args.results / stem}.json and .md", file=sys.stderr)
     if sheet is not None:

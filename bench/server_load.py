@@ -30,6 +30,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import httpx
+from bench_common import write_json
 
 ROOT = Path(__file__).resolve().parents[1]
 RSS_WINDOW_S = 10.0
@@ -340,7 +341,7 @@ def main(argv: list[str] | None = None) -> int:
         )
     )
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    args.out.with_suffix(".json").write_text(json.dumps(result, indent=2) + "\n")
+    write_json(args.out.with_suffix(".json"), result)
     write_markdown(args.out.with_suffix(".md"), result)
     print(json.dumps(results, indent=2))
     return 0 if results["errors"] == 0 and exit_code == 0 else 1
