@@ -413,11 +413,12 @@ def micro_batches(
 
     A ray's samples are counted along its span through the box or, with ``windows``
     (``occupied_windows``), the samples ``render_rays`` takes in its window: only those are
-    evaluated and back-propagated. Samples per ray grow with the grid resolution (the step is half a voxel), so
-    a fixed number of rays per chunk would let activation memory grow with every upsampling; a
-    sample budget keeps it flat. Counting the occupied span instead of the box span gives fewer,
+    evaluated and back-propagated. Samples per ray grow with the grid resolution (the step is a
+    fixed number of voxels), so a fixed number of rays per chunk would let activation memory grow
+    with every upsampling; a sample budget keeps it flat. Counting the occupied span instead of the box span gives fewer,
     fuller chunks once content is carved or learned (on Nyx, 26 chunks of a 4096-ray step became
-    7), and each chunk's backward pass fills and accumulates dense gradients of every plane.
+    7), and each chunk costs its backward pass's fixed work (a sort of its taps per table, the
+    decoders' weight gradients).
     """
     t_near, t_far, hit = intersect_aabb(rays_o, rays_d, field_.aabb)
     if windows is None:
