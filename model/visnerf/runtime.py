@@ -56,7 +56,7 @@ def keep_freed_blocks() -> bool:
     their pages in: on a trained Nyx step, 34,000 to 85,000 page faults and 0.05 to 0.13 s of
     system time per step; with the blocks kept, about 1,700 faults, 0.005 s, and the step 1.14 to
     1.39 times faster; peak RSS within the spread of the runs (1030 to 1190 MB either way,
-    bench/results/train_step_speed.md).
+    bench/results/train_step_allocator/, a run of bench/train_step_speed.py with both allocators).
     ``release_free_memory`` still returns free pages between steps. Process-wide; returns False
     where there is no glibc.
     """
