@@ -1,6 +1,7 @@
-"""Helpers shared by bench/render_speed.py and bench/train_speed.py (not a benchmark itself).
+"""Helpers shared by the benchmarks (not a benchmark itself).
 
-Evaluation frames of a dataset, the machine record, JSON without NaN/inf, and a figure writer.
+The hold-out of the Nyx benchmarks, evaluation frames of a dataset, the machine record, JSON
+without NaN/inf, and a figure writer.
 """
 
 import json
@@ -17,7 +18,6 @@ import numpy as np
 import torch
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
-from nyx_train import HOLDOUT_SETTINGS, HOLDOUT_VIEWS
 
 from visnerf.config import HoldoutConfig
 from visnerf.data.holdout import split_holdout
@@ -26,11 +26,15 @@ from visnerf.data.scene import SceneData
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results"
+HOLDOUT_SETTINGS = ((0.12, 0.0235, 0.625), (0.1375, 0.0215, 0.775), (0.1375, 0.0225, 0.7), (0.155, 0.0225, 0.625))
+"""Whole Nyx parameter settings held out from training (interpolation between training settings)."""
+HOLDOUT_VIEWS = (5, 17, 29, 40)
+"""Views (icosphere order) held out at every other setting."""
 
 
 def holdout_for(scene: SceneData) -> HoldoutConfig:
     """The hold-out of bench/nyx_train.py and scripts/train_bundled.sh: views 5, 17, 29 and 40 at
-    every setting, plus nyx_train's four whole parameter settings where the dataset has that many
+    every setting, plus the four whole Nyx parameter settings where the dataset has that many
     parameters (a setting that matches no frame holds nothing out)."""
     settings = tuple(s for s in HOLDOUT_SETTINGS if len(s) == scene.n_params)
     return HoldoutConfig(views=HOLDOUT_VIEWS, settings=settings)

@@ -22,9 +22,10 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from bench_common import HOLDOUT_SETTINGS, HOLDOUT_VIEWS, ROOT, holdout_for, write_json
 
 from visnerf.commands import parse_bbox, pick_device, positive_float, unit_fraction, with_bbox
-from visnerf.config import FieldConfig, HoldoutConfig, RenderConfig, TrainConfig
+from visnerf.config import FieldConfig, RenderConfig, TrainConfig
 from visnerf.data.holdout import split_holdout
 from visnerf.data.parsers.blender import load_dataset
 from visnerf.evaluation.colour_difference import luv_difference
@@ -33,10 +34,6 @@ from visnerf.evaluation.metrics import psnr, ssim
 from visnerf.evaluation.plots import plot_difference
 from visnerf.inference import load_scene
 from visnerf.training.trainer import Trainer
-
-ROOT = Path(__file__).resolve().parents[1]
-HOLDOUT_SETTINGS = ((0.12, 0.0235, 0.625), (0.1375, 0.0215, 0.775), (0.1375, 0.0225, 0.7), (0.155, 0.0225, 0.625))
-HOLDOUT_VIEWS = (5, 17, 29, 40)
 
 # The Nyx recipe, where it differs from the library's defaults (TrainConfig, RenderConfig), and why.
 NYX_CARVE_MIN_SEEN_FRACTION = 0.75
@@ -94,8 +91,6 @@ def final_eval(ckpt: Path, val, n_frames: int, figure: Path | None = None,
 
 
 def write_report(result: dict, out_dir: Path) -> None:
-    from bench_common import write_json  # bench_common imports this module
-
     write_json(out_dir / "nyx_train.json", result)
     f = result["final"]
     lines = [
@@ -207,7 +202,7 @@ def main() -> int:
     scene = with_bbox(load_dataset(args.data), args.bbox)
     load_s = time.perf_counter() - t0
     rss_after_load = peak_rss_mb()
-    train, val = split_holdout(scene, HoldoutConfig(views=HOLDOUT_VIEWS, settings=HOLDOUT_SETTINGS))
+    train, val = split_holdout(scene, holdout_for(scene))
     del scene
     assert val is not None
     if args.figure_only:
