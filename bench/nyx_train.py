@@ -49,6 +49,10 @@ origin), and 12.1 MB with float16 factors."""
 NYX_STEP_RATIO = 1.4
 """Training samples 1.4 voxels apart: 0.0032 world units, the spacing the 160-voxel trial ran at."""
 
+NYX_OCCUPANCY_REFINE_AT = (0.25, 0.5, 0.75)
+"""Progress fractions at which the occupancy grid is rebuilt within itself
+(``TrainConfig.occupancy_refine_at``)."""
+
 
 def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
@@ -121,12 +125,13 @@ def write_report(result: dict, out_dir: Path) -> None:
         "",
         "Validation PSNR against training time:",
         "",
-        "| train s | iteration | train PSNR | val PSNR | val SSIM |",
-        "| --- | --- | --- | --- | --- |",
+        "| train s | iteration | train PSNR | val PSNR | val SSIM | grid | occupied cells |",
+        "| --- | --- | --- | --- | --- | --- | --- |",
     ]
     for row in result["log"]:
         lines.append(f"| {row['train_seconds']:.0f} | {row['iteration']} | {row['train_psnr']:.2f} | "
-                     f"{row.get('val_psnr', float('nan')):.2f} | {row.get('val_ssim', float('nan')):.3f} |")
+                     f"{row.get('val_psnr', float('nan')):.2f} | {row.get('val_ssim', float('nan')):.3f} | "
+                     f"{row.get('resolution', '')} | {row.get('occupied_cells', '')} |")
     lines += ["", "![validation PSNR against training time](nyx_train.png)", "",
               "![the held-out frame of median PSNR](nyx_heldout.png)", ""]
     (out_dir / "nyx_train.md").write_text("\n".join(lines))
@@ -172,6 +177,13 @@ def main() -> int:
     ap.add_argument("--carve-min-seen-fraction", type=unit_fraction, default=NYX_CARVE_MIN_SEEN_FRACTION,
                     help="fraction of a setting's views that must see a carved cell "
                          f"(default {NYX_CARVE_MIN_SEEN_FRACTION:g}; 0 keeps every cell some view sees)")
+    ap.add_argument("--param-components", type=int, default=FieldConfig.n_param_components,
+                    help="components of each parameter-axis vector (default "
+                         f"{FieldConfig.n_param_components}; must divide 16 and 48)")
+    ap.add_argument("--occupancy-refine-at", type=lambda v: tuple(float(x) for x in v.split(",") if x),
+                    default=NYX_OCCUPANCY_REFINE_AT, metavar="P1,P2,...",
+                    help="progress fractions at which the occupancy grid is rebuilt within itself "
+                         f"(default {','.join(map(str, NYX_OCCUPANCY_REFINE_AT))}; '' for none)")
     ap.add_argument("--tv-density", type=float, default=TrainConfig.tv_weight_density,
                     help=f"total-variation weight of the density factors (default {TrainConfig.tv_weight_density:g})")
     ap.add_argument("--step-ratio", type=positive_float, default=NYX_STEP_RATIO,
@@ -214,8 +226,10 @@ def main() -> int:
                       time_budget_s=None if by_iterations else args.minutes * 60, batch_rays=args.batch_rays,
                       micro_batch_samples=args.micro_batch_samples, resolution_final=args.resolution,
                       validate_every_s=args.validate_every, validate_max_images=6,
-                      carve_min_seen_fraction=args.carve_min_seen_fraction, tv_weight_density=args.tv_density)
-    trainer = Trainer(train, val, cfg, device, field_cfg=FieldConfig(density_shift=args.density_shift),
+                      carve_min_seen_fraction=args.carve_min_seen_fraction, tv_weight_density=args.tv_density,
+                      occupancy_refine_at=args.occupancy_refine_at)
+    trainer = Trainer(train, val, cfg, device, field_cfg=FieldConfig(density_shift=args.density_shift,
+                                                               n_param_components=args.param_components),
                       render_cfg=RenderConfig(step_ratio=args.step_ratio))
     trainer.run(progress_bar=sys.stderr.isatty(), on_validate=lambda row: print(json.dumps(row), flush=True))
     ckpt = trainer.save(args.out, dataset="shared/data/nyx")
@@ -255,7 +269,8 @@ def main() -> int:
         "checkpoint_mb": ckpt.stat().st_size / 1e6,
         "final_resolution": trainer.field.resolution,
         "recipe": {"carve_min_seen_fraction": args.carve_min_seen_fraction, "resolution": args.resolution,
-                   "step_ratio": args.step_ratio, "full_step_ratio": trainer.render_cfg.full_step_ratio,
+                   "step_ratio": args.step_ratio, "param_components": args.param_components,
+                   "occupancy_refine_at": list(args.occupancy_refine_at), "full_step_ratio": trainer.render_cfg.full_step_ratio,
                    "factor_storage": trainer.field.cfg.factor_storage},
         "full_spacing": trainer.spacing_note,
         "final_grid": grids,

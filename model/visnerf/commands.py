@@ -137,7 +137,8 @@ def _train(args: argparse.Namespace) -> int:
         render_cfg = meta.render  # the resumed model's sample spacing, unless --step-ratio says otherwise
         start = TrainState(iteration=int(prov.get("iterations", 0)), train_seconds=float(prov.get("train_seconds", 0.0)),
                            upsamples_done=int(prov.get("upsamples_done", 0)),
-                           occupancy_done=int(prov.get("occupancy_done", 0)))
+                           occupancy_done=int(prov.get("occupancy_done", 0)),
+                           refines_done=int(prov.get("refines_done", 0)))
     print(f"training on {train.n_frames} frames ({val.n_frames if val else 0} held out), "
           f"K={train.n_params}, {train.intrinsics.width}x{train.intrinsics.height}, device {device}", file=sys.stderr)
     if args.step_ratio is not None:

@@ -177,6 +177,10 @@ class TrainConfig:
     """Progress fractions at which planes and lines are upsampled (log-spaced resolutions)."""
     occupancy_at: tuple[float, ...] = (0.067, 0.133)
     """Progress fractions at which the occupancy mask is rebuilt (the first also shrinks the box)."""
+    occupancy_refine_at: tuple[float, ...] = ()
+    """Progress fractions, after the ``occupancy_at`` milestones, at which the occupancy grid is
+    rebuilt from the density within itself (``Trainer.refine_occupancy``: cells leave as the
+    density sparsens, none join), so that later steps sample fewer empty cells."""
     occupancy_min_iterations: int = 300
     """Occupancy milestones wait for at least this many iterations (a time budget on a busy machine
     would otherwise reach them before the density has formed)."""

@@ -6,6 +6,8 @@ import torch
 from torch import Tensor
 
 from visnerf.representation.field import VisNerfField
+from visnerf.representation.vm import VMGrid
+from visnerf.representation.vm_taps import MODES
 
 
 @dataclass(frozen=True)
@@ -33,3 +35,83 @@ def regularization(field: VisNerfField, w: RegularizerWeights) -> dict[str, Tens
             field.density_params.total_variation() + field.appearance_params.total_variation()
         )
     return {k: v.to(field.device) if isinstance(v, Tensor) else torch.tensor(v) for k, v in terms.items()}
+
+
+def _grad_of(table: Tensor) -> Tensor:
+    """``table.grad``, created as zeros where None (the trainer sets gradients to None each step)."""
+    if table.grad is None:
+        table.grad = torch.zeros_like(table)
+    return table.grad
+
+
+def _add_difference_terms_(values: Tensor, grad: Tensor, dim: int, scale: float) -> Tensor:
+    """``mean((v[i+1] - v[i])^2)`` along ``dim`` (detached, 0-d), its gradient times ``scale`` added into ``grad``."""
+    n = values.shape[dim] - 1
+    if n < 1:
+        return torch.zeros((), device=values.device)
+    d = values.narrow(dim, 1, n) - values.narrow(dim, 0, n)  # a new contiguous tensor
+    value = torch.dot(d.view(-1), d.view(-1)) / d.numel()
+    d.mul_(2.0 * scale / d.numel())
+    grad.narrow(dim, 1, n).add_(d)
+    grad.narrow(dim, 0, n).sub_(d)
+    return value
+
+
+@torch.no_grad()
+def add_grid_total_variation_(grid: VMGrid, weight: float) -> Tensor:
+    """``weight * grid.total_variation()`` (detached), its gradient added into the factor tables'
+    ``.grad`` in place: one difference tensor per term instead of autograd's forward, backward and
+    table-sized gradient (on a 170^3 appearance grid, about 14 ms of a 160 ms Nyx step)."""
+    planes, lines = grid.row_tables()
+    g_planes, g_lines = _grad_of(planes), _grad_of(lines)
+    scale = weight / len(MODES)
+    total = torch.zeros((), device=planes.device)
+    start = 0
+    for h, w in grid._plane_shapes:
+        rows, g = planes[start : start + h * w].view(h, w, -1), g_planes[start : start + h * w].view(h, w, -1)
+        total = total + _add_difference_terms_(rows, g, 0, scale) + _add_difference_terms_(rows, g, 1, scale)
+        start += h * w
+    start = 0
+    for r in grid._line_lengths:
+        total = total + _add_difference_terms_(lines[start : start + r], g_lines[start : start + r], 0, scale)
+        start += r
+    return weight * total / len(MODES)
+
+
+@torch.no_grad()
+def add_grid_l1_(grid: VMGrid, weight: float) -> Tensor:
+    """``weight * grid.l1()`` (detached), its (sub)gradient ``sign(v)`` added into ``.grad`` in place."""
+    planes, lines = grid.row_tables()
+    total = torch.zeros((), device=planes.device)
+    n_factors = 2 * len(MODES)
+    for table, grad, sizes in ((planes, _grad_of(planes), [h * w for h, w in grid._plane_shapes]),
+                               (lines, _grad_of(lines), list(grid._line_lengths))):
+        start = 0
+        for size in sizes:
+            part = table[start : start + size]
+            total = total + part.abs().sum() / part.numel()
+            grad[start : start + size].add_(torch.sign(part), alpha=weight / (n_factors * part.numel()))
+            start += size
+    return weight * total / n_factors
+
+
+def backward_regularization(field: VisNerfField, w: RegularizerWeights) -> dict[str, float]:
+    """Add the gradient of every weighted term of ``regularization`` into ``.grad`` and return the
+    terms' values: the grid terms in place (``add_grid_l1_``, ``add_grid_total_variation_``), the
+    parameter-vector terms (a few hundred values) through autograd. Equal to
+    ``sum(regularization(field, w).values()).backward()`` (tested)."""
+    values: dict[str, float] = {}
+    if w.l1_density > 0:
+        values["l1"] = float(add_grid_l1_(field.density_grid, w.l1_density))
+    if w.tv_density > 0:
+        values["tv_density"] = float(add_grid_total_variation_(field.density_grid, w.tv_density))
+    if w.tv_appearance > 0:
+        values["tv_appearance"] = float(add_grid_total_variation_(field.appearance_grid, w.tv_appearance))
+    rest = regularization(field, RegularizerWeights(0.0, w.param_l1, 0.0, 0.0, w.tv_params))
+    if rest:
+        total = sum(rest.values())
+        if not torch.isfinite(total):
+            raise FloatingPointError("non-finite regularization of the parameter vectors")
+        total.backward()
+        values.update({k: float(v.detach()) for k, v in rest.items()})
+    return values

@@ -2,8 +2,8 @@
 
 Progress is ``max(iteration / iterations, train_seconds / time_budget)``. Learning rates decay
 exponentially with progress; grid upsampling, occupancy updates (the first also shrinks the box to
-the content) and importance sampling switch on at progress fractions of the config. Validation
-time is not counted as training time.
+the content), occupancy refinements and importance sampling switch on at progress fractions of the
+config. Milestones count as training time (a wall-clock budget includes them); validation does not.
 """
 
 import csv
@@ -41,7 +41,7 @@ from visnerf.rendering.spacing import choose_full_spacing
 from visnerf.representation.field import VisNerfField
 from visnerf.representation.vm_taps import table_gradients_in_place
 from visnerf.runtime import bf16_native, keep_freed_blocks, release_free_memory
-from visnerf.training.regularizers import RegularizerWeights, regularization
+from visnerf.training.regularizers import RegularizerWeights, backward_regularization
 
 
 def resolution_for_box(extent: torch.Tensor, voxels_per_axis: int | float) -> tuple[int, int, int]:
@@ -64,6 +64,7 @@ class TrainState:
     train_seconds: float = 0.0
     upsamples_done: int = 0
     occupancy_done: int = 0
+    refines_done: int = 0
     log: list[dict] = field(default_factory=list)
 
 
@@ -206,23 +207,32 @@ class Trainer:
     @torch.no_grad()
     def finish_occupancy(self) -> None:
         """The inference grid at the end of training: the density's occupancy now, within the
-        grid training last sampled.
+        grid training last sampled (``refine_occupancy``).
 
         Training evaluates density only in that grid's cells (``render_rays`` drops the rest), so
-        a cell outside it has had no photometric loss since the last occupancy milestone (on Nyx,
-        at 13 % of the run), while the shared plane and line factors went on changing its
-        density. A grid rebuilt from the density alone would render such cells wherever their
-        density has since grown past the threshold; intersected, inference renders only cells
-        that training kept fitting. Without a grid (no carve, no milestone) it is the density's.
+        a cell outside it has had no photometric loss since the last occupancy milestone, while
+        the shared plane and line factors went on changing its density. A grid rebuilt from the
+        density alone would render such cells wherever their density has since grown past the
+        threshold; intersected, inference renders only cells that training kept fitting. Without
+        a grid (no carve, no milestone) it is the density's.
         """
-        trained = self.field.occupancy
-        if trained is None:
+        if self.field.occupancy is None:
             self.update_occupancy(shrink=False)
             return
-        res = tuple(trained.shape)
-        grid = self.density_occupancy(res) & trained  # type: ignore[arg-type]
+        self.refine_occupancy()
+
+    @torch.no_grad()
+    def refine_occupancy(self) -> int:
+        """Rebuild the grid from the density within the grid training samples now (cells can
+        leave, never join: a cell outside it has had no photometric loss, see
+        ``finish_occupancy``). Returns the number of occupied cells."""
+        trained = self.field.occupancy
+        if trained is None:
+            return 0
+        grid = self.density_occupancy(tuple(trained.shape)) & trained  # type: ignore[arg-type]
         if bool(grid.any()):
             self.field.set_occupancy(grid)
+        return int(self.field.occupancy.sum())
 
     def _milestones(self) -> None:
         p = self.progress()
@@ -243,6 +253,11 @@ class Trainer:
             # box is not shrunk again.
             self.update_occupancy(shrink=self.state.occupancy_done == 0 and self.carved is None)
             self.state.occupancy_done += 1
+        while (self.state.occupancy_done == len(self.cfg.occupancy_at)
+               and self.state.refines_done < len(self.cfg.occupancy_refine_at)
+               and p >= self.cfg.occupancy_refine_at[self.state.refines_done]):
+            self.refine_occupancy()
+            self.state.refines_done += 1
 
     def _weights(self) -> RegularizerWeights:
         l1 = self.cfg.l1_weight_initial if self.state.iteration < self.cfg.l1_switch_iteration else self.cfg.l1_weight_rest
@@ -296,14 +311,10 @@ class Trainer:
                     part.backward()
             sq_error += float(part.detach())
             samples += int(out["n_samples"])
-        terms = regularization(self.field, self._weights())
-        reg = sum(terms.values())
-        if isinstance(reg, Tensor):
-            if not torch.isfinite(reg):
-                raise FloatingPointError(f"non-finite regularization at iteration {self.state.iteration}")
-            reg.backward()
+        reg_value = sum(backward_regularization(self.field, self._weights()).values())
+        if not math.isfinite(reg_value):  # before the step: the factors stay as they were
+            raise FloatingPointError(f"non-finite regularization at iteration {self.state.iteration}")
         self.optimizer.step()
-        reg_value = float(reg.detach()) if isinstance(reg, Tensor) else float(reg)
         return {"mse": sq_error, "loss": sq_error + reg_value, "samples": float(samples)}
 
     def run(
@@ -319,8 +330,8 @@ class Trainer:
                    dynamic_ncols=True, desc="train")
         ema_mse = None
         while self.progress() < 1.0:
+            t0 = time.perf_counter()  # milestones (upsampling, occupancy grids) are training time
             self._milestones()
-            t0 = time.perf_counter()
             stats = self.train_step()
             dt = time.perf_counter() - t0
             self.state.iteration += 1
@@ -350,6 +361,8 @@ class Trainer:
         row = {"iteration": self.state.iteration, "train_seconds": round(self.state.train_seconds, 2),
                "wall_seconds": round(time.perf_counter() - wall0, 2), "train_psnr": round(train_psnr, 3),
                "resolution": self.field.resolution[0]}
+        if self.field.occupancy is not None:
+            row["occupied_cells"] = int(self.field.occupancy.sum())
         if self.val_scene is not None:
             row.update({k: round(v, 4) for k, v in validate(self.field, self.val_scene, self.render_cfg,
                                                               self.cfg.validate_max_images).items()})
@@ -377,7 +390,8 @@ class Trainer:
                         "train_seconds": round(self.state.train_seconds, 1),
                         "val_psnr": last.get("val_psnr"), "val_ssim": last.get("val_ssim"),
                         "seed": self.cfg.seed, "upsamples_done": self.state.upsamples_done,
-                        "occupancy_done": self.state.occupancy_done, "full_spacing": self.spacing_note},
+                        "occupancy_done": self.state.occupancy_done,
+                        "refines_done": self.state.refines_done, "full_spacing": self.spacing_note},
         )
         save_checkpoint(self.field, meta, path)
         write_log(self.state.log, path.with_suffix(".log.csv"))

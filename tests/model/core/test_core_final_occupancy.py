@@ -36,3 +36,32 @@ def test_without_a_training_grid_the_inference_grid_is_the_densitys() -> None:
     assert trainer.field.occupancy is None
     trainer.finish_occupancy()
     assert torch.equal(trainer.field.occupancy, trainer.density_occupancy((8, 8, 8)))
+
+
+def test_refine_milestones_shrink_the_grid_within_itself_after_the_occupancy_milestones() -> None:
+    field, _ = make_tiny_field([("t", [0.0, 1.0])], seed=1, resolution=12)
+    cfg = TrainConfig(iterations=100, resolution_init=12, resolution_final=12, carve=False, occupancy_resolution=8,
+                      upsample_at=(), occupancy_at=(0.1,), occupancy_min_iterations=0, occupancy_refine_at=(0.5, 0.7))
+    trainer = Trainer(make_noise_scene(), None, cfg, torch.device("cpu"), init_field=field)
+    trainer.state.iteration = 60  # past the first refine, before the occupancy milestone ran
+    trainer._milestones()
+    assert trainer.state.occupancy_done == 1 and trainer.state.refines_done == 1
+    trainer.field.set_occupancy(_ball())  # as if training had sampled only the ball since
+    density_alone = trainer.density_occupancy((8, 8, 8))
+    trainer.state.iteration = 80
+    trainer._milestones()
+    assert trainer.state.refines_done == 2
+    assert torch.equal(trainer.field.occupancy, density_alone & _ball())
+    trainer.state.iteration = 99
+    trainer._milestones()
+    assert trainer.state.refines_done == 2  # each milestone once
+
+
+def test_milestones_count_as_training_time(monkeypatch) -> None:  # noqa: ANN001
+    import time
+
+    trainer = _trainer()
+    monkeypatch.setattr(trainer, "_milestones", lambda: time.sleep(0.3))
+    trainer.run(progress_bar=False)
+    assert trainer.state.iteration == 1
+    assert trainer.state.train_seconds >= 0.3

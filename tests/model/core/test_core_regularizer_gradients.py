@@ -1,0 +1,83 @@
+"""The priors' gradients added in place equal autograd's gradients of ``regularization``."""
+
+import pytest
+import torch
+
+from visnerf.representation.vm import VMGrid
+from visnerf.testing import make_tiny_field
+from visnerf.training.regularizers import (
+    RegularizerWeights,
+    add_grid_l1_,
+    add_grid_total_variation_,
+    backward_regularization,
+    regularization,
+)
+
+WEIGHTS = RegularizerWeights(l1_density=3e-4, param_l1=2e-4, tv_density=0.05, tv_appearance=0.01, tv_params=0.02)
+
+
+def _field():  # noqa: ANN202
+    field, _ = make_tiny_field([("a", [0.0, 0.5, 1.0]), ("b", [1.0, 2.0])], seed=3, resolution=7)
+    field.density_grid.resample((5, 7, 6))  # unequal axes: every difference direction is its own size
+    field.appearance_grid.resample((5, 7, 6))
+    gen = torch.Generator().manual_seed(5)
+    with torch.no_grad():
+        for table in field.density_params.tables:
+            table.add_(0.3 * torch.randn(table.shape, generator=gen))
+        field.density_grid.plane_table[::7] = 0.0  # sign(0) = 0: autograd's subgradient of |v| too
+    return field
+
+
+def _grads(field) -> list[torch.Tensor]:  # noqa: ANN001
+    return [p.grad.clone() if p.grad is not None else torch.zeros_like(p) for p in field.parameters()]
+
+
+def _tv_reference(grid: VMGrid) -> torch.Tensor:
+    """Total variation from the planes' ``[c, h, w]`` views, independently of the table layout."""
+    total = 0.0
+    for plane, line in zip(grid.planes, grid.lines, strict=True):
+        total = total + ((plane[:, 1:, :] - plane[:, :-1, :]) ** 2).mean() + ((plane[:, :, 1:] - plane[:, :, :-1]) ** 2).mean()
+        total = total + ((line[:, 1:] - line[:, :-1]) ** 2).mean()
+    return total / 3
+
+
+def test_in_place_gradients_equal_autograds() -> None:
+    reference = _field()
+    expected_values = regularization(reference, WEIGHTS)
+    sum(expected_values.values()).backward()
+    expected = _grads(reference)
+
+    field = _field()
+    values = backward_regularization(field, WEIGHTS)
+    assert values.keys() == expected_values.keys()
+    for k, v in values.items():
+        assert v == pytest.approx(float(expected_values[k].detach()), rel=1e-5)
+    for got, want in zip(_grads(field), expected, strict=True):
+        torch.testing.assert_close(got, want, rtol=1e-5, atol=1e-9)
+
+
+def test_gradients_add_to_what_is_there() -> None:
+    field = _field()
+    grid = field.appearance_grid
+    grid.plane_table.grad = torch.ones_like(grid.plane_table)
+    add_grid_total_variation_(grid, 0.5)
+    got = grid.plane_table.grad.clone()
+
+    fresh = _field().appearance_grid
+    (0.5 * _tv_reference(fresh)).backward()
+    torch.testing.assert_close(got, 1.0 + fresh.plane_table.grad, rtol=1e-5, atol=1e-7)
+
+
+def test_values_match_the_definitions() -> None:
+    field = _field()
+    grid = field.density_grid
+    assert float(add_grid_total_variation_(grid, 2.0)) == pytest.approx(2.0 * float(_tv_reference(grid).detach()), rel=1e-5)
+    l1 = sum(p.abs().mean() for p in grid.planes) + sum(line.abs().mean() for line in grid.lines)
+    assert float(add_grid_l1_(grid, 3.0)) == pytest.approx(3.0 * float(l1.detach()) / 6, rel=1e-5)
+
+
+def test_a_grid_one_node_wide_along_an_axis_has_no_difference_there() -> None:
+    grid = VMGrid(2, (1 + 1, 3, 4), 0.5)  # two nodes along x: one difference
+    value = add_grid_total_variation_(grid, 1.0)
+    assert torch.isfinite(value)
+    torch.testing.assert_close(value, _tv_reference(grid).detach(), rtol=1e-5, atol=0)
