@@ -24,7 +24,7 @@ import numpy as np
 import torch
 from bench_common import HOLDOUT_SETTINGS, HOLDOUT_VIEWS, ROOT, holdout_for, write_json
 
-from visnerf.commands import parse_bbox, pick_device, positive_float, unit_fraction, with_bbox
+from visnerf.commands import parse_bbox, parse_fractions, pick_device, positive_float, unit_fraction, with_bbox
 from visnerf.config import FieldConfig, RenderConfig, TrainConfig
 from visnerf.data.holdout import split_holdout
 from visnerf.data.parsers.blender import load_dataset
@@ -180,7 +180,7 @@ def main() -> int:
     ap.add_argument("--param-components", type=int, default=FieldConfig.n_param_components,
                     help="components of each parameter-axis vector (default "
                          f"{FieldConfig.n_param_components}; must divide 16 and 48)")
-    ap.add_argument("--occupancy-refine-at", type=lambda v: tuple(float(x) for x in v.split(",") if x),
+    ap.add_argument("--occupancy-refine-at", type=parse_fractions,
                     default=NYX_OCCUPANCY_REFINE_AT, metavar="P1,P2,...",
                     help="progress fractions at which the occupancy grid is rebuilt within itself "
                          f"(default {','.join(map(str, NYX_OCCUPANCY_REFINE_AT))}; '' for none)")

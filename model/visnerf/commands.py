@@ -74,6 +74,14 @@ def unit_fraction(text: str) -> float:
     return value
 
 
+def parse_fractions(text: str) -> tuple[float, ...]:
+    """``"0.25,0.5,0.75"`` -> increasing fractions in [0, 1]; ``""`` -> none."""
+    values = tuple(unit_fraction(x) for x in text.split(",") if x.strip())
+    if any(b <= a for a, b in zip(values, values[1:], strict=False)):
+        raise argparse.ArgumentTypeError(f"fractions must increase, got {text!r}")
+    return values
+
+
 def parse_bbox(text: str) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
     """``"-0.2,-0.2,-0.2,0.2,0.2,0.2"`` -> ((x0, y0, z0), (x1, y1, z1)), finite with x1 > x0 etc."""
     try:
@@ -121,6 +129,7 @@ def _train(args: argparse.Namespace) -> int:
         iterations=args.iterations, time_budget_s=args.time_budget * 60 if args.time_budget else None,
         batch_rays=args.batch_rays, seed=args.seed, resolution_final=args.resolution,
         validate_every_s=args.validate_every, carve_min_seen_fraction=args.carve_min_seen_fraction,
+        occupancy_refine_at=args.occupancy_refine_at,
     )
     render_cfg = RenderConfig()
     init_field, start = None, None
@@ -272,6 +281,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    metavar="F", help="fraction of a setting's views that must see a cell for the image carving "
                                      f"to keep it (default {TrainConfig.carve_min_seen_fraction:g}: any view; "
                                      "0.75 when every view sees all of the content)")
+    p.add_argument("--occupancy-refine-at", type=parse_fractions, default=TrainConfig.occupancy_refine_at,
+                   metavar="P1,P2,..", help="fractions of the run at which the occupancy grid is rebuilt "
+                                            "within itself, so later steps sample fewer empty cells (default: none)")
     p.add_argument("--holdout-views", type=parse_views, default=(), metavar="I,J,..",
                    help="view indices held out for validation at every parameter setting")
     p.add_argument("--holdout-params", type=parse_settings, default=(), metavar="A,B;C,D",
