@@ -78,24 +78,29 @@ class VMGrid(nn.Module):
         plane_table, line_table = factor_tables(planes, lines)
         self.plane_table, self.line_table = nn.Parameter(plane_table), nn.Parameter(line_table)
 
+    def row_views(self, plane_rows: Tensor, line_rows: Tensor) -> tuple[list[Tensor], list[Tensor]]:
+        """Views of tensors laid out as ``row_tables()`` (the tables, or their gradients): each
+        plane's rows as ``[h, w, c]`` and each line's as ``[r, c]``, in ``MODES`` order."""
+        planes, start = [], 0
+        for h, w in self._plane_shapes:
+            planes.append(plane_rows[start : start + h * w].view(h, w, -1))
+            start += h * w
+        lines, start = [], 0
+        for r in self._line_lengths:
+            lines.append(line_rows[start : start + r])
+            start += r
+        return planes, lines
+
     @property
     def planes(self) -> list[Tensor]:
         """The three planes, ``[c, h, w]`` each, as views of ``plane_table`` (writing into them writes
         the table)."""
-        out, start = [], 0
-        for h, w in self._plane_shapes:
-            out.append(self.plane_table[start : start + h * w].view(h, w, -1).permute(2, 0, 1))
-            start += h * w
-        return out
+        return [rows.permute(2, 0, 1) for rows in self.row_views(*self.row_tables())[0]]
 
     @property
     def lines(self) -> list[Tensor]:
         """The three lines, ``[c, r]`` each, as views of ``line_table``."""
-        out, start = [], 0
-        for r in self._line_lengths:
-            out.append(self.line_table[start : start + r].t())
-            start += r
-        return out
+        return [rows.t() for rows in self.row_views(*self.row_tables())[1]]
 
     @property
     def resolution(self) -> tuple[int, int, int]:

@@ -151,6 +151,14 @@ def table_gradients_in_place() -> Iterator[None]:
         _table_gradients_in_place -= 1
 
 
+def grad_buffer(table: Tensor) -> Tensor:
+    """``table.grad`` to accumulate into in place, created as zeros where None (a trainer's
+    ``zero_grad`` sets it to None each step)."""
+    if table.grad is None:
+        table.grad = torch.zeros_like(table)
+    return table.grad
+
+
 def transposed_taps(rows: Int[Tensor, "m k"], weights: Float[Tensor, "m k"], n_rows: int) -> Tensor:
     """The transposed tap matrix ``T^T`` ``[n_rows, m]`` in compressed-row form: row ``r`` lists the
     samples that read table row ``r`` (in sample order: a stable sort, so products with it are
@@ -195,9 +203,7 @@ class _WeightedRowSum(torch.autograd.Function):
         taps_t = transposed_taps(rows, weights.to(table.dtype), table.shape[0])
         grad = grad.to(table.dtype).contiguous()
         if _table_gradients_in_place and table.is_leaf:
-            if table.grad is None:
-                table.grad = torch.zeros_like(table)
-            table.grad.addmm_(taps_t, grad)
+            grad_buffer(table).addmm_(taps_t, grad)
             return None, None, None
         return taps_t @ grad, None, None
 

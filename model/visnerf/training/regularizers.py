@@ -7,7 +7,7 @@ from torch import Tensor
 
 from visnerf.representation.field import VisNerfField
 from visnerf.representation.vm import VMGrid
-from visnerf.representation.vm_taps import MODES
+from visnerf.representation.vm_taps import MODES, grad_buffer
 
 
 @dataclass(frozen=True)
@@ -37,13 +37,6 @@ def regularization(field: VisNerfField, w: RegularizerWeights) -> dict[str, Tens
     return {k: v.to(field.device) if isinstance(v, Tensor) else torch.tensor(v) for k, v in terms.items()}
 
 
-def _grad_of(table: Tensor) -> Tensor:
-    """``table.grad``, created as zeros where None (the trainer sets gradients to None each step)."""
-    if table.grad is None:
-        table.grad = torch.zeros_like(table)
-    return table.grad
-
-
 def _add_difference_terms_(values: Tensor, grad: Tensor, dim: int, scale: float) -> Tensor:
     """``mean((v[i+1] - v[i])^2)`` along ``dim`` (detached, 0-d), its gradient times ``scale`` added into ``grad``."""
     n = values.shape[dim] - 1
@@ -63,18 +56,14 @@ def add_grid_total_variation_(grid: VMGrid, weight: float) -> Tensor:
     ``.grad`` in place: one difference tensor per term instead of autograd's graph of slices,
     powers and means, its backward and a fresh table-sized gradient added into ``.grad``."""
     planes, lines = grid.row_tables()
-    g_planes, g_lines = _grad_of(planes), _grad_of(lines)
+    plane_rows, line_rows = grid.row_views(planes, lines)
+    plane_grads, line_grads = grid.row_views(grad_buffer(planes), grad_buffer(lines))
     scale = weight / len(MODES)
     total = torch.zeros((), device=planes.device)
-    start = 0
-    for h, w in grid._plane_shapes:
-        rows, g = planes[start : start + h * w].view(h, w, -1), g_planes[start : start + h * w].view(h, w, -1)
+    for rows, g in zip(plane_rows, plane_grads, strict=True):
         total = total + _add_difference_terms_(rows, g, 0, scale) + _add_difference_terms_(rows, g, 1, scale)
-        start += h * w
-    start = 0
-    for r in grid._line_lengths:
-        total = total + _add_difference_terms_(lines[start : start + r], g_lines[start : start + r], 0, scale)
-        start += r
+    for rows, g in zip(line_rows, line_grads, strict=True):
+        total = total + _add_difference_terms_(rows, g, 0, scale)
     return weight * total / len(MODES)
 
 
@@ -82,16 +71,13 @@ def add_grid_total_variation_(grid: VMGrid, weight: float) -> Tensor:
 def add_grid_l1_(grid: VMGrid, weight: float) -> Tensor:
     """``weight * grid.l1()`` (detached), its (sub)gradient ``sign(v)`` added into ``.grad`` in place."""
     planes, lines = grid.row_tables()
+    views = grid.row_views(planes, lines)
+    grads = grid.row_views(grad_buffer(planes), grad_buffer(lines))
     total = torch.zeros((), device=planes.device)
     n_factors = 2 * len(MODES)
-    for table, grad, sizes in ((planes, _grad_of(planes), [h * w for h, w in grid._plane_shapes]),
-                               (lines, _grad_of(lines), list(grid._line_lengths))):
-        start = 0
-        for size in sizes:
-            part = table[start : start + size]
-            total = total + part.abs().sum() / part.numel()
-            grad[start : start + size].add_(torch.sign(part), alpha=weight / (n_factors * part.numel()))
-            start += size
+    for part, grad in zip(views[0] + views[1], grads[0] + grads[1], strict=True):
+        total = total + part.abs().sum() / part.numel()
+        grad.add_(torch.sign(part), alpha=weight / (n_factors * part.numel()))
     return weight * total / n_factors
 
 
@@ -109,9 +95,6 @@ def backward_regularization(field: VisNerfField, w: RegularizerWeights) -> dict[
         values["tv_appearance"] = float(add_grid_total_variation_(field.appearance_grid, w.tv_appearance))
     rest = regularization(field, RegularizerWeights(0.0, w.param_l1, 0.0, 0.0, w.tv_params))
     if rest:
-        total = sum(rest.values())
-        if not torch.isfinite(total):
-            raise FloatingPointError("non-finite regularization of the parameter vectors")
-        total.backward()
+        sum(rest.values()).backward()
         values.update({k: float(v.detach()) for k, v in rest.items()})
     return values

@@ -222,17 +222,16 @@ class Trainer:
         self.refine_occupancy()
 
     @torch.no_grad()
-    def refine_occupancy(self) -> int:
+    def refine_occupancy(self) -> None:
         """Rebuild the grid from the density within the grid training samples now (cells can
         leave, never join: a cell outside it has had no photometric loss, see
-        ``finish_occupancy``). Returns the number of occupied cells."""
+        ``finish_occupancy``)."""
         trained = self.field.occupancy
         if trained is None:
-            return 0
+            return
         grid = self.density_occupancy(tuple(trained.shape)) & trained  # type: ignore[arg-type]
         if bool(grid.any()):
             self.field.set_occupancy(grid)
-        return int(self.field.occupancy.sum())
 
     def _milestones(self) -> None:
         p = self.progress()
