@@ -62,6 +62,15 @@ def evenly_spaced(n_frames: int, count: int) -> list[int]:
     return np.unique(np.linspace(0, n_frames - 1, min(count, n_frames)).round().astype(int)).tolist()
 
 
+def render_frame(scene: Any, frames: SceneData, i: int, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """Frame ``i`` of ``frames`` rendered by ``scene`` (``inference.load_scene``) at its camera
+    and parameters, and its ground truth: float32 ``[height, width, 3]`` in [0, 1] each."""
+    names = [a.name for a in scene.info.params]
+    params = dict(zip(names, frames.params[i].tolist(), strict=True))
+    img = scene.render(frames.c2w[i].double().numpy(), frames.intrinsics.fov_x_deg, width, height, params)
+    return img.astype(np.float32) / 255.0, frames.images[i].numpy().astype(np.float32) / 255.0
+
+
 def load_average() -> float:
     return round(os.getloadavg()[0], 2)
 

@@ -26,6 +26,7 @@ from bench_common import (
     load_average,
     machine_record,
     markdown_header,
+    render_frame,
     write_results,
 )
 
@@ -38,14 +39,9 @@ from visnerf.inference import load_scene
 
 def evaluate_frames(scene, frames: SceneData, count: int) -> dict:  # noqa: ANN001
     """Mean and per-frame PSNR / SSIM of ``count`` evenly chosen ``frames`` rendered by ``scene``."""
-    names = [a.name for a in scene.info.params]
     rows = []
     for i in evenly_spaced(frames.n_frames, count):
-        params = dict(zip(names, frames.params[i].tolist(), strict=True))
-        img = scene.render(frames.c2w[i].double().numpy(), frames.intrinsics.fov_x_deg,
-                           frames.intrinsics.width, frames.intrinsics.height, params)
-        pred = img.astype(np.float32) / 255.0
-        gt = frames.images[i].numpy().astype(np.float32) / 255.0
+        pred, gt = render_frame(scene, frames, i, frames.intrinsics.width, frames.intrinsics.height)
         rows.append({"frame": int(i), "psnr": psnr(pred, gt), "ssim": ssim(pred, gt)})
     return {"frames": len(rows), "psnr": float(np.mean([r["psnr"] for r in rows])),
             "ssim": float(np.mean([r["ssim"] for r in rows])),

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from bench_common import HOLDOUT_SETTINGS, HOLDOUT_VIEWS, ROOT, holdout_for, write_json
+from bench_common import HOLDOUT_SETTINGS, HOLDOUT_VIEWS, ROOT, evenly_spaced, holdout_for, render_frame, write_json
 
 from visnerf.commands import parse_bbox, parse_fractions, pick_device, positive_float, unit_fraction, with_bbox
 from visnerf.config import FieldConfig, RenderConfig, TrainConfig
@@ -63,16 +63,11 @@ def final_eval(ckpt: Path, val, n_frames: int, figure: Path | None = None,
     """Render ``n_frames`` evenly chosen held-out frames through the public inference API; with
     ``figure``, save the frame of median PSNR beside its ground truth and their CIELUV difference."""
     scene = load_scene(ckpt, device or torch.device("cpu"))
-    idx = np.unique(np.linspace(0, val.n_frames - 1, n_frames).round().astype(int))
-    names = [a.name for a in scene.info.params]
     rows = []
-    for i in idx:
-        params = dict(zip(names, val.params[i].tolist(), strict=True))
+    for i in evenly_spaced(val.n_frames, n_frames):
         t0 = time.perf_counter()
-        img = scene.render(val.c2w[i].double().numpy(), val.intrinsics.fov_x_deg, 256, 256, params)
+        pred, gt = render_frame(scene, val, i, 256, 256)
         seconds = time.perf_counter() - t0
-        pred = img.astype(np.float32) / 255.0
-        gt = val.images[i].numpy().astype(np.float32) / 255.0
         held_setting = any(np.allclose(val.params[i].numpy(), s, atol=1e-6) for s in HOLDOUT_SETTINGS)
         rows.append({"frame": int(i), "psnr": psnr(pred, gt), "ssim": ssim(pred, gt), "seconds": seconds,
                      "held_out": "setting" if held_setting else "view", "images": (pred, gt)})
