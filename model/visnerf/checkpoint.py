@@ -18,6 +18,7 @@ from safetensors.torch import load as load_safetensors_bytes
 from safetensors.torch import save as save_safetensors_bytes
 
 from visnerf.config import FACTOR_STORAGE_DTYPES, FieldConfig, RenderConfig
+from visnerf.factor_codec import ROW_SCALE_SUFFIX, decode_rows, encode_rows
 from visnerf.representation.field import VisNerfField
 
 FORMAT_VERSION = 1
@@ -125,24 +126,56 @@ FACTOR_PREFIXES = ("density_grid.", "appearance_grid.")
 """State-dict prefixes of the VM planes and lines, stored in ``FieldConfig.factor_storage``."""
 
 
+def is_plane(name: str) -> bool:
+    """Whether state-dict entry ``name`` is a VM plane (``<grid>.planes.<i>``, ``[c, h, w]``)."""
+    return name.startswith(FACTOR_PREFIXES) and ".planes." in name
+
+
+def is_coded(name: str, cfg: FieldConfig) -> bool:
+    """Whether ``name`` is stored as int8 codes with row scales (``factor_codec``)."""
+    return cfg.factor_storage == "int8" and is_plane(name)
+
+
 def stored_dtype(name: str, dtype: torch.dtype, cfg: FieldConfig) -> torch.dtype:
-    """The dtype tensor ``name`` (of ``dtype`` in the field) has in a checkpoint file."""
+    """The dtype tensor ``name`` (of ``dtype`` in the field) has in a checkpoint file: int8
+    storage codes the planes and keeps the lines (a few hundred values a component) as float16."""
     if name.startswith(FACTOR_PREFIXES):
+        if cfg.factor_storage == "int8":
+            return torch.int8 if is_plane(name) else torch.float16
         return FACTOR_STORAGE_DTYPES[cfg.factor_storage]
     return torch.uint8 if name == "occupancy" else dtype
 
 
 def field_tensors(model: VisNerfField) -> dict[str, torch.Tensor]:
-    """The tensors stored for a field: factors in the configured storage dtype, occupancy as
-    uint8. A factor that does not fit the storage dtype is an error, not a silent infinity."""
+    """The tensors stored for a field: factors in the configured storage (int8 planes as codes
+    plus ``<name>.row_scale``), occupancy as uint8. A factor that does not fit the storage dtype is
+    an error, not a silent infinity."""
     tensors = {}
     for name, value in model.state_dict().items():
+        if is_coded(name, model.cfg):
+            if not bool(torch.isfinite(value).all()):
+                raise CheckpointError(f"tensor {name!r} has non-finite values, which int8 codes cannot hold")
+            codes, scale = encode_rows(value.cpu())
+            tensors[name], tensors[name + ROW_SCALE_SUFFIX] = codes.contiguous(), scale.contiguous()
+            continue
         stored = value.detach().cpu().to(stored_dtype(name, value.dtype, model.cfg)).contiguous()
         if stored.is_floating_point() and not bool(torch.isfinite(stored).all()):
             raise CheckpointError(f"tensor {name!r} has values that {stored.dtype} cannot hold "
                                   f"(largest magnitude {float(value.abs().max()):.3g})")
         tensors[name] = stored
     return tensors
+
+
+def decoded_tensors(tensors: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """The field's state dict from a checkpoint's tensors: int8 planes decoded with their row
+    scales (``read_checkpoint`` has checked that every code has its scales)."""
+    out = {}
+    for name, value in tensors.items():
+        if name.endswith(ROW_SCALE_SUFFIX):
+            continue
+        scale = tensors.get(name + ROW_SCALE_SUFFIX)
+        out[name] = value if scale is None else decode_rows(value, scale)
+    return out
 
 
 def save_checkpoint(model: VisNerfField, meta: CheckpointMeta, path: str | Path) -> Path:
@@ -185,13 +218,17 @@ def expected_shapes(meta: CheckpointMeta) -> dict[str, tuple[tuple[int, ...], to
     with torch.device("meta"):
         model = VisNerfField(meta.field, torch.zeros(2, 3))
     shapes = {k: (tuple(v.shape), stored_dtype(k, v.dtype, meta.field)) for k, v in model.state_dict().items()}
+    for name, value in model.state_dict().items():
+        if is_coded(name, meta.field):
+            shapes[name + ROW_SCALE_SUFFIX] = ((*value.shape[:-1], 1), torch.float32)
     if meta.occupancy_resolution is not None:
         shapes["occupancy"] = (tuple(meta.occupancy_resolution), torch.uint8)
     return shapes
 
 
 def read_checkpoint(path: str | Path) -> tuple[CheckpointMeta, dict[str, torch.Tensor]]:
-    """Read and validate a checkpoint file; returns metadata and CPU tensors."""
+    """Read and validate a checkpoint file; returns metadata and its CPU tensors as stored (int8
+    planes as codes beside their ``.row_scale``: ``decoded_tensors`` gives the field's values)."""
     path = Path(path)
     try:
         blob = path.read_bytes()
@@ -221,6 +258,8 @@ def read_checkpoint(path: str | Path) -> tuple[CheckpointMeta, dict[str, torch.T
             raise CheckpointError(f"tensor {name!r} has dtype {t.dtype}, expected {dtype}")
         if t.is_floating_point() and not bool(torch.isfinite(t).all()):
             raise CheckpointError(f"tensor {name!r} holds non-finite values (NaN or inf)")
+        if name.endswith(ROW_SCALE_SUFFIX) and bool((t < 0).any()):
+            raise CheckpointError(f"tensor {name!r} holds negative scales")
     aabb = tensors["aabb"]
     if not bool((aabb[1] > aabb[0]).all()):
         raise CheckpointError("tensor 'aabb' is not a box with positive extent")
@@ -230,6 +269,7 @@ def read_checkpoint(path: str | Path) -> tuple[CheckpointMeta, dict[str, torch.T
 def load_checkpoint(path: str | Path, device: torch.device) -> tuple[VisNerfField, CheckpointMeta]:
     """Load a validated checkpoint onto ``device``."""
     meta, tensors = read_checkpoint(path)
+    tensors = decoded_tensors(tensors)
     model = VisNerfField(meta.field, tensors["aabb"])
     occupancy = tensors.pop("occupancy", None)
     model.load_state_dict(tensors, strict=True)  # copies into the field's float32 tensors

@@ -6,8 +6,9 @@ from typing import Any
 
 import torch
 
-FACTOR_STORAGE_DTYPES = {"float32": torch.float32, "float16": torch.float16}
-"""Dtypes the VM factors may be stored in (``FieldConfig.factor_storage``)."""
+FACTOR_STORAGE_DTYPES = {"float32": torch.float32, "float16": torch.float16, "int8": torch.int8}
+"""Dtypes the VM planes may be stored in (``FieldConfig.factor_storage``). ``int8`` planes are
+row-wise codes with float32 scales (``factor_codec``), and their lines are stored as float16."""
 
 
 @dataclass(frozen=True)
@@ -41,11 +42,15 @@ class FieldConfig:
     init_scale: float = 0.1
     """Standard deviation of the initial VM factors."""
     factor_storage: str = "float16"
-    """Dtype of the VM planes and lines in the checkpoint file: ``float16`` (half the bytes) or
-    ``float32``; the field computes in float32 either way, from the stored values. On 24 held-out
-    Nyx frames of a 160^3 model the float16-rounded factors rendered 71.4 dB from the float32 ones,
-    25.4712 dB from the ground truth either way (bench/results/factor_storage.md). Checkpoints
-    that do not say (written before the option existed) hold float32."""
+    """How the checkpoint file stores the VM planes and lines: ``float32``, ``float16`` (half the
+    bytes) or ``int8`` (planes as int8 codes with a float32 scale per row, ``factor_codec``; lines
+    as float16: about a quarter of the float32 bytes). The field computes in float32 either way,
+    from the stored values. On 24 held-out Nyx frames of a 160^3 model the float16-rounded factors
+    rendered 71.4 dB from the float32 ones, 25.4712 dB from the ground truth either way
+    (bench/results/factor_storage.md); int8 codes of the 170^3 26.85 dB model rendered 63.4 dB
+    from its float16 frames, 26.8479 against 26.8486 dB, in 6.76 MB instead of 12.17 MB
+    (bench/results/factor_storage_int8.md). Checkpoints that do not say (written before the option
+    existed) hold float32."""
 
     def __post_init__(self) -> None:
         if len(self.resolution) != 3 or min(self.resolution) < 2:
