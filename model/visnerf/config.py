@@ -233,6 +233,13 @@ class TrainConfig:
     on at 0.7 dropped held-out PSNR from 21.5 to 20.1 dB within five minutes."""
     importance_samples: int = 64
     """Samples per ray drawn by importance sampling in the late phase."""
+    density_grad_keep: float = 1.0
+    """Fraction of the near-empty samples (alpha below ``density_grad_floor``) whose density a
+    step back-propagates, their gradient scaled by its inverse: an unbiased estimate of the full
+    gradient at a fraction of the backward work (``rendering.density_gradients``). 1: every sample."""
+    density_grad_floor: float = 1e-4
+    """Alpha over one sample's interval below which a sample counts as near-empty (the occupancy
+    grid's and the colour pass's threshold)."""
     validate_every_s: float = 120.0
     """Seconds of training between validations."""
     validate_max_images: int = 8
@@ -242,6 +249,12 @@ class TrainConfig:
     seed: int = 0
     random_background: bool = False
     """Composite on a random colour per ray in training (useful when content touches the background)."""
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.density_grad_keep <= 1.0:
+            raise ValueError(f"density_grad_keep must be in (0, 1], got {self.density_grad_keep}")
+        if not 0.0 <= self.density_grad_floor < 1.0:
+            raise ValueError(f"density_grad_floor must be in [0, 1), got {self.density_grad_floor}")
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)

@@ -21,6 +21,7 @@ from torch import Tensor
 from visnerf.config import RenderConfig
 from visnerf.data.cameras import Intrinsics, image_rays
 from visnerf.rendering.aabb import intersect_aabb
+from visnerf.rendering.density_gradients import density_with_sampled_gradients
 from visnerf.rendering.empty_space import EmptySpace
 from visnerf.rendering.occupancy import query_occupancy
 from visnerf.rendering.parallel import chunk_workers, map_chunks
@@ -49,6 +50,16 @@ def exhaustive_step_ratio(cfg: RenderConfig) -> float:
     """The exhaustive reference's spacing: the finer of the training spacing and half a voxel, so
     that a model trained with coarser samples is still judged against finely sampled frames."""
     return min(cfg.step_ratio, EXHAUSTIVE_STEP_RATIO)
+
+
+@dataclass(frozen=True)
+class DensityGradientSampling:
+    """Which samples' densities the backward pass takes (``rendering.density_gradients``): those
+    with alpha at least ``floor`` and a ``keep`` fraction of the rest, drawn from ``generator``."""
+
+    floor: float
+    keep: float
+    generator: torch.Generator
 
 
 @dataclass(frozen=True)
@@ -122,11 +133,13 @@ def _shade_samples(
     q_appearance: Float[Tensor, "n c"],
     tau_before: Float[Tensor, " n"],
     weight_threshold: float,
+    density_grads: DensityGradientSampling | None = None,
 ) -> tuple[Float[Tensor, "n 3"], Float[Tensor, " n"], Float[Tensor, "n s"]]:
     """Density at valid samples, log-space transmittance, colour where the weight matters.
 
     Returns (colour contribution, optical depth of this segment, weights). ``tau_before`` is the
-    optical depth accumulated by earlier segments of the same rays.
+    optical depth accumulated by earlier segments of the same rays. With ``density_grads``, the
+    backward pass takes near-empty samples at random (``rendering.density_gradients``).
     """
     n, s = valid.shape
     # Gathers by index_select on flat sample indices: the backward of advanced indexing is
@@ -136,7 +149,13 @@ def _shade_samples(
     sigmas = torch.zeros(n * s, dtype=points.dtype, device=points.device)
     if flat.numel() > 0:
         ray_idx = torch.div(flat, s, rounding_mode="floor")
-        dens = field.density(flat_points.index_select(0, flat), q_density.index_select(0, ray_idx))
+        sel_points, sel_q = flat_points.index_select(0, flat), q_density.index_select(0, ray_idx)
+        if density_grads is None:
+            dens = field.density(sel_points, sel_q)
+        else:
+            dens = density_with_sampled_gradients(
+                field.density, sel_points, sel_q, deltas.reshape(-1).index_select(0, flat),
+                density_grads.floor, density_grads.keep, density_grads.generator)
         sigmas = sigmas.index_copy(0, flat, dens)
     sigmas = sigmas.view(n, s)
     tau = sigmas * deltas.clamp_min(0.0)  # [n, s]
@@ -203,6 +222,7 @@ def render_rays(
     generator: torch.Generator | None = None,
     importance_samples: int = 0,
     windows: tuple[Int[Tensor, " n"], Int[Tensor, " n"]] | None = None,
+    density_grads: DensityGradientSampling | None = None,
 ) -> dict[str, Tensor]:
     """Differentiable render of a batch of rays (training and tests).
 
@@ -211,8 +231,9 @@ def render_rays(
     ``EmptySpace.sample_window(..., near=1)``, restricts each ray to samples ``first .. last``:
     the samples left out lie in empty cells, which the occupancy test would drop anyway. With
     ``importance_samples > 0`` a no-grad coarse pass at twice the step places that many samples
-    per ray by importance (``windows`` is ignored). Returns ``rgb`` [n, 3], ``opacity`` [n] and
-    ``n_samples`` (valid samples evaluated).
+    per ray by importance (``windows`` is ignored). ``density_grads`` back-propagates near-empty
+    samples at random, unbiased (``rendering.density_gradients``). Returns ``rgb`` [n, 3],
+    ``opacity`` [n] and ``n_samples`` (valid samples evaluated).
     """
     t_near, t_far, hit = intersect_aabb(rays_o, rays_d, field.aabb)
     span = float((t_far - t_near).max()) if hit.any() else 0.0
@@ -243,7 +264,8 @@ def render_rays(
     if occupancy is not None:
         valid = valid.masked_scatter(valid, query_occupancy(occupancy, field.aabb, points[valid]))
     tau0 = torch.zeros_like(t_near)
-    rgb, tau, _ = _shade_samples(field, rays_d, points, deltas, valid, q_d, q_a, tau0, weight_threshold)
+    rgb, tau, _ = _shade_samples(field, rays_d, points, deltas, valid, q_d, q_a, tau0, weight_threshold,
+                                 density_grads)
     opacity = -torch.expm1(-tau)
     return {
         "rgb": rgb + background * (1.0 - opacity)[:, None],

@@ -36,7 +36,13 @@ from visnerf.rendering.occupancy import (
     parameter_settings,
     query_occupancy,
 )
-from visnerf.rendering.renderer import RenderSettings, empty_space_of, render_image, render_rays
+from visnerf.rendering.renderer import (
+    DensityGradientSampling,
+    RenderSettings,
+    empty_space_of,
+    render_image,
+    render_rays,
+)
 from visnerf.rendering.spacing import choose_full_spacing
 from visnerf.representation.field import VisNerfField
 from visnerf.representation.vm_taps import table_gradients_in_place
@@ -296,12 +302,15 @@ class Trainer:
             empty = None  # a grid finer than the step: the windows would not hold every jittered sample
         windows = None if empty is None else occupied_windows(
             self.field, batch.rays_o, batch.rays_d, self.step_size(), empty)
+        density_grads = None
+        if cfg.density_grad_keep < 1.0:
+            density_grads = DensityGradientSampling(cfg.density_grad_floor, cfg.density_grad_keep, self.generator)
         for sl in micro_batches(self.field, batch.rays_o, batch.rays_d, self.step_size(),
                                 cfg.micro_batch_rays, cfg.micro_batch_samples, windows):
             out = render_rays(self.field, batch.rays_o[sl], batch.rays_d[sl], batch.params[sl], bg[sl],
                               self.step_size(), self.render_cfg.max_samples, self.field.occupancy,
                               self.render_cfg.weight_threshold, self.generator, importance,
-                              None if windows is None else (windows[0][sl], windows[1][sl]))
+                              None if windows is None else (windows[0][sl], windows[1][sl]), density_grads)
             part = ((out["rgb"] - target[sl]) ** 2).sum() / (3 * n)  # this chunk's share of the batch mean
             if not torch.isfinite(part):
                 raise FloatingPointError(f"non-finite loss at iteration {self.state.iteration}")

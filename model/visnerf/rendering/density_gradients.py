@@ -1,0 +1,55 @@
+"""Densities for training whose backward pass skips most near-empty samples, without bias.
+
+Most samples a training step evaluates lie in occupied cells yet hold almost nothing: on Nyx, in a
+trained step, 89 % of the density samples had alpha below 1e-5 (the occupancy grid is the union
+over all parameter settings, dilated by a cell). Their gradient is small as well: the density is
+``softplus(raw)``, whose slope ``1 - exp(-sigma)`` is about ``sigma`` near zero, and the loss sees
+a sample through ``sigma * delta``. Back-propagating them still costs as much per sample as any
+other, and the density backward was the largest part of a step.
+
+``density_with_sampled_gradients`` evaluates every sample's density without a graph, then again,
+differentiably, for the samples whose alpha reaches ``floor`` and for a random fraction ``keep`` of
+the others, whose gradient it scales by ``1 / keep``. Every value is the density itself; the
+gradient is an unbiased estimate of the full one (each near-empty sample's gradient counts
+``1 / keep`` times with probability ``keep``); samples at or above the floor are exact.
+"""
+
+from collections.abc import Callable
+
+import torch
+from jaxtyping import Float
+from torch import Tensor
+
+from visnerf.rendering.sampling import uniform_noise
+
+DensityFn = Callable[[Float[Tensor, "m 3"], Float[Tensor, "m c"]], Float[Tensor, " m"]]
+
+
+def density_with_sampled_gradients(
+    density: DensityFn,
+    points: Float[Tensor, "m 3"],
+    q_density: Float[Tensor, "m c"],
+    deltas: Float[Tensor, " m"],
+    floor: float,
+    keep: float,
+    generator: torch.Generator,
+) -> Float[Tensor, " m"]:
+    """``density(points, q_density)`` in value; differentiable through the samples with
+    ``1 - exp(-sigma * delta) >= floor`` and a random ``keep`` fraction of the rest (scaled by
+    ``1 / keep``). ``keep`` in (0, 1]; 1 back-propagates every sample (the plain call)."""
+    if not 0.0 < keep <= 1.0:
+        raise ValueError(f"keep must be in (0, 1], got {keep}")
+    if keep == 1.0 or not torch.is_grad_enabled():
+        return density(points, q_density)
+    with torch.no_grad():
+        sigma = density(points, q_density)  # [m]
+        low = -torch.expm1(-sigma * deltas) < floor
+        drawn = uniform_noise(tuple(sigma.shape), generator, sigma.device) < keep
+        traced = (~low | drawn).nonzero()[:, 0]  # [k]
+    if traced.numel() == 0:
+        return sigma
+    exact = density(points.index_select(0, traced), q_density.index_select(0, traced))  # [k]
+    gain = torch.where(low.index_select(0, traced), 1.0 / keep, 1.0).to(exact.dtype)
+    # Value ``exact`` (the added term is exactly zero), gradient ``gain`` times its own.
+    scaled = exact + (exact - exact.detach()) * (gain - 1.0)
+    return sigma.index_copy(0, traced, scaled)
