@@ -28,7 +28,29 @@ def test_cells_training_stopped_sampling_stay_out_of_the_inference_grid() -> Non
     grid = trainer.field.occupancy
     assert grid is not None and grid.shape == (8, 8, 8)
     assert not (grid & ~_ball()).any()
-    assert torch.equal(grid, density_alone & _ball())
+    # Only the ball's cells are evaluated: the grid is their density's occupancy (dilated within
+    # the ball), which can only lose cells against the whole density's.
+    assert torch.equal(grid, trainer.density_occupancy((8, 8, 8), within=_ball()) & _ball())
+    assert not (grid & ~(density_alone & _ball())).any()
+
+
+def test_refining_evaluates_only_the_trained_cells(monkeypatch) -> None:  # noqa: ANN001
+    """The rebuild evaluates the density in the trained grid's cells only: cells outside it cannot
+    join, and a dense cell outside it does not keep its trained neighbour through the dilation."""
+    import visnerf.training.trainer as trainer_module
+
+    seen = []
+    real = trainer_module.build_occupancy
+
+    def spy(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        seen.append(args[5] if len(args) > 5 else kwargs.get("candidates"))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(trainer_module, "build_occupancy", spy)
+    trainer = _trainer()
+    trainer.field.set_occupancy(_ball())
+    trainer.refine_occupancy()
+    assert len(seen) == 1 and seen[0] is not None and torch.equal(seen[0], _ball())
 
 
 def test_without_a_training_grid_the_inference_grid_is_the_densitys() -> None:
@@ -51,7 +73,8 @@ def test_refine_milestones_shrink_the_grid_within_itself_after_the_occupancy_mil
     trainer.state.iteration = 80
     trainer._milestones()
     assert trainer.state.refines_done == 2
-    assert torch.equal(trainer.field.occupancy, density_alone & _ball())
+    assert torch.equal(trainer.field.occupancy, trainer.density_occupancy((8, 8, 8), within=_ball()) & _ball())
+    assert not (trainer.field.occupancy & ~(density_alone & _ball())).any()
     trainer.state.iteration = 99
     trainer._milestones()
     assert trainer.state.refines_done == 2  # each milestone once
