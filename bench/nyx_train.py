@@ -24,8 +24,16 @@ import numpy as np
 import torch
 from bench_common import HOLDOUT_SETTINGS, HOLDOUT_VIEWS, ROOT, evenly_spaced, holdout_for, render_frame, write_json
 
-from visnerf.commands import parse_bbox, parse_fractions, pick_device, positive_float, unit_fraction, with_bbox
-from visnerf.config import FieldConfig, RenderConfig, TrainConfig
+from visnerf.commands import (
+    parse_bbox,
+    parse_fractions,
+    pick_device,
+    positive_float,
+    unit_fraction,
+    unit_interval_open_below,
+    with_bbox,
+)
+from visnerf.config import FACTOR_STORAGE_DTYPES, FieldConfig, RenderConfig, TrainConfig
 from visnerf.data.holdout import split_holdout
 from visnerf.data.parsers.blender import load_dataset
 from visnerf.evaluation.colour_difference import luv_difference
@@ -49,6 +57,16 @@ origin), and 12.1 MB with float16 factors."""
 NYX_STEP_RATIO = 1.4
 """Training samples 1.4 voxels apart: 0.0032 world units, the spacing the 160-voxel trial ran at."""
 
+NYX_DENSITY_GRAD_KEEP = 0.125
+"""Fraction of the near-empty density samples each step back-propagates (``TrainConfig.density_grad_keep``):
+90 % of a trained step's density samples are near-empty (alpha below 1e-4). From the 27.10 dB
+model, a step took 151.0 ms with every sample back-propagated and 117.7 ms with an eighth of the
+near-empty ones (1.28x; bench/results/density_grad_speed.md); the run made 27710 iterations in
+the hour against the 26.85 dB record's 23044."""
+NYX_FACTOR_STORAGE = "int8"
+"""Planes stored as int8 codes with row scales: the 26.85 dB record's 24 held-out frames rendered
+26.8479 dB from it against 26.8486 dB from its float16 planes, in a 6.76 MB file instead of
+12.17 MB (bench/results/factor_storage_int8.md)."""
 NYX_OCCUPANCY_REFINE_AT = (0.25, 0.5, 0.75)
 """Progress fractions at which the occupancy grid is rebuilt within itself
 (``TrainConfig.occupancy_refine_at``)."""
@@ -181,6 +199,11 @@ def main() -> int:
                          f"(default {','.join(map(str, NYX_OCCUPANCY_REFINE_AT))}; '' for none)")
     ap.add_argument("--tv-density", type=float, default=TrainConfig.tv_weight_density,
                     help=f"total-variation weight of the density factors (default {TrainConfig.tv_weight_density:g})")
+    ap.add_argument("--density-grad-keep", type=unit_interval_open_below, default=NYX_DENSITY_GRAD_KEEP,
+                    help="fraction of the near-empty density samples each step back-propagates "
+                         f"(default {NYX_DENSITY_GRAD_KEEP:g}; 1: all)")
+    ap.add_argument("--factor-storage", choices=sorted(FACTOR_STORAGE_DTYPES), default=NYX_FACTOR_STORAGE,
+                    help=f"how the checkpoint stores the VM factors (default {NYX_FACTOR_STORAGE})")
     ap.add_argument("--step-ratio", type=positive_float, default=NYX_STEP_RATIO,
                     help=f"training sample spacing in voxels (default {NYX_STEP_RATIO:g})")
     ap.add_argument("--threads", type=int, default=None, help="torch threads (default: all cores)")
@@ -222,9 +245,10 @@ def main() -> int:
                       micro_batch_samples=args.micro_batch_samples, resolution_final=args.resolution,
                       validate_every_s=args.validate_every, validate_max_images=6,
                       carve_min_seen_fraction=args.carve_min_seen_fraction, tv_weight_density=args.tv_density,
-                      occupancy_refine_at=args.occupancy_refine_at)
+                      occupancy_refine_at=args.occupancy_refine_at, density_grad_keep=args.density_grad_keep)
     trainer = Trainer(train, val, cfg, device, field_cfg=FieldConfig(density_shift=args.density_shift,
-                                                               n_param_components=args.param_components),
+                                                               n_param_components=args.param_components,
+                                                               factor_storage=args.factor_storage),
                       render_cfg=RenderConfig(step_ratio=args.step_ratio))
     trainer.run(progress_bar=sys.stderr.isatty(), on_validate=lambda row: print(json.dumps(row), flush=True))
     ckpt = trainer.save(args.out, dataset="shared/data/nyx")
@@ -266,7 +290,7 @@ def main() -> int:
         "recipe": {"carve_min_seen_fraction": args.carve_min_seen_fraction, "resolution": args.resolution,
                    "step_ratio": args.step_ratio, "param_components": args.param_components,
                    "occupancy_refine_at": list(args.occupancy_refine_at), "full_step_ratio": trainer.render_cfg.full_step_ratio,
-                   "factor_storage": trainer.field.cfg.factor_storage},
+                   "factor_storage": trainer.field.cfg.factor_storage, "density_grad_keep": cfg.density_grad_keep},
         "full_spacing": trainer.spacing_note,
         "final_grid": grids,
         "box": [[round(float(x), 4) for x in row] for row in trainer.field.aabb.cpu()],

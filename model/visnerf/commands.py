@@ -13,7 +13,7 @@ from typing import TYPE_CHECKING
 import torch
 
 from visnerf.checkpoint import CheckpointError, read_checkpoint
-from visnerf.config import HoldoutConfig, RenderConfig, TrainConfig
+from visnerf.config import FACTOR_STORAGE_DTYPES, FieldConfig, HoldoutConfig, RenderConfig, TrainConfig
 from visnerf.data.cameras import orbit_c2w
 from visnerf.runtime import configure
 
@@ -74,6 +74,14 @@ def unit_fraction(text: str) -> float:
     return value
 
 
+def unit_interval_open_below(text: str) -> float:
+    """A number in (0, 1]."""
+    value = _number(text)
+    if not 0.0 < value <= 1.0:
+        raise argparse.ArgumentTypeError(f"expected a fraction in (0, 1], got {text!r}")
+    return value
+
+
 def parse_fractions(text: str) -> tuple[float, ...]:
     """``"0.25,0.5,0.75"`` -> increasing fractions in [0, 1]; ``""`` -> none."""
     values = tuple(unit_fraction(x) for x in text.split(",") if x.strip())
@@ -129,8 +137,9 @@ def _train(args: argparse.Namespace) -> int:
         iterations=args.iterations, time_budget_s=args.time_budget * 60 if args.time_budget else None,
         batch_rays=args.batch_rays, seed=args.seed, resolution_final=args.resolution,
         validate_every_s=args.validate_every, carve_min_seen_fraction=args.carve_min_seen_fraction,
-        occupancy_refine_at=args.occupancy_refine_at,
+        occupancy_refine_at=args.occupancy_refine_at, density_grad_keep=args.density_grad_keep,
     )
+    field_cfg = None if args.factor_storage is None else FieldConfig(factor_storage=args.factor_storage)
     render_cfg = RenderConfig()
     init_field, start = None, None
     if args.resume:
@@ -148,11 +157,14 @@ def _train(args: argparse.Namespace) -> int:
                            upsamples_done=int(prov.get("upsamples_done", 0)),
                            occupancy_done=int(prov.get("occupancy_done", 0)),
                            refines_done=int(prov.get("refines_done", 0)))
+        if args.factor_storage is not None:
+            init_field.cfg = dataclasses.replace(init_field.cfg, factor_storage=args.factor_storage)
     print(f"training on {train.n_frames} frames ({val.n_frames if val else 0} held out), "
           f"K={train.n_params}, {train.intrinsics.width}x{train.intrinsics.height}, device {device}", file=sys.stderr)
     if args.step_ratio is not None:
         render_cfg = dataclasses.replace(render_cfg, step_ratio=args.step_ratio)
-    trainer = Trainer(train, val, cfg, device, render_cfg=render_cfg, init_field=init_field, start=start)
+    trainer = Trainer(train, val, cfg, device, field_cfg=field_cfg, render_cfg=render_cfg, init_field=init_field,
+                      start=start)
 
     def report(row: dict) -> None:
         print("  " + json.dumps(row), file=sys.stderr)
@@ -284,6 +296,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--occupancy-refine-at", type=parse_fractions, default=TrainConfig.occupancy_refine_at,
                    metavar="P1,P2,..", help="fractions of the run at which the occupancy grid is rebuilt "
                                             "within itself, so later steps sample fewer empty cells (default: none)")
+    p.add_argument("--density-grad-keep", type=unit_interval_open_below, default=TrainConfig.density_grad_keep,
+                   metavar="F", help="fraction of the near-empty density samples (alpha below "
+                                     f"{TrainConfig.density_grad_floor:g}) each step back-propagates, their gradient "
+                                     "scaled by 1/F: an unbiased, cheaper step (default 1: all; the Nyx recipe 0.125)")
+    p.add_argument("--factor-storage", choices=sorted(FACTOR_STORAGE_DTYPES), default=None,
+                   help=f"how the checkpoint stores the VM factors (default {FieldConfig.factor_storage}; "
+                        "with --resume, the checkpoint's); int8: planes as int8 codes with row scales, about "
+                        "half the float16 file")
     p.add_argument("--holdout-views", type=parse_views, default=(), metavar="I,J,..",
                    help="view indices held out for validation at every parameter setting")
     p.add_argument("--holdout-params", type=parse_settings, default=(), metavar="A,B;C,D",

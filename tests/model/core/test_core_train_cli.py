@@ -4,6 +4,7 @@ import subprocess
 import sys
 
 import pytest
+import torch
 
 from visnerf.checkpoint import read_checkpoint
 
@@ -36,12 +37,29 @@ def test_step_ratio_is_stored_and_kept_on_resume(plume, tmp_path) -> None:
     assert meta.render.step_ratio == 1.25 and meta.provenance["iterations"] == 9
 
 
+def test_factor_storage_and_sampled_density_gradients(plume, tmp_path) -> None:
+    first = tmp_path / "q.safetensors"
+    run = _visnerf("train", str(plume), "--out", str(first), "--iterations", "5", "--resolution", "16",
+                   "--factor-storage", "int8", "--density-grad-keep", "0.25", "--device", "cpu", "--quiet")
+    assert run.returncode == 0, run.stderr
+    meta, tensors = read_checkpoint(first)
+    assert meta.field.factor_storage == "int8" and tensors["density_grid.planes.0"].dtype == torch.int8
+    resumed = tmp_path / "h.safetensors"
+    run = _visnerf("train", str(plume), "--out", str(resumed), "--iterations", "7", "--resume", str(first),
+                   "--factor-storage", "float16", "--device", "cpu", "--quiet")
+    assert run.returncode == 0, run.stderr
+    meta, tensors = read_checkpoint(resumed)
+    assert meta.field.factor_storage == "float16" and tensors["density_grid.planes.0"].dtype == torch.float16
+
+
 @pytest.mark.parametrize(("option", "value", "message"), [
     ("--step-ratio", "0", "above 0"),
     ("--step-ratio", "nan", "above 0"),
     ("--carve-min-seen-fraction", "1.5", "fraction in [0, 1]"),
     ("--occupancy-refine-at", "0.5,0.2", "fractions must increase"),
     ("--occupancy-refine-at", "0.5,2", "fraction in [0, 1]"),
+    ("--density-grad-keep", "0", "fraction in (0, 1]"),
+    ("--factor-storage", "int4", "invalid choice"),
 ])
 def test_bad_training_options_are_refused(plume, tmp_path, option, value, message) -> None:
     out = tmp_path / "m.safetensors"
