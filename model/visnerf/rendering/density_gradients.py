@@ -1,8 +1,8 @@
 """Densities for training whose backward pass skips most near-empty samples, without bias.
 
 Most samples a training step evaluates lie in occupied cells yet hold almost nothing: on Nyx, in a
-trained step, 89 % of the density samples had alpha below 1e-5 (the occupancy grid is the union
-over all parameter settings, dilated by a cell). Their gradient is small as well: the density is
+trained step, 90 % of the density samples had alpha below 1e-4 (the occupancy grid is the union
+over all parameter settings, dilated by a cell; bench/results/density_grad_speed.md). Their gradient is small as well: the density is
 ``softplus(raw)``, whose slope ``1 - exp(-sigma)`` is about ``sigma`` near zero, and the loss sees
 a sample through ``sigma * delta``. Back-propagating them still costs as much per sample as any
 other, and the density backward was the largest part of a step.
@@ -15,6 +15,7 @@ gradient is an unbiased estimate of the full one (each near-empty sample's gradi
 """
 
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import torch
 from jaxtyping import Float
@@ -25,18 +26,27 @@ from visnerf.rendering.sampling import uniform_noise
 DensityFn = Callable[[Float[Tensor, "m 3"], Float[Tensor, "m c"]], Float[Tensor, " m"]]
 
 
+@dataclass(frozen=True)
+class DensityGradientSampling:
+    """Which samples' densities the backward pass takes: those with alpha at least ``floor`` and
+    a ``keep`` fraction of the rest, in (0, 1], drawn from ``generator``."""
+
+    floor: float
+    keep: float
+    generator: torch.Generator
+
+
 def density_with_sampled_gradients(
     density: DensityFn,
     points: Float[Tensor, "m 3"],
     q_density: Float[Tensor, "m c"],
     deltas: Float[Tensor, " m"],
-    floor: float,
-    keep: float,
-    generator: torch.Generator,
+    sampling: DensityGradientSampling,
 ) -> Float[Tensor, " m"]:
     """``density(points, q_density)`` in value; differentiable through the samples with
-    ``1 - exp(-sigma * delta) >= floor`` and a random ``keep`` fraction of the rest (scaled by
-    ``1 / keep``). ``keep`` in (0, 1]; 1 back-propagates every sample (the plain call)."""
+    ``1 - exp(-sigma * delta) >= sampling.floor`` and a random ``sampling.keep`` fraction of the
+    rest (scaled by ``1 / keep``). A keep of 1 back-propagates every sample (the plain call)."""
+    floor, keep, generator = sampling.floor, sampling.keep, sampling.generator
     if not 0.0 < keep <= 1.0:
         raise ValueError(f"keep must be in (0, 1], got {keep}")
     if keep == 1.0 or not torch.is_grad_enabled():

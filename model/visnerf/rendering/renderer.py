@@ -21,7 +21,7 @@ from torch import Tensor
 from visnerf.config import RenderConfig
 from visnerf.data.cameras import Intrinsics, image_rays
 from visnerf.rendering.aabb import intersect_aabb
-from visnerf.rendering.density_gradients import density_with_sampled_gradients
+from visnerf.rendering.density_gradients import DensityGradientSampling, density_with_sampled_gradients
 from visnerf.rendering.empty_space import EmptySpace
 from visnerf.rendering.occupancy import query_occupancy
 from visnerf.rendering.parallel import chunk_workers, map_chunks
@@ -50,16 +50,6 @@ def exhaustive_step_ratio(cfg: RenderConfig) -> float:
     """The exhaustive reference's spacing: the finer of the training spacing and half a voxel, so
     that a model trained with coarser samples is still judged against finely sampled frames."""
     return min(cfg.step_ratio, EXHAUSTIVE_STEP_RATIO)
-
-
-@dataclass(frozen=True)
-class DensityGradientSampling:
-    """Which samples' densities the backward pass takes (``rendering.density_gradients``): those
-    with alpha at least ``floor`` and a ``keep`` fraction of the rest, drawn from ``generator``."""
-
-    floor: float
-    keep: float
-    generator: torch.Generator
 
 
 @dataclass(frozen=True)
@@ -154,8 +144,7 @@ def _shade_samples(
             dens = field.density(sel_points, sel_q)
         else:
             dens = density_with_sampled_gradients(
-                field.density, sel_points, sel_q, deltas.reshape(-1).index_select(0, flat),
-                density_grads.floor, density_grads.keep, density_grads.generator)
+                field.density, sel_points, sel_q, deltas.reshape(-1).index_select(0, flat), density_grads)
         sigmas = sigmas.index_copy(0, flat, dens)
     sigmas = sigmas.view(n, s)
     tau = sigmas * deltas.clamp_min(0.0)  # [n, s]

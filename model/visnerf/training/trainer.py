@@ -28,6 +28,7 @@ from visnerf.data.ray_batches import RayBatchSampler
 from visnerf.data.scene import SceneData
 from visnerf.evaluation.metrics import mse_to_psnr, psnr, ssim
 from visnerf.rendering.aabb import intersect_aabb
+from visnerf.rendering.density_gradients import DensityGradientSampling
 from visnerf.rendering.empty_space import EmptySpace
 from visnerf.rendering.occupancy import (
     build_occupancy,
@@ -36,13 +37,7 @@ from visnerf.rendering.occupancy import (
     parameter_settings,
     query_occupancy,
 )
-from visnerf.rendering.renderer import (
-    DensityGradientSampling,
-    RenderSettings,
-    empty_space_of,
-    render_image,
-    render_rays,
-)
+from visnerf.rendering.renderer import RenderSettings, empty_space_of, render_image, render_rays
 from visnerf.rendering.spacing import choose_full_spacing
 from visnerf.representation.field import VisNerfField
 from visnerf.representation.vm_taps import table_gradients_in_place

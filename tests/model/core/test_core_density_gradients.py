@@ -7,8 +7,8 @@ import torch
 import torch.nn.functional as F
 
 from visnerf.config import TrainConfig
-from visnerf.rendering.density_gradients import density_with_sampled_gradients
-from visnerf.rendering.renderer import DensityGradientSampling, render_rays
+from visnerf.rendering.density_gradients import DensityGradientSampling, density_with_sampled_gradients
+from visnerf.rendering.renderer import render_rays
 from visnerf.testing import make_tiny_field
 
 
@@ -33,7 +33,8 @@ def test_values_are_the_density_and_each_traced_gradient_is_its_own_times_its_ga
     deltas = torch.full((m,), 0.01, dtype=torch.float64)
     weights = torch.rand(m, dtype=torch.float64) + 0.5  # the loss's weight of each sample
     density = _per_sample_density(theta)
-    sigma = density_with_sampled_gradients(density, points, q, deltas, floor, keep, torch.Generator().manual_seed(3))
+    sampling = DensityGradientSampling(floor, keep, torch.Generator().manual_seed(3))
+    sigma = density_with_sampled_gradients(density, points, q, deltas, sampling)
     assert torch.equal(sigma.detach(), density(points, q).detach())
     (grad,) = torch.autograd.grad((weights * sigma).sum(), theta)
     full = weights * torch.sigmoid(theta.detach())  # d/dtheta_i of weights_i * softplus(theta_i)
@@ -56,11 +57,11 @@ def test_the_mean_gradient_over_draws_is_the_full_gradient():
     points[:, 0] = torch.arange(5, dtype=torch.float64)
     q, deltas = torch.ones(5, 1, dtype=torch.float64), torch.full((5,), 0.1, dtype=torch.float64)
     density = _per_sample_density(theta)
-    gen = torch.Generator().manual_seed(0)
+    sampling = DensityGradientSampling(1e-3, 0.5, torch.Generator().manual_seed(0))
     total = torch.zeros(5, dtype=torch.float64)
     draws = 4000
     for _ in range(draws):
-        sigma = density_with_sampled_gradients(density, points, q, deltas, 1e-3, 0.5, gen)
+        sigma = density_with_sampled_gradients(density, points, q, deltas, sampling)
         total += torch.autograd.grad(sigma.sum(), theta)[0]
     full = torch.sigmoid(theta.detach())
     assert torch.allclose(total / draws, full, rtol=0.06)
@@ -75,13 +76,13 @@ def test_keep_one_or_no_grad_is_the_plain_call():
         return points[:, 0] * q[:, 0]
 
     pts, q, d = torch.rand(7, 3, requires_grad=True), torch.ones(7, 1), torch.full((7,), 0.1)
-    out = density_with_sampled_gradients(density, pts, q, d, 1e-4, 1.0, torch.Generator())
+    out = density_with_sampled_gradients(density, pts, q, d, DensityGradientSampling(1e-4, 1.0, torch.Generator()))
     assert calls == [True] and out.requires_grad
     with torch.no_grad():
-        density_with_sampled_gradients(density, pts, q, d, 1e-4, 0.5, torch.Generator())
+        density_with_sampled_gradients(density, pts, q, d, DensityGradientSampling(1e-4, 0.5, torch.Generator()))
     assert calls == [True, False]
     with pytest.raises(ValueError, match="keep"):
-        density_with_sampled_gradients(density, pts, q, d, 1e-4, 0.0, torch.Generator())
+        density_with_sampled_gradients(density, pts, q, d, DensityGradientSampling(1e-4, 0.0, torch.Generator()))
 
 
 def test_render_rays_with_sampled_density_gradients():
