@@ -153,9 +153,10 @@ def field_tensors(model: VisNerfField) -> dict[str, torch.Tensor]:
     tensors = {}
     for name, value in model.state_dict().items():
         if is_coded(name, model.cfg):
-            if not bool(torch.isfinite(value).all()):
-                raise CheckpointError(f"tensor {name!r} has non-finite values, which int8 codes cannot hold")
-            codes, scale = encode_rows(value.cpu())
+            try:
+                codes, scale = encode_rows(value.cpu())  # checks finiteness itself
+            except ValueError:
+                raise CheckpointError(f"tensor {name!r} has non-finite values, which int8 codes cannot hold") from None
             tensors[name], tensors[name + ROW_SCALE_SUFFIX] = codes.contiguous(), scale.contiguous()
             continue
         stored = value.detach().cpu().to(stored_dtype(name, value.dtype, model.cfg)).contiguous()
@@ -217,8 +218,9 @@ def expected_shapes(meta: CheckpointMeta) -> dict[str, tuple[tuple[int, ...], to
     """Tensor names, shapes and dtypes that a checkpoint with this configuration must hold."""
     with torch.device("meta"):
         model = VisNerfField(meta.field, torch.zeros(2, 3))
-    shapes = {k: (tuple(v.shape), stored_dtype(k, v.dtype, meta.field)) for k, v in model.state_dict().items()}
+    shapes = {}
     for name, value in model.state_dict().items():
+        shapes[name] = (tuple(value.shape), stored_dtype(name, value.dtype, meta.field))
         if is_coded(name, meta.field):
             shapes[name + ROW_SCALE_SUFFIX] = ((*value.shape[:-1], 1), torch.float32)
     if meta.occupancy_resolution is not None:

@@ -35,6 +35,10 @@ class DensityGradientSampling:
     keep: float
     generator: torch.Generator
 
+    def __post_init__(self) -> None:
+        if not 0.0 < self.keep <= 1.0:
+            raise ValueError(f"keep must be in (0, 1], got {self.keep}")
+
 
 def density_with_sampled_gradients(
     density: DensityFn,
@@ -47,8 +51,6 @@ def density_with_sampled_gradients(
     ``1 - exp(-sigma * delta) >= sampling.floor`` and a random ``sampling.keep`` fraction of the
     rest (scaled by ``1 / keep``). A keep of 1 back-propagates every sample (the plain call)."""
     floor, keep, generator = sampling.floor, sampling.keep, sampling.generator
-    if not 0.0 < keep <= 1.0:
-        raise ValueError(f"keep must be in (0, 1], got {keep}")
     if keep == 1.0 or not torch.is_grad_enabled():
         return density(points, q_density)
     with torch.no_grad():
