@@ -20,13 +20,12 @@ from typing import Any
 
 import torch
 from bench_common import RESULTS, ROOT, holdout_for, load_average, machine_record, markdown_header, write_results
-from nyx_train import NYX_STEP_RATIO
+from nyx_train import late_phase_trainer
 
 from visnerf.checkpoint import load_checkpoint
-from visnerf.config import RenderConfig, TrainConfig
+from visnerf.config import TrainConfig
 from visnerf.data.holdout import split_holdout
 from visnerf.data.parsers.blender import load_dataset
-from visnerf.training.trainer import Trainer
 
 
 class SampleCounter:
@@ -87,14 +86,9 @@ def main() -> int:
     train, _ = split_holdout(scene, holdout_for(scene))
     del scene
     field, _ = load_checkpoint(args.checkpoint, torch.device("cpu"))
-    res = field.resolution[0]
     trainers = {}
     for keep in keeps:
-        cfg = TrainConfig(micro_batch_samples=args.micro_batch_samples, iterations=10**9, resolution_init=res,
-                          resolution_final=res, upsample_at=(), occupancy_at=(), trim_every=10**9,
-                          density_grad_keep=keep)
-        trainers[keep] = Trainer(train, None, cfg, torch.device("cpu"),
-                                 render_cfg=RenderConfig(step_ratio=NYX_STEP_RATIO), init_field=field)
+        trainers[keep] = late_phase_trainer(train, field, args.micro_batch_samples, density_grad_keep=keep)
         trainers[keep].train_step()  # warm-up
     counter = SampleCounter(field, trainers[1.0].step_size(), TrainConfig.density_grad_floor)
     field.density = counter  # the renderer calls the instance's attribute

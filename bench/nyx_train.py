@@ -72,6 +72,17 @@ NYX_OCCUPANCY_REFINE_AT = (0.25, 0.5, 0.75)
 (``TrainConfig.occupancy_refine_at``)."""
 
 
+def late_phase_trainer(train, field, micro_batch_samples: int, **overrides) -> Trainer:  # noqa: ANN001
+    """A trainer that steps a trained Nyx ``field`` as the late phase of a run does (its grid and
+    occupancy, no milestones left, the recipe's sample spacing), for the step benchmarks;
+    ``overrides`` are further ``TrainConfig`` fields."""
+    res = field.resolution[0]
+    cfg = TrainConfig(iterations=10**9, resolution_init=res, resolution_final=res, upsample_at=(), occupancy_at=(),
+                      trim_every=10**9, micro_batch_samples=micro_batch_samples, **overrides)
+    return Trainer(train, None, cfg, torch.device("cpu"), render_cfg=RenderConfig(step_ratio=NYX_STEP_RATIO),
+                   init_field=field)
+
+
 def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
 

@@ -41,7 +41,7 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 from bench_common import RESULTS, ROOT, holdout_for, load_average, machine_record, markdown_header, write_results
-from nyx_train import NYX_STEP_RATIO
+from nyx_train import late_phase_trainer
 
 BACKWARDS = ("embedding_bag", "transposed product", "in-place product")
 ALLOCATORS = ("glibc default", "keep freed blocks")
@@ -121,7 +121,7 @@ def measure_step(backward: str, allocator: str, micro_batch_samples: int, checkp
     import visnerf.representation.vm_taps as vm_taps
     import visnerf.training.trainer as trainer_module
     from visnerf.checkpoint import load_checkpoint
-    from visnerf.config import RenderConfig, TrainConfig
+    from visnerf.config import TrainConfig
     from visnerf.data.holdout import split_holdout
     from visnerf.data.parsers.blender import load_dataset
     from visnerf.runtime import release_free_memory
@@ -134,11 +134,7 @@ def measure_step(backward: str, allocator: str, micro_batch_samples: int, checkp
     train, _ = split_holdout(scene, holdout_for(scene))
     del scene
     field_, _ = load_checkpoint(checkpoint, torch.device("cpu"))
-    res = field_.resolution[0]
-    cfg = TrainConfig(iterations=10**9, resolution_init=res, resolution_final=res, upsample_at=(), occupancy_at=(),
-                      trim_every=10**9, micro_batch_samples=micro_batch_samples)
-    trainer = trainer_module.Trainer(train, None, cfg, torch.device("cpu"), render_cfg=RenderConfig(step_ratio=NYX_STEP_RATIO),
-                                     init_field=field_)
+    trainer = late_phase_trainer(train, field_, micro_batch_samples)  # Trainer reads the patched allocator setting
     for _ in range(3):
         trainer.train_step()
     usage0 = resource.getrusage(resource.RUSAGE_SELF)
