@@ -82,6 +82,17 @@ def unit_interval_open_below(text: str) -> float:
     return value
 
 
+def non_negative_int(text: str) -> int:
+    """A whole number, 0 or more."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 0, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 0, got {text!r}")
+    return value
+
+
 def parse_fractions(text: str) -> tuple[float, ...]:
     """``"0.25,0.5,0.75"`` -> increasing fractions in [0, 1]; ``""`` -> none."""
     values = tuple(unit_fraction(x) for x in text.split(",") if x.strip())
@@ -138,6 +149,7 @@ def _train(args: argparse.Namespace) -> int:
         batch_rays=args.batch_rays, seed=args.seed, resolution_final=args.resolution,
         validate_every_s=args.validate_every, carve_min_seen_fraction=args.carve_min_seen_fraction,
         occupancy_refine_at=args.occupancy_refine_at, density_grad_keep=args.density_grad_keep,
+        occupancy_refine_dilation=args.occupancy_refine_dilation,
     )
     field_cfg = None if args.factor_storage is None else FieldConfig(factor_storage=args.factor_storage)
     render_cfg = RenderConfig()
@@ -296,6 +308,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--occupancy-refine-at", type=parse_fractions, default=TrainConfig.occupancy_refine_at,
                    metavar="P1,P2,..", help="fractions of the run at which the occupancy grid is rebuilt "
                                             "within itself, so later steps sample fewer empty cells (default: none)")
+    p.add_argument("--occupancy-refine-dilation", type=non_negative_int,
+                   default=TrainConfig.occupancy_refine_dilation, metavar="CELLS",
+                   help="cells by which a refined occupancy grid grows around the cells with content "
+                        f"(default {TrainConfig.occupancy_refine_dilation}; the Nyx recipe 0)")
     p.add_argument("--density-grad-keep", type=unit_interval_open_below, default=TrainConfig.density_grad_keep,
                    metavar="F", help="fraction of the near-empty density samples (alpha below "
                                      f"{TrainConfig.density_grad_floor:g}) each step back-propagates, their gradient "

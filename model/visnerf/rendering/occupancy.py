@@ -3,7 +3,8 @@
 The grid is the union over the parameter space: a cell is occupied when the density somewhere in
 it (the centres of its sub-cells) is visible at ANY of the evaluated parameter settings (all
 training settings, or a capped subset that always includes the corners of the parameter box),
-then dilated by one cell.
+then dilated by one cell (``dilation``: cells that content may grow into while training samples
+only the grid; a training grid rebuilt late, once content has formed, can leave it out).
 """
 
 import itertools
@@ -72,8 +73,10 @@ def build_occupancy(
     candidates: Bool[Tensor, "x y z"] | None = None,
     chunk: int = 65536,
     samples_per_axis: int = 2,
+    dilation: int = 1,
 ) -> Bool[Tensor, "x y z"]:
-    """Union over ``settings`` of ``max alpha over the cell > threshold``, dilated by one cell.
+    """Union over ``settings`` of ``max alpha over the cell > threshold``, dilated by ``dilation``
+    cells (a cube of side ``2 * dilation + 1`` around each occupied cell; 0: none).
 
     Alpha is taken at the centres of ``samples_per_axis``^3 sub-cells of every cell: a structure
     thinner than a cell (a sharp isosurface, a filament) that passes between cell centres is still
@@ -82,6 +85,8 @@ def build_occupancy(
     (``FrameField``, bf16 products where the device has bf16 units: the rounding, a few parts in
     1e3 of sigma, does not matter against a threshold on alpha of 1e-4).
     """
+    if dilation < 0:  # before the evaluation, not after it
+        raise ValueError(f"dilation must be >= 0 cells, got {dilation}")
     all_pts = cell_centres(field.aabb, resolution).reshape(-1, 3)  # [x*y*z, 3]
     cand = (
         torch.arange(all_pts.shape[0], device=all_pts.device)
@@ -103,8 +108,17 @@ def build_occupancy(
             occupied[start : start + per_chunk] |= alpha > threshold
     full = torch.zeros(all_pts.shape[0], dtype=torch.bool, device=all_pts.device)
     full[cand] = occupied
-    grid = full.reshape(resolution).float()[None, None]
-    return F.max_pool3d(grid, kernel_size=3, stride=1, padding=1)[0, 0] > 0
+    return dilate(full.reshape(resolution), dilation)
+
+
+def dilate(grid: Bool[Tensor, "x y z"], cells: int) -> Bool[Tensor, "x y z"]:
+    """``grid`` grown by ``cells`` in every direction (max over a cube of side ``2 * cells + 1``)."""
+    if cells < 0:
+        raise ValueError(f"dilation must be >= 0 cells, got {cells}")
+    if cells == 0:
+        return grid.clone()
+    pooled = F.max_pool3d(grid.float()[None, None], kernel_size=2 * cells + 1, stride=1, padding=cells)
+    return pooled[0, 0] > 0
 
 
 def occupied_bounds(

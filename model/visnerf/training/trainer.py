@@ -178,14 +178,14 @@ class Trainer:
         return query_occupancy(grid, box, centres).reshape(res).to(self.device)
 
     @torch.no_grad()
-    def density_occupancy(self, res: tuple[int, int, int], within: Tensor | None = None) -> Tensor:
-        """Density occupancy (union over settings), inside the carved hull when there is one and
-        evaluated only in the cells of ``within`` when given."""
+    def density_occupancy(self, res: tuple[int, int, int], within: Tensor | None = None, dilation: int = 1) -> Tensor:
+        """Density occupancy (union over settings) dilated by ``dilation`` cells, inside the
+        carved hull when there is one and evaluated only in the cells of ``within`` when given."""
         candidates = None if self.carved is None else self._carved_on(res)
         if within is not None:
             candidates = within if candidates is None else candidates & within
         return build_occupancy(self.field, res, self.settings_all, self.step_size(),
-                               self.render_cfg.occupancy_threshold, candidates)
+                               self.render_cfg.occupancy_threshold, candidates, dilation=dilation)
 
     @torch.no_grad()
     def update_occupancy(self, shrink: bool) -> None:
@@ -228,13 +228,14 @@ class Trainer:
     def refine_occupancy(self) -> None:
         """Rebuild the grid from the density within the grid training samples now (cells can
         leave, never join: a cell outside it has had no photometric loss, see
-        ``finish_occupancy``). Only its cells are evaluated, so the rebuilt grid's one-cell
-        dilation grows from cells that training fits, and the rebuild costs a third of a whole
-        box's on Nyx."""
+        ``finish_occupancy``), dilated by ``occupancy_refine_dilation`` cells. Only its cells are
+        evaluated, so the dilation grows from cells that training fits, and the rebuild costs a
+        third of a whole box's on Nyx."""
         trained = self.field.occupancy
         if trained is None:
             return
-        grid = self.density_occupancy(tuple(trained.shape), within=trained) & trained  # type: ignore[arg-type]
+        grid = self.density_occupancy(tuple(trained.shape), within=trained,  # type: ignore[arg-type]
+                                      dilation=self.cfg.occupancy_refine_dilation) & trained
         if bool(grid.any()):
             self.field.set_occupancy(grid)
 

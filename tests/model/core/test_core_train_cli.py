@@ -25,7 +25,7 @@ def plume(tmp_path_factory):
 def test_step_ratio_is_stored_and_kept_on_resume(plume, tmp_path) -> None:
     first = tmp_path / "m.safetensors"
     run = _visnerf("train", str(plume), "--out", str(first), "--iterations", "6", "--resolution", "16",
-                   "--step-ratio", "1.25", "--carve-min-seen-fraction", "0.5", "--occupancy-refine-at", "0.5,0.9", "--device", "cpu", "--quiet")
+                   "--step-ratio", "1.25", "--carve-min-seen-fraction", "0.5", "--occupancy-refine-at", "0.5,0.9", "--occupancy-refine-dilation", "0", "--device", "cpu", "--quiet")
     assert run.returncode == 0, run.stderr
     meta, _ = read_checkpoint(first)
     assert meta.render.step_ratio == 1.25 and meta.provenance["iterations"] == 6
@@ -59,6 +59,8 @@ def test_factor_storage_and_sampled_density_gradients(plume, tmp_path) -> None:
     ("--occupancy-refine-at", "0.5,0.2", "fractions must increase"),
     ("--occupancy-refine-at", "0.5,2", "fraction in [0, 1]"),
     ("--density-grad-keep", "0", "fraction in (0, 1]"),
+    ("--occupancy-refine-dilation", "-1", "whole number >= 0"),
+    ("--occupancy-refine-dilation", "0.5", "whole number >= 0"),
     ("--factor-storage", "int4", "invalid choice"),
 ])
 def test_bad_training_options_are_refused(plume, tmp_path, option, value, message) -> None:
