@@ -56,10 +56,43 @@ def test_the_coarsest_spacing_within_the_tolerance_is_chosen(stub_render, tolera
     assert choice.candidate_psnr[1.0] == pytest.approx(20 * math.log10(1 / 0.05), abs=1e-3)
     if expected != 1.0:
         assert choice.candidate_psnr[0.75] == pytest.approx(40.0 - 20 * math.log10(1.01), abs=1e-3)
-    # The exhaustive reference is really exhaustive; the candidates are full-quality frames.
-    assert stub_render[0].use_occupancy is False and stub_render[0].weight_threshold == 0.0
+    # The exhaustive reference takes every sample, within the model's grid; the candidates are
+    # full-quality frames.
+    ref = stub_render[0]
+    assert ref.use_occupancy and ref.weight_threshold == 0.0 and not ref.early_termination and not ref.bf16
     assert all(s.use_occupancy and s.early_termination for s in stub_render[3:])
     assert field.training  # left in the mode it was found in
+
+
+def test_the_reference_renders_only_within_the_models_grid() -> None:
+    """Real frames: with density outside the grid (cells training stopped fitting), the reference
+    is the grid's frame, not the one that also shows that density."""
+    from dataclasses import replace
+
+    import numpy as np
+
+    from visnerf.evaluation.metrics import psnr
+    from visnerf.rendering.renderer import RenderSettings, render_image
+
+    field, _ = make_tiny_field([("a", [0.0, 1.0])], seed=2, resolution=12)  # density fills the box
+    c = (torch.arange(8) + 0.5) / 8 - 0.5
+    x, y, z = torch.meshgrid(c, c, c, indexing="ij")
+    field.set_occupancy((x**2 + y**2 + z**2).sqrt() < 0.25)
+    scene, cfg = _scene(2), RenderConfig(step_ratio=0.5)
+    exhaustive = RenderSettings.from_config(cfg, scene.background, "exhaustive")
+    truth = [scene.images[i].numpy().astype(np.float32) / 255.0 for i in range(2)]
+    params = scene.normalized_params()
+
+    def mean_psnr(settings: RenderSettings) -> float:
+        with torch.inference_mode():
+            frames = [render_image(field, scene.c2w[i], scene.intrinsics, params[i], settings).clamp(0, 1).numpy()
+                      for i in range(2)]
+        return float(np.mean([psnr(f, t) for f, t in zip(frames, truth, strict=True)]))
+
+    within, everywhere = mean_psnr(replace(exhaustive, use_occupancy=True)), mean_psnr(exhaustive)
+    assert abs(within - everywhere) > 0.5  # the density outside the grid shows
+    choice = spacing.choose_full_spacing(field, scene, cfg, tolerance_db=0.1)
+    assert choice.exhaustive_psnr == pytest.approx(within, abs=1e-4)
 
 
 def test_a_model_trained_one_voxel_apart_is_judged_against_half_a_voxel(stub_render) -> None:
