@@ -4,6 +4,7 @@ The hold-out of the Nyx benchmarks, evaluation frames of a dataset, the machine 
 without NaN/inf, and a figure writer.
 """
 
+import argparse
 import json
 import math
 import os
@@ -38,6 +39,31 @@ def holdout_for(scene: SceneData) -> HoldoutConfig:
     parameters (a setting that matches no frame holds nothing out)."""
     settings = tuple(s for s in HOLDOUT_SETTINGS if len(s) == scene.n_params)
     return HoldoutConfig(views=HOLDOUT_VIEWS, settings=settings)
+
+
+def nyx_split(data: str | Path) -> tuple[SceneData, SceneData]:
+    """(training, held-out) frames of the Nyx dataset at ``data``, split as bench/nyx_train.py does."""
+    scene = load_dataset(Path(data))
+    train, val = split_holdout(scene, holdout_for(scene))
+    if val is None:
+        raise ValueError(f"{data}: the Nyx hold-out leaves no frames out")
+    return train, val
+
+
+def add_trained_model_args(ap: argparse.ArgumentParser, checkpoint: str) -> None:
+    """``--checkpoint`` (default ``runs/<checkpoint>``), ``--data`` (shared/data/nyx) and
+    ``--results`` of the benchmarks that measure a trained Nyx model."""
+    ap.add_argument("--checkpoint", default=str(ROOT / "runs" / checkpoint))
+    ap.add_argument("--data", default=str(ROOT.parent / "shared" / "data" / "nyx"))
+    ap.add_argument("--results", default=str(RESULTS))
+
+
+def add_step_timing_args(ap: argparse.ArgumentParser, steps: int, per: str) -> None:
+    """``--rounds``, ``--steps`` and ``--micro-batch-samples`` of the benchmarks that time
+    training steps of several configurations in turn."""
+    ap.add_argument("--rounds", type=int, default=6)
+    ap.add_argument("--steps", type=int, default=steps, help=f"steps per {per} and round")
+    ap.add_argument("--micro-batch-samples", type=int, default=65536)
 
 
 def held_out_frames(folder: Path) -> tuple[SceneData, str]:

@@ -19,13 +19,19 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from bench_common import RESULTS, ROOT, holdout_for, load_average, machine_record, markdown_header, write_results
+from bench_common import (
+    add_step_timing_args,
+    add_trained_model_args,
+    load_average,
+    machine_record,
+    markdown_header,
+    nyx_split,
+    write_results,
+)
 from nyx_train import late_phase_trainer
 
 from visnerf.checkpoint import load_checkpoint
 from visnerf.config import TrainConfig
-from visnerf.data.holdout import split_holdout
-from visnerf.data.parsers.blender import load_dataset
 
 
 class SampleCounter:
@@ -70,21 +76,15 @@ def write_markdown(path: Path, record: dict[str, Any]) -> None:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--checkpoint", default=str(ROOT / "runs" / "nyx_refine.safetensors"))
-    ap.add_argument("--data", default=str(ROOT.parent / "shared" / "data" / "nyx"))
+    add_trained_model_args(ap, "nyx_refine.safetensors")
+    add_step_timing_args(ap, steps=3, per="fraction")
     ap.add_argument("--keep", default="1,0.25,0.125,0.0625", help="fractions to time, the first being 1")
-    ap.add_argument("--rounds", type=int, default=6)
-    ap.add_argument("--steps", type=int, default=3, help="steps per fraction and round")
-    ap.add_argument("--micro-batch-samples", type=int, default=65536)
-    ap.add_argument("--results", default=str(RESULTS))
     args = ap.parse_args()
     keeps = [float(k) for k in args.keep.split(",")]
     if keeps[0] != 1.0 or not all(0.0 < k <= 1.0 for k in keeps):
         ap.error("--keep: fractions in (0, 1], the first one 1")
     load_before = load_average()
-    scene = load_dataset(args.data)
-    train, _ = split_holdout(scene, holdout_for(scene))
-    del scene
+    train, _ = nyx_split(args.data)
     field, _ = load_checkpoint(args.checkpoint, torch.device("cpu"))
     trainers = {}
     for keep in keeps:

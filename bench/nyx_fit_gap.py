@@ -18,20 +18,17 @@ from pathlib import Path
 import numpy as np
 import torch
 from bench_common import (
-    RESULTS,
-    ROOT,
+    add_trained_model_args,
     evenly_spaced,
     fmt,
-    holdout_for,
     load_average,
     machine_record,
     markdown_header,
+    nyx_split,
     render_frame,
     write_results,
 )
 
-from visnerf.data.holdout import split_holdout
-from visnerf.data.parsers.blender import load_dataset
 from visnerf.data.scene import SceneData
 from visnerf.evaluation.metrics import psnr, ssim
 from visnerf.inference import load_scene
@@ -68,17 +65,13 @@ def write_markdown(path: Path, record: dict) -> None:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--checkpoint", default=str(ROOT / "runs" / "nyx.safetensors"))
-    ap.add_argument("--data", default=str(ROOT.parent / "shared" / "data" / "nyx"))
+    add_trained_model_args(ap, "nyx.safetensors")
     ap.add_argument("--frames", type=int, default=24, help="frames of each set (default 24)")
-    ap.add_argument("--results", default=str(RESULTS))
     args = ap.parse_args()
     if not Path(args.checkpoint).is_file():
         ap.error(f"{args.checkpoint} does not exist (train one with bench/nyx_train.py)")
     load_before = load_average()
-    scene_data = load_dataset(Path(args.data))
-    train, val = split_holdout(scene_data, holdout_for(scene_data))
-    assert val is not None
+    train, val = nyx_split(args.data)
     scene = load_scene(Path(args.checkpoint), torch.device("cpu"))
     t0 = time.perf_counter()
     train_eval = evaluate_frames(scene, train, args.frames)

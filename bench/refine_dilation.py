@@ -21,12 +21,18 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from bench_common import RESULTS, ROOT, holdout_for, load_average, machine_record, markdown_header, write_results
+from bench_common import (
+    add_step_timing_args,
+    add_trained_model_args,
+    load_average,
+    machine_record,
+    markdown_header,
+    nyx_split,
+    write_results,
+)
 from nyx_train import NYX_DENSITY_GRAD_KEEP, late_phase_trainer
 
 from visnerf.checkpoint import load_checkpoint
-from visnerf.data.holdout import split_holdout
-from visnerf.data.parsers.blender import load_dataset
 from visnerf.training.trainer import validate
 
 DILATIONS = (1, 0)
@@ -51,19 +57,12 @@ def write_markdown(path: Path, record: dict[str, Any]) -> None:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--checkpoint", default=str(ROOT / "runs" / "nyx_sampled.safetensors"))
-    ap.add_argument("--data", default=str(ROOT.parent / "shared" / "data" / "nyx"))
+    add_trained_model_args(ap, "nyx_sampled.safetensors")
+    add_step_timing_args(ap, steps=4, per="grid")
     ap.add_argument("--frames", type=int, default=24, help="held-out frames rendered with each grid")
-    ap.add_argument("--rounds", type=int, default=6)
-    ap.add_argument("--steps", type=int, default=4, help="steps per grid and round")
-    ap.add_argument("--micro-batch-samples", type=int, default=65536)
-    ap.add_argument("--results", default=str(RESULTS))
     args = ap.parse_args()
     load_before = load_average()
-    scene = load_dataset(args.data)
-    train, val = split_holdout(scene, holdout_for(scene))
-    del scene
-    assert val is not None
+    train, val = nyx_split(args.data)
     field, meta = load_checkpoint(args.checkpoint, torch.device("cpu"))
     if field.occupancy is None:
         ap.error(f"{args.checkpoint} has no occupancy grid to refine")
