@@ -7,7 +7,11 @@ half a voxel against ground truth, on a Nyx model with sharp filaments one voxel
 three quarters 0.07 dB. Each voxel of spacing saved is frame time saved (one voxel takes about
 0.75 of the time of three quarters), so the spacing is chosen per checkpoint: render held-out
 frames exhaustively and at each candidate, and keep the coarsest candidate whose mean PSNR
-against the ground truth is within ``tolerance_db`` of the exhaustive frames'.
+against the ground truth is within ``tolerance_db`` of the exhaustive frames'. The default, 0.05 dB,
+is half the fast renderer's accuracy target, because a few frames do not speak for all: on the
+60-minute Nyx model one voxel was 0.045 dB below the exhaustive frames on 8 validation frames and
+0.147 dB below on the 20 frames of bench/render_speed.py. Training does it on its validation frames at the end
+(``Trainer.run``); ``visnerf calibrate`` does it for an existing checkpoint.
 
 The exhaustive reference here marches the checkpoint's occupancy grid, as the candidates do: the
 grid a training run leaves is part of the model (the cells it kept fitting, ``Trainer.finish_occupancy``),
@@ -15,11 +19,7 @@ and outside it the density has had no photometric loss since the grid was last n
 the grid, the reference of the 60-minute Nyx model whose refined grids hold no ring of empty cells
 rendered that untrained density: 26.195 dB on 6 frames against 26.849 dB at three quarters of a
 voxel, every candidate only 33 to 34 dB from it, so the choice fell back to half a voxel. Only the
-spacing differs between the reference and the candidates this way. The default, 0.05 dB,
-is half the fast renderer's accuracy target, because a few frames do not speak for all: on the
-60-minute Nyx model one voxel was 0.045 dB below the exhaustive frames on 8 validation frames and
-0.147 dB below on the 20 frames of bench/render_speed.py. Training does it on its validation frames at the end
-(``Trainer.run``); ``visnerf calibrate`` does it for an existing checkpoint.
+spacing differs between the reference and the candidates this way.
 """
 
 from dataclasses import dataclass, field, replace
