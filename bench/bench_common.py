@@ -1,7 +1,7 @@
 """Helpers shared by the benchmarks (not a benchmark itself).
 
-The hold-out of the Nyx benchmarks, evaluation frames of a dataset, the machine record, JSON
-without NaN/inf, and a figure writer.
+The hold-out of the Nyx benchmarks, their shared options, alternating step timing, evaluation
+frames of a dataset, the machine record, JSON without NaN/inf, and a figure writer.
 """
 
 import argparse
@@ -9,6 +9,7 @@ import json
 import math
 import os
 import platform
+import statistics
 import sys
 import time
 from collections.abc import Callable
@@ -64,6 +65,30 @@ def add_step_timing_args(ap: argparse.ArgumentParser, steps: int, per: str) -> N
     ap.add_argument("--rounds", type=int, default=6)
     ap.add_argument("--steps", type=int, default=steps, help=f"steps per {per} and round")
     ap.add_argument("--micro-batch-samples", type=int, default=65536)
+
+
+def alternate_steps(
+    trainers: dict[Any, Any], rounds: int, steps: int, after_step: Callable[[Any], None] | None = None
+) -> tuple[dict[Any, list[float]], dict[Any, list[dict[str, float]]]]:
+    """``steps`` training steps of each trainer in turn, ``rounds`` times, so that all share the
+    machine's noise: per key, the milliseconds of each step and what each ``train_step`` returned.
+    ``after_step(key)`` runs after each step, outside its time."""
+    times: dict[Any, list[float]] = {k: [] for k in trainers}
+    outputs: dict[Any, list[dict[str, float]]] = {k: [] for k in trainers}
+    for _ in range(rounds):
+        for key, trainer in trainers.items():
+            for _ in range(steps):
+                t0 = time.perf_counter()
+                outputs[key].append(trainer.train_step())
+                times[key].append(1000 * (time.perf_counter() - t0))
+                if after_step is not None:
+                    after_step(key)
+    return times, outputs
+
+
+def step_time_summary(ms: list[float]) -> dict[str, float]:
+    """Median, fastest and slowest of a list of step times (ms)."""
+    return {"median_ms": statistics.median(ms), "min_ms": min(ms), "max_ms": max(ms)}
 
 
 def held_out_frames(folder: Path) -> tuple[SceneData, str]:

@@ -12,9 +12,7 @@ Writes bench/results/density_grad_speed.{json,md}.
 """
 
 import argparse
-import statistics
 import sys
-import time
 from pathlib import Path
 from typing import Any
 
@@ -22,10 +20,12 @@ import torch
 from bench_common import (
     add_step_timing_args,
     add_trained_model_args,
+    alternate_steps,
     load_average,
     machine_record,
     markdown_header,
     nyx_split,
+    step_time_summary,
     write_results,
 )
 from nyx_train import late_phase_trainer
@@ -92,20 +92,12 @@ def main() -> int:
         trainers[keep].train_step()  # warm-up
     counter = SampleCounter(field, trainers[1.0].step_size(), TrainConfig.density_grad_floor)
     field.density = counter  # the renderer calls the instance's attribute
-    times: dict[float, list[float]] = {k: [] for k in keeps}
     counts: dict[float, list[tuple[int, int, int]]] = {k: [] for k in keeps}
-    for _ in range(args.rounds):
-        for keep, trainer in trainers.items():
-            for _ in range(args.steps):
-                t0 = time.perf_counter()
-                trainer.train_step()
-                times[keep].append(1000 * (time.perf_counter() - t0))
-                counts[keep].append(counter.take())
+    times, _ = alternate_steps(trainers, args.rounds, args.steps, lambda keep: counts[keep].append(counter.take()))
     results = []
     for keep in keeps:
         evaluated = sum(c[0] for c in counts[keep])
-        results.append({"keep": keep, "median_ms": statistics.median(times[keep]), "min_ms": min(times[keep]),
-                        "max_ms": max(times[keep]), "density_samples": evaluated / len(counts[keep]),
+        results.append({"keep": keep, **step_time_summary(times[keep]), "density_samples": evaluated / len(counts[keep]),
                         "near_empty_share": sum(c[1] for c in counts[keep]) / max(1, evaluated),
                         "traced_share": sum(c[2] for c in counts[keep]) / max(1, evaluated)})
     record = {

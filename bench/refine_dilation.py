@@ -24,10 +24,12 @@ import torch
 from bench_common import (
     add_step_timing_args,
     add_trained_model_args,
+    alternate_steps,
     load_average,
     machine_record,
     markdown_header,
     nyx_split,
+    step_time_summary,
     write_results,
 )
 from nyx_train import NYX_DENSITY_GRAD_KEEP, late_phase_trainer
@@ -80,17 +82,9 @@ def main() -> int:
                           **held_out}
         trainer.train_step()  # warm-up
         trainers[dilation] = trainer
-    times: dict[int, list[float]] = {d: [] for d in DILATIONS}
-    samples: dict[int, list[float]] = {d: [] for d in DILATIONS}
-    for _ in range(args.rounds):
-        for dilation, trainer in trainers.items():
-            for _ in range(args.steps):
-                t0 = time.perf_counter()
-                out = trainer.train_step()
-                times[dilation].append(1000 * (time.perf_counter() - t0))
-                samples[dilation].append(out["samples"])
-    results = [{**rows[d], "median_ms": statistics.median(times[d]), "min_ms": min(times[d]),
-                "max_ms": max(times[d]), "samples_per_step": statistics.mean(samples[d])} for d in DILATIONS]
+    times, outputs = alternate_steps(trainers, args.rounds, args.steps)
+    results = [{**rows[d], **step_time_summary(times[d]),
+                "samples_per_step": statistics.mean(out["samples"] for out in outputs[d])} for d in DILATIONS]
     record = {
         **machine_record(),
         "command": " ".join(["python bench/refine_dilation.py", *sys.argv[1:]]),

@@ -40,7 +40,7 @@ from pathlib import Path
 
 import torch
 import torch.nn.functional as F
-from bench_common import RESULTS, ROOT, holdout_for, load_average, machine_record, markdown_header, write_results
+from bench_common import RESULTS, ROOT, load_average, machine_record, markdown_header, nyx_split, write_results
 from nyx_train import late_phase_trainer
 
 BACKWARDS = ("embedding_bag", "transposed product", "in-place product")
@@ -122,17 +122,13 @@ def measure_step(backward: str, allocator: str, micro_batch_samples: int, checkp
     import visnerf.training.trainer as trainer_module
     from visnerf.checkpoint import load_checkpoint
     from visnerf.config import TrainConfig
-    from visnerf.data.holdout import split_holdout
-    from visnerf.data.parsers.blender import load_dataset
     from visnerf.runtime import release_free_memory
 
     torch.set_num_threads(threads)
     vm_taps.weighted_row_sum = lookup_of(backward)  # lookup_modes reads the module's name at each call
     if allocator == "glibc default":
         trainer_module.keep_freed_blocks = lambda: False
-    scene = load_dataset(data)
-    train, _ = split_holdout(scene, holdout_for(scene))
-    del scene
+    train, _ = nyx_split(data)
     field_, _ = load_checkpoint(checkpoint, torch.device("cpu"))
     trainer = late_phase_trainer(train, field_, micro_batch_samples)  # Trainer reads the patched allocator setting
     for _ in range(3):
