@@ -82,6 +82,17 @@ def unit_interval_open_below(text: str) -> float:
     return value
 
 
+def positive_int(text: str) -> int:
+    """A whole number, 1 or more."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number above 0, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected a whole number above 0, got {text!r}")
+    return value
+
+
 def non_negative_int(text: str) -> int:
     """A whole number, 0 or more."""
     try:
@@ -293,9 +304,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("train", help="train a ViSNeRF model on a dataset folder")
     p.add_argument("data", help="dataset folder with transforms_train.json")
     p.add_argument("--out", required=True, help="checkpoint to write (.safetensors)")
-    p.add_argument("--iterations", type=int, default=30000, help="maximum iterations (default 30000)")
-    p.add_argument("--time-budget", type=float, default=None, metavar="MINUTES", help="wall-clock training budget")
-    p.add_argument("--batch-rays", type=int, default=4096)
+    p.add_argument("--iterations", type=positive_int, default=30000, help="maximum iterations (default 30000)")
+    p.add_argument("--time-budget", type=positive_float, default=None, metavar="MINUTES", help="wall-clock training budget")
+    p.add_argument("--batch-rays", type=positive_int, default=TrainConfig.batch_rays,
+                   help=f"rays per step (default {TrainConfig.batch_rays}, the paper's; the Nyx recipe 2048)")
     p.add_argument("--resolution", type=int, default=TrainConfig.resolution_final,
                    help="final voxels per axis (cube root of the grid size)")
     p.add_argument("--step-ratio", type=positive_float, default=None, metavar="VOXELS",

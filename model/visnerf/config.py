@@ -1,6 +1,7 @@
 """Typed configuration of the field, the renderer and the trainer. Configs are never mutated."""
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -257,6 +258,11 @@ class TrainConfig:
     """Composite on a random colour per ray in training (useful when content touches the background)."""
 
     def __post_init__(self) -> None:
+        for name in ("iterations", "batch_rays", "micro_batch_rays", "micro_batch_samples"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
+        if self.time_budget_s is not None and not (math.isfinite(self.time_budget_s) and self.time_budget_s > 0):
+            raise ValueError(f"time_budget_s must be a finite number of seconds above 0 (or None), got {self.time_budget_s}")
         if self.occupancy_refine_dilation < 0:
             raise ValueError(f"occupancy_refine_dilation must be >= 0 cells, got {self.occupancy_refine_dilation}")
         if not 0.0 < self.density_grad_keep <= 1.0:

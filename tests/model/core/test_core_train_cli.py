@@ -62,6 +62,10 @@ def test_factor_storage_and_sampled_density_gradients(plume, tmp_path) -> None:
     ("--occupancy-refine-dilation", "-1", "whole number >= 0"),
     ("--occupancy-refine-dilation", "0.5", "whole number >= 0"),
     ("--factor-storage", "int4", "invalid choice"),
+    ("--batch-rays", "0", "whole number above 0"),
+    ("--batch-rays", "2048.5", "whole number above 0"),
+    ("--iterations", "-1", "whole number above 0"),
+    ("--time-budget", "0", "above 0"),
 ])
 def test_bad_training_options_are_refused(plume, tmp_path, option, value, message) -> None:
     out = tmp_path / "m.safetensors"
