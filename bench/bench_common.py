@@ -126,9 +126,33 @@ def load_average() -> float:
     return round(os.getloadavg()[0], 2)
 
 
+def cpu_description(cpuinfo: str | None = None) -> str:
+    """The CPU's model name and its bfloat16 units, from /proc/cpuinfo (or ``cpuinfo``): the
+    machines behind these benchmarks have differed between sessions (an Intel Xeon with AMX, an AMD
+    EPYC without), and a figure from one is not comparable with a figure from the other."""
+    if cpuinfo is None:
+        try:
+            cpuinfo = Path("/proc/cpuinfo").read_text()
+        except OSError:
+            cpuinfo = ""
+    fields: dict[str, str] = {}
+    for line in cpuinfo.splitlines():
+        key, sep, value = line.partition(":")
+        if sep and key.strip() not in fields:
+            fields[key.strip()] = value.strip()
+    name = fields.get("model name") or platform.processor() or platform.machine()
+    flags = set(fields.get("flags", "").split())
+    if not flags:
+        return name
+    units = ["AMX bf16" if "amx_bf16" in flags else "no AMX"]
+    if "avx512_bf16" in flags:
+        units.append("AVX-512 bf16")
+    return f"{name} ({', '.join(units)})"
+
+
 def machine_record() -> dict[str, Any]:
     return {
-        "machine": f"{platform.processor() or platform.machine()}, {os.cpu_count()} CPU cores, "
+        "machine": f"{cpu_description()}, {os.cpu_count()} CPU cores, "
                    f"{'CUDA' if torch.cuda.is_available() else 'no GPU'}",
         "torch": torch.__version__,
         "torch_threads": torch.get_num_threads(),

@@ -19,7 +19,6 @@ within 1 s of page load, previews within 150 ms of input while dragging.
 import argparse
 import json
 import os
-import platform
 import shutil
 import socket
 import subprocess
@@ -31,7 +30,7 @@ import urllib.request
 from pathlib import Path
 
 import numpy as np
-from bench_common import write_json
+from bench_common import cpu_description, write_json
 
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "bench" / "results"
@@ -286,7 +285,7 @@ def main(argv: list[str] | None = None) -> int:
     result = {
         "recorded": time.strftime("%Y-%m-%d %H:%M:%S"),
         "machine": {
-            "cpu": platform.processor() or platform.machine(),
+            "cpu": cpu_description(),
             "cpus": os.cpu_count(),
             "load_avg_before": load_before,
         },

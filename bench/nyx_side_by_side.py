@@ -94,6 +94,7 @@ def report(folder: Path, runs: list[tuple[str, str]], title: str, about: str) ->
     labels = [label for _, label in runs]
     lines = [f"# {title}", "", "The runs, started together on this machine:", ""]
     lines += [f"    {r['command']}" for r in results]
+    lines += ["", "Machine: " + " / ".join(sorted({str(r.get("machine")) for r in results})) + "."]
     lines += ["", "Reports written at " + " / ".join(str(r.get("date")) for r in results)
               + "; 1-min load average before / after each: "
               + ", ".join(f"{r['load_average_before_after'][0]} / {r['load_average_before_after'][1]}"

@@ -14,7 +14,6 @@ before training, to write over a checkpoint or a report that exists (``--force``
 import argparse
 import json
 import os
-import platform
 import resource
 import sys
 import time
@@ -22,7 +21,16 @@ from pathlib import Path
 
 import numpy as np
 import torch
-from bench_common import HOLDOUT_SETTINGS, HOLDOUT_VIEWS, ROOT, evenly_spaced, holdout_for, render_frame, write_json
+from bench_common import (
+    HOLDOUT_SETTINGS,
+    HOLDOUT_VIEWS,
+    ROOT,
+    cpu_description,
+    evenly_spaced,
+    holdout_for,
+    render_frame,
+    write_json,
+)
 
 from visnerf.commands import (
     non_negative_int,
@@ -297,7 +305,7 @@ def main() -> int:
     trainer.field.set_occupancy(kept)
     result = {
         "command": "python bench/nyx_train.py " + " ".join(sys.argv[1:]),
-        "machine": (f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} threads, torch {torch.__version__}"
+        "machine": (f"{cpu_description()}, {torch.get_num_threads()} threads, torch {torch.__version__}"
                     + (f", {torch.cuda.get_device_name(device)}" if device.type == "cuda" else "")),
         "device": device.type,
         "budget_minutes": None if by_iterations else args.minutes,
