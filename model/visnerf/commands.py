@@ -82,26 +82,25 @@ def unit_interval_open_below(text: str) -> float:
     return value
 
 
-def positive_int(text: str) -> int:
-    """A whole number, 1 or more."""
+def _whole_number(text: str, least: int, words: str) -> int:
+    """``text`` as a whole number of at least ``least``; ``words`` names the range in the error."""
     try:
         value = int(text)
     except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number above 0, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a whole number above 0, got {text!r}")
+        value = least - 1
+    if value < least:
+        raise argparse.ArgumentTypeError(f"expected a whole number {words}, got {text!r}")
     return value
+
+
+def positive_int(text: str) -> int:
+    """A whole number, 1 or more."""
+    return _whole_number(text, 1, "above 0")
 
 
 def non_negative_int(text: str) -> int:
     """A whole number, 0 or more."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number >= 0, got {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"expected a whole number >= 0, got {text!r}")
-    return value
+    return _whole_number(text, 0, ">= 0")
 
 
 def parse_fractions(text: str) -> tuple[float, ...]:
