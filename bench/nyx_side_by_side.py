@@ -1,6 +1,7 @@
 """The report of Nyx training runs made side by side: two or more `bench/nyx_train.py` runs started
 together on the same machine (``--threads 1`` each), so that they share its noise, which runs from
-different sessions do not (this machine's speed has varied by 30 % between sessions).
+different sessions do not (the machines have differed between sessions: an AMD EPYC without AMX
+traced Nyx rays at half the rate of the machine of an earlier session).
 
 It reads each run's nyx_train.json and writes, into the folder that holds the runs, a README.md:
 the commands, the final figures of each run in columns, and the validation PSNR of each run at each
@@ -74,7 +75,9 @@ def summary_table(labels: list[str], runs: list[dict[str, Any]]) -> list[str]:
 
 
 def validation_table(labels: list[str], runs: list[dict[str, Any]]) -> list[str]:
-    """One line per validation, matched by order (every run validates at the same training seconds)."""
+    """One line per validation, matched by order: the runs validate every ``--validate-every``
+    seconds of training, but a step or a milestone can carry one past that; the first column gives
+    each run's own training seconds."""
     rows = [validation_rows(r) for r in runs]
     head = "| train s | " + " | ".join(f"iterations ({lab}) | val PSNR ({lab})" for lab in labels)
     head += "".join(f" | {labels[0]} minus {lab}" for lab in labels[1:]) + " |"
