@@ -22,6 +22,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from nyx_train import NYX_VALIDATION_FRAMES
+
 
 def parse_run(text: str) -> tuple[str, str]:
     """``SUBFOLDER=LABEL`` (or ``SUBFOLDER``, labelled by itself) as (subfolder, label)."""
@@ -81,7 +83,7 @@ def validation_table(labels: list[str], runs: list[dict[str, Any]]) -> list[str]
     rows = [validation_rows(r) for r in runs]
     head = "| train s | " + " | ".join(f"iterations ({lab}) | val PSNR ({lab})" for lab in labels)
     head += "".join(f" | {labels[0]} minus {lab}" for lab in labels[1:]) + " |"
-    lines = [head, "|" + " --- |" * (1 + 2 * len(runs) + len(runs) - 1)]
+    lines = [head, "|" + " --- |" * (3 * len(runs))]  # train s; 2 per run; a difference per other run
     for i in range(min(len(r) for r in rows)):
         at = [r[i] for r in rows]
         cells = [" / ".join(f"{a['train_seconds']:.0f}" for a in at)]
@@ -106,7 +108,8 @@ def report(folder: Path, runs: list[tuple[str, str]], title: str, about: str) ->
     if about:
         lines += ["", about]
     lines += ["", *summary_table(labels, results), "",
-              "Validation PSNR (bench/nyx_train.py validates on 6 held-out frames) against training time:", "",
+              f"Validation PSNR (bench/nyx_train.py validates on {NYX_VALIDATION_FRAMES} held-out frames) "
+              "against training time:", "",
               *validation_table(labels, results), ""]
     return "\n".join(lines)
 

@@ -73,6 +73,8 @@ NYX_BATCH_RAYS = 2048
 40-minute runs side by side, one thread each (bench/results/nyx_train_ab_batch/): 25.61 against
 25.10 dB on the 24 held-out frames, with 16780 against 9917 steps, ahead at every validation and
 by more as the run went on (+0.25 dB at 5 minutes, +0.52 at 40)."""
+NYX_VALIDATION_FRAMES = 6
+"""Held-out frames of each periodic validation (the final evaluation renders ``--eval-frames``)."""
 NYX_DENSITY_GRAD_KEEP = 0.125
 """Fraction of the near-empty density samples each step back-propagates (``TrainConfig.density_grad_keep``):
 90 % of a trained step's density samples are near-empty (alpha below 1e-4). From the 27.10 dB
@@ -280,7 +282,7 @@ def main() -> int:
     cfg = TrainConfig(iterations=args.iterations if by_iterations else 10**9,
                       time_budget_s=None if by_iterations else args.minutes * 60, batch_rays=args.batch_rays,
                       micro_batch_samples=args.micro_batch_samples, resolution_final=args.resolution,
-                      validate_every_s=args.validate_every, validate_max_images=6,
+                      validate_every_s=args.validate_every, validate_max_images=NYX_VALIDATION_FRAMES,
                       carve_min_seen_fraction=args.carve_min_seen_fraction, tv_weight_density=args.tv_density,
                       occupancy_refine_at=args.occupancy_refine_at, density_grad_keep=args.density_grad_keep,
                       occupancy_refine_dilation=args.occupancy_refine_dilation)
