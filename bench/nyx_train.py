@@ -245,6 +245,8 @@ def main() -> int:
                     help=f"how the checkpoint stores the VM factors (default {NYX_FACTOR_STORAGE})")
     ap.add_argument("--step-ratio", type=positive_float, default=NYX_STEP_RATIO,
                     help=f"training sample spacing in voxels (default {NYX_STEP_RATIO:g})")
+    ap.add_argument("--lr-upsample-reset", action="store_true",
+                    help="restart the learning-rate decay at each upsample (TrainConfig.lr_upsample_reset)")
     ap.add_argument("--threads", type=int, default=None, help="torch threads (default: all cores)")
     ap.add_argument("--bbox", type=parse_bbox, default=None, metavar="X0,Y0,Z0,X1,Y1,Z1",
                     help="content box (write --bbox=-0.2,...); default: carved from the images")
@@ -285,7 +287,8 @@ def main() -> int:
                       validate_every_s=args.validate_every, validate_max_images=NYX_VALIDATION_FRAMES,
                       carve_min_seen_fraction=args.carve_min_seen_fraction, tv_weight_density=args.tv_density,
                       occupancy_refine_at=args.occupancy_refine_at, density_grad_keep=args.density_grad_keep,
-                      occupancy_refine_dilation=args.occupancy_refine_dilation)
+                      occupancy_refine_dilation=args.occupancy_refine_dilation,
+                      lr_upsample_reset=args.lr_upsample_reset)
     trainer = Trainer(train, val, cfg, device, field_cfg=FieldConfig(density_shift=args.density_shift,
                                                                n_param_components=args.param_components,
                                                                factor_storage=args.factor_storage),
@@ -331,7 +334,8 @@ def main() -> int:
                    "step_ratio": args.step_ratio, "batch_rays": args.batch_rays, "param_components": args.param_components,
                    "occupancy_refine_at": list(args.occupancy_refine_at),
                    "occupancy_refine_dilation": cfg.occupancy_refine_dilation, "full_step_ratio": trainer.render_cfg.full_step_ratio,
-                   "factor_storage": trainer.field.cfg.factor_storage, "density_grad_keep": cfg.density_grad_keep},
+                   "factor_storage": trainer.field.cfg.factor_storage, "density_grad_keep": cfg.density_grad_keep,
+                   "lr_upsample_reset": cfg.lr_upsample_reset},
         "full_spacing": trainer.spacing_note,
         "final_grid": grids,
         "box": [[round(float(x), 4) for x in row] for row in trainer.field.aabb.cpu()],

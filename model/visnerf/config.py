@@ -172,6 +172,12 @@ class TrainConfig:
     betas: tuple[float, float] = (0.9, 0.99)
     lr_decay_ratio: float = 0.1
     """Learning rates decay exponentially to this fraction at the end of the run."""
+    lr_upsample_reset: bool = False
+    """Restart the decay at each ``upsample_at`` milestone (TensoRF's ``lr_upsample_reset``): the
+    rates go back to ``lr_factors`` / ``lr_networks`` there and decay at the same rate per unit of
+    progress from it, so after the last upsample at p the scale is ``lr_decay_ratio ** (progress - p)``
+    and the run ends at ``lr_decay_ratio ** (1 - p)`` instead of ``lr_decay_ratio``. False: one decay
+    from the start."""
     resolution_init: int = 64
     """Voxels per axis (cube root of the voxel count) at the start."""
     resolution_final: int = 120

@@ -161,8 +161,18 @@ class Trainer:
             p = max(p, self.state.train_seconds / self.cfg.time_budget_s)
         return p
 
+    def lr_scale(self) -> float:
+        """Factor on the base learning rates now: ``lr_decay_ratio`` to the progress made since the
+        decay last started (the run's start, or with ``lr_upsample_reset`` the nominal progress of
+        the last upsample done, which a resumed run recovers from its state)."""
+        p = min(1.0, self.progress())
+        start = 0.0
+        if self.cfg.lr_upsample_reset and self.state.upsamples_done > 0:
+            start = self.cfg.upsample_at[self.state.upsamples_done - 1]
+        return self.cfg.lr_decay_ratio ** max(0.0, p - start)
+
     def _rebuild_optimizer(self) -> None:
-        self.optimizer = make_optimizer(self.field, self.cfg, self.cfg.lr_decay_ratio ** min(1.0, self.progress()))
+        self.optimizer = make_optimizer(self.field, self.cfg, self.lr_scale())
 
     def step_size(self) -> float:
         return self.field.voxel_size() * self.render_cfg.step_ratio
@@ -278,7 +288,7 @@ class Trainer:
         ``micro_batch_samples`` samples per chunk (see ``micro_batches``).
         """
         cfg = self.cfg
-        scale = cfg.lr_decay_ratio ** min(1.0, self.progress())
+        scale = self.lr_scale()
         for group in self.optimizer.param_groups:
             group["lr"] = group["base_lr"] * scale
         batch = self.sampler.sample(cfg.batch_rays)
