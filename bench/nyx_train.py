@@ -72,7 +72,10 @@ NYX_BATCH_RAYS = 2048
 1.7 times as many steps, and more, noisier steps fit Nyx faster than fewer, exacter ones. Two
 40-minute runs side by side, one thread each (bench/results/nyx_train_ab_batch/): 25.61 against
 25.10 dB on the 24 held-out frames, with 16780 against 9917 steps, ahead at every validation and
-by more as the run went on (+0.25 dB at 5 minutes, +0.52 at 40)."""
+by more as the run went on (+0.25 dB at 5 minutes, +0.52 at 40). Halving again does not pay: 1024
+rays led by 0.15 to 0.30 dB in a 20-minute trial (bench/results/nyx_train_ab_batch2/), but over 40
+minutes 2048 rays led at every validation from 10 minutes on and ended 26.55 against 26.44 dB on
+the 24 frames (bench/results/nyx_train_ab_batch3/)."""
 NYX_VALIDATION_FRAMES = 6
 """Held-out frames of each periodic validation (the final evaluation renders ``--eval-frames``)."""
 NYX_DENSITY_GRAD_KEEP = 0.125
