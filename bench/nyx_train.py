@@ -232,6 +232,12 @@ def main() -> int:
     ap.add_argument("--param-components", type=int, default=FieldConfig.n_param_components,
                     help="components of each parameter-axis vector (default "
                          f"{FieldConfig.n_param_components}; must divide 16 and 48)")
+    ap.add_argument("--appearance-components", type=positive_int, default=FieldConfig.n_appearance_components,
+                    help="VM components per mode of the appearance grid (default "
+                         f"{FieldConfig.n_appearance_components}; a multiple of --param-components)")
+    ap.add_argument("--sh-degree", type=int, choices=range(4), default=FieldConfig.sh_degree,
+                    help="spherical-harmonics degree (0..3) of the colour decoder's view-direction encoding "
+                         f"(default {FieldConfig.sh_degree}; 0: colour does not depend on the view)")
     ap.add_argument("--occupancy-refine-at", type=parse_fractions,
                     default=NYX_OCCUPANCY_REFINE_AT, metavar="P1,P2,...",
                     help="progress fractions at which the occupancy grid is rebuilt within itself "
@@ -268,6 +274,12 @@ def main() -> int:
             ap.error(f"{' and '.join(map(str, taken))} already exist{'s' if len(taken) == 1 else ''}: "
                      "pass another --out / --results, or --force")
 
+    try:  # a bad shape fails here, before the data loads, with FieldConfig's message
+        field_cfg = FieldConfig(density_shift=args.density_shift, n_param_components=args.param_components,
+                                n_appearance_components=args.appearance_components, sh_degree=args.sh_degree,
+                                factor_storage=args.factor_storage)
+    except ValueError as err:
+        ap.error(str(err))
     device = pick_device(args.device)
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -292,10 +304,7 @@ def main() -> int:
                       occupancy_refine_at=args.occupancy_refine_at, density_grad_keep=args.density_grad_keep,
                       occupancy_refine_dilation=args.occupancy_refine_dilation,
                       lr_upsample_reset=args.lr_upsample_reset)
-    trainer = Trainer(train, val, cfg, device, field_cfg=FieldConfig(density_shift=args.density_shift,
-                                                               n_param_components=args.param_components,
-                                                               factor_storage=args.factor_storage),
-                      render_cfg=RenderConfig(step_ratio=args.step_ratio))
+    trainer = Trainer(train, val, cfg, device, field_cfg=field_cfg, render_cfg=RenderConfig(step_ratio=args.step_ratio))
     trainer.run(progress_bar=sys.stderr.isatty(), on_validate=lambda row: print(json.dumps(row), flush=True))
     ckpt = trainer.save(args.out, dataset="shared/data/nyx")
     out_dir = Path(args.results)
@@ -335,6 +344,7 @@ def main() -> int:
         "final_resolution": trainer.field.resolution,
         "recipe": {"carve_min_seen_fraction": args.carve_min_seen_fraction, "resolution": args.resolution,
                    "step_ratio": args.step_ratio, "batch_rays": args.batch_rays, "param_components": args.param_components,
+                   "appearance_components": args.appearance_components, "sh_degree": args.sh_degree,
                    "occupancy_refine_at": list(args.occupancy_refine_at),
                    "occupancy_refine_dilation": cfg.occupancy_refine_dilation, "full_step_ratio": trainer.render_cfg.full_step_ratio,
                    "factor_storage": trainer.field.cfg.factor_storage, "density_grad_keep": cfg.density_grad_keep,
