@@ -33,6 +33,7 @@ from bench_common import (
 )
 
 from visnerf.commands import (
+    non_negative_float,
     non_negative_int,
     parse_bbox,
     parse_fractions,
@@ -245,8 +246,10 @@ def main() -> int:
     ap.add_argument("--occupancy-refine-dilation", type=non_negative_int, default=NYX_OCCUPANCY_REFINE_DILATION,
                     metavar="CELLS", help="cells by which a refined occupancy grid grows around its content "
                                           f"(default {NYX_OCCUPANCY_REFINE_DILATION})")
-    ap.add_argument("--tv-density", type=float, default=TrainConfig.tv_weight_density,
+    ap.add_argument("--tv-density", type=non_negative_float, default=TrainConfig.tv_weight_density,
                     help=f"total-variation weight of the density factors (default {TrainConfig.tv_weight_density:g})")
+    ap.add_argument("--tv-appearance", type=non_negative_float, default=TrainConfig.tv_weight_appearance,
+                    help=f"total-variation weight of the appearance factors (default {TrainConfig.tv_weight_appearance:g})")
     ap.add_argument("--density-grad-keep", type=unit_interval_open_below, default=NYX_DENSITY_GRAD_KEEP,
                     help="fraction of the near-empty density samples each step back-propagates "
                          f"(default {NYX_DENSITY_GRAD_KEEP:g}; 1: all)")
@@ -301,6 +304,7 @@ def main() -> int:
                       micro_batch_samples=args.micro_batch_samples, resolution_final=args.resolution,
                       validate_every_s=args.validate_every, validate_max_images=NYX_VALIDATION_FRAMES,
                       carve_min_seen_fraction=args.carve_min_seen_fraction, tv_weight_density=args.tv_density,
+                      tv_weight_appearance=args.tv_appearance,
                       occupancy_refine_at=args.occupancy_refine_at, density_grad_keep=args.density_grad_keep,
                       occupancy_refine_dilation=args.occupancy_refine_dilation,
                       lr_upsample_reset=args.lr_upsample_reset)
@@ -345,6 +349,7 @@ def main() -> int:
         "recipe": {"carve_min_seen_fraction": args.carve_min_seen_fraction, "resolution": args.resolution,
                    "step_ratio": args.step_ratio, "batch_rays": args.batch_rays, "param_components": args.param_components,
                    "appearance_components": args.appearance_components, "sh_degree": args.sh_degree,
+                   "tv_density": cfg.tv_weight_density, "tv_appearance": cfg.tv_weight_appearance,
                    "occupancy_refine_at": list(args.occupancy_refine_at),
                    "occupancy_refine_dilation": cfg.occupancy_refine_dilation, "full_step_ratio": trainer.render_cfg.full_step_ratio,
                    "factor_storage": trainer.field.cfg.factor_storage, "density_grad_keep": cfg.density_grad_keep,

@@ -1,0 +1,162 @@
+"""What the decoders' bfloat16 matrix products buy on this CPU: Nyx training steps and frames.
+
+Training (``TrainConfig.mixed_precision``) and full-quality frames (``RenderConfig.bf16``) run the
+decoders' matrix products in bfloat16 wherever ``runtime.bf16_native`` says the CPU has bf16
+instructions: AMX on the Xeons, AVX512-BF16 alone on the AMD EPYCs some sessions run on. This
+measures both paths each way on the machine it runs on, from a trained checkpoint:
+
+- training steps: two trainers step the same trained field as the late phase of a run does
+  (``nyx_train.late_phase_trainer``), one with the decoders in bfloat16, one in float32,
+  alternating over ``--rounds``, so both share the machine's noise;
+- frames: ``--frames`` held-out 256x256 frames rendered through the public inference API with
+  ``bf16`` on and off in turn: seconds per frame, PSNR against the ground truth, and PSNR of the
+  bf16 frame against the float32 one.
+
+    python bench/mixed_precision_speed.py --checkpoint runs/nyx_hour_1125.safetensors
+
+Writes bench/results/mixed_precision_speed.{json,md}.
+"""
+
+import argparse
+import dataclasses
+import statistics
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from bench_common import (
+    add_step_timing_args,
+    add_trained_model_args,
+    alternate_steps,
+    evenly_spaced,
+    load_average,
+    machine_record,
+    markdown_header,
+    nyx_split,
+    render_frame,
+    step_time_summary,
+    write_results,
+)
+from nyx_train import late_phase_trainer
+
+from visnerf.checkpoint import load_checkpoint
+from visnerf.evaluation.metrics import psnr
+from visnerf.inference import load_scene
+from visnerf.runtime import bf16_native
+from visnerf.training.trainer import Trainer, set_mixed_precision
+
+
+class PrecisionTrainer:
+    """A trainer whose steps run the shared field's decoders in bfloat16 or not: the flag lives on
+    the field's decoders, which both trainers share, so it is set before each step (not timed
+    apart: setting two attributes)."""
+
+    def __init__(self, trainer: Trainer, bf16: bool) -> None:
+        self.trainer, self.bf16 = trainer, bf16
+
+    def train_step(self) -> dict[str, float]:
+        set_mixed_precision(self.trainer.field, self.bf16)
+        return self.trainer.train_step()
+
+
+def time_steps(args: argparse.Namespace, train: Any) -> list[dict[str, Any]]:  # noqa: ANN401
+    field, _ = load_checkpoint(args.checkpoint, torch.device("cpu"))
+    trainers = {bf16: PrecisionTrainer(late_phase_trainer(train, field, args.micro_batch_samples), bf16)
+                for bf16 in (True, False)}
+    for t in trainers.values():
+        t.train_step()  # warm-up: oneDNN builds its kernels on first use
+    times, _ = alternate_steps(trainers, args.rounds, args.steps)
+    return [{"bf16": bf16, **step_time_summary(times[bf16])} for bf16 in trainers]
+
+
+def time_frames(args: argparse.Namespace, val: Any) -> list[dict[str, Any]]:  # noqa: ANN401
+    scene = load_scene(args.checkpoint, torch.device("cpu"))
+    metas = {bf16: dataclasses.replace(scene.meta, render=dataclasses.replace(scene.meta.render, bf16=bf16))
+             for bf16 in (True, False)}  # the frame settings come from the scene's meta at each render
+    rows = []
+    for i in evenly_spaced(val.n_frames, args.frames):
+        row: dict[str, Any] = {"frame": int(i)}
+        images = {}
+        for bf16, meta in metas.items():
+            scene.meta = meta
+            render_frame(scene, val, i, 64, 64)  # warm-up at this setting's parameters
+            t0 = time.perf_counter()
+            pred, gt = render_frame(scene, val, i, 256, 256)
+            row[f"seconds_{'bf16' if bf16 else 'fp32'}"] = time.perf_counter() - t0
+            row[f"psnr_{'bf16' if bf16 else 'fp32'}"] = psnr(pred, gt)
+            images[bf16] = pred
+        row["psnr_bf16_from_fp32"] = psnr(images[True], images[False])
+        rows.append(row)
+    return rows
+
+
+def write_markdown(path: Path, record: dict[str, Any]) -> None:
+    steps = {row["bf16"]: row for row in record["steps"]}
+    frames = record["frames"]
+
+    def median(key: str) -> float:
+        return statistics.median(r[key] for r in frames)
+
+    lines = [
+        *markdown_header("Decoders in bfloat16 or float32: Nyx training steps and frames", record),
+        f"Checkpoint: `{record['checkpoint']}` (grid {record['resolution']}); bf16 instructions "
+        f"(`runtime.bf16_native`): {record['bf16_native']}.",
+        "",
+        f"Training steps ({record['rounds']} rounds of {record['steps_per_round']} steps each way, alternating):",
+        "",
+        "| decoders | median ms per step | min | max |",
+        "| --- | --- | --- | --- |",
+        *(f"| {'bfloat16' if bf16 else 'float32'} | {row['median_ms']:.1f} | {row['min_ms']:.1f} | {row['max_ms']:.1f} |"
+          for bf16, row in steps.items()),
+        "",
+        f"float32 / bfloat16 step time (medians): {steps[False]['median_ms'] / steps[True]['median_ms']:.2f}x.",
+        "",
+        f"Frames ({len(frames)} held-out 256x256 frames, full quality, each way in turn):",
+        "",
+        "| decoders | median s per frame | mean PSNR to ground truth |",
+        "| --- | --- | --- |",
+        f"| bfloat16 | {median('seconds_bf16'):.3f} | {np.mean([r['psnr_bf16'] for r in frames]):.3f} dB |",
+        f"| float32 | {median('seconds_fp32'):.3f} | {np.mean([r['psnr_fp32'] for r in frames]):.3f} dB |",
+        "",
+        f"float32 / bfloat16 frame time (medians): {median('seconds_fp32') / median('seconds_bf16'):.2f}x; "
+        f"bfloat16 frames from float32 frames: {min(r['psnr_bf16_from_fp32'] for r in frames):.1f} dB at the least.",
+        "",
+    ]
+    path.write_text("\n".join(lines))
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_trained_model_args(ap, "nyx_hour_1125.safetensors")
+    add_step_timing_args(ap, steps=5, per="precision")
+    ap.add_argument("--frames", type=int, default=6, help="held-out frames rendered each way")
+    args = ap.parse_args()
+    if args.rounds < 1 or args.steps < 1 or args.frames < 1:
+        ap.error("--rounds, --steps and --frames must be at least 1")
+    if not Path(args.checkpoint).is_file():
+        ap.error(f"--checkpoint {args.checkpoint}: no such file (train one with bench/nyx_train.py)")
+    load_before = load_average()
+    train, val = nyx_split(args.data)
+    steps = time_steps(args, train)
+    load_between = load_average()
+    frames = time_frames(args, val)
+    field, _ = load_checkpoint(args.checkpoint, torch.device("cpu"))
+    record = {
+        **machine_record(),
+        "command": " ".join(["python bench/mixed_precision_speed.py", *sys.argv[1:]]),
+        "load_average_1min": {"before": load_before, "between": load_between, "after": load_average()},
+        "checkpoint": args.checkpoint, "resolution": list(field.resolution),
+        "bf16_native": bf16_native(torch.device("cpu")),
+        "rounds": args.rounds, "steps_per_round": args.steps, "steps": steps, "frames": frames,
+    }
+    write_results(Path(args.results), "mixed_precision_speed", record, write_markdown)
+    for row in steps:
+        print(f"steps, {'bf16' if row['bf16'] else 'fp32'}: {row['median_ms']:.1f} ms")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
