@@ -8,9 +8,9 @@ measures both paths each way on the machine it runs on, from a trained checkpoin
 - training steps: two trainers step the same trained field as the late phase of a run does
   (``nyx_train.late_phase_trainer``), one with the decoders in bfloat16, one in float32,
   alternating over ``--rounds``, so both share the machine's noise;
-- frames: ``--frames`` held-out 256x256 frames rendered through the public inference API with
-  ``bf16`` on and off in turn: seconds per frame, PSNR against the ground truth, and PSNR of the
-  bf16 frame against the float32 one.
+- frames: ``--frames`` held-out 256x256 frames rendered through the inference API with ``bf16`` on
+  and off in turn, ``--frame-repeats`` times each, the order flipping: seconds per frame (median),
+  PSNR against the ground truth, and PSNR of the bf16 frame against the float32 one.
 
     python bench/mixed_precision_speed.py --checkpoint runs/nyx_hour_1125.safetensors
 
@@ -44,7 +44,8 @@ from nyx_train import late_phase_trainer
 
 from visnerf.checkpoint import load_checkpoint
 from visnerf.evaluation.metrics import psnr
-from visnerf.inference import load_scene
+from visnerf.inference import SceneRenderer
+from visnerf.rendering.setting_occupancy import SettingOccupancyConfig
 from visnerf.runtime import bf16_native
 from visnerf.training.trainer import Trainer, set_mixed_precision
 
@@ -73,21 +74,31 @@ def time_steps(args: argparse.Namespace, train: Any) -> list[dict[str, Any]]:  #
 
 
 def time_frames(args: argparse.Namespace, val: Any) -> list[dict[str, Any]]:  # noqa: ANN401
-    scene = load_scene(args.checkpoint, torch.device("cpu"))
-    metas = {bf16: dataclasses.replace(scene.meta, render=dataclasses.replace(scene.meta.render, bf16=bf16))
+    """Each frame rendered ``--frame-repeats`` times each way, the order flipping at each repeat;
+    the per-setting occupancy cache is off, so every render marches the same union grid (with it
+    on, the second request of a setting starts a background build that would run beside one of
+    the two timed renders)."""
+    field, meta = load_checkpoint(args.checkpoint, torch.device("cpu"))
+    scene = SceneRenderer(field, meta, torch.device("cpu"), SettingOccupancyConfig(capacity=0))
+    metas = {bf16: dataclasses.replace(meta, render=dataclasses.replace(meta.render, bf16=bf16))
              for bf16 in (True, False)}  # the frame settings come from the scene's meta at each render
+    for m in metas.values():  # warm-up: oneDNN builds its kernels on first use
+        scene.meta = m
+        render_frame(scene, val, 0, 256, 256)
     rows = []
     for i in evenly_spaced(val.n_frames, args.frames):
         row: dict[str, Any] = {"frame": int(i)}
+        seconds: dict[bool, list[float]] = {True: [], False: []}
         images = {}
-        for bf16, meta in metas.items():
-            scene.meta = meta
-            render_frame(scene, val, i, 64, 64)  # warm-up at this setting's parameters
-            t0 = time.perf_counter()
-            pred, gt = render_frame(scene, val, i, 256, 256)
-            row[f"seconds_{'bf16' if bf16 else 'fp32'}"] = time.perf_counter() - t0
-            row[f"psnr_{'bf16' if bf16 else 'fp32'}"] = psnr(pred, gt)
-            images[bf16] = pred
+        for repeat in range(args.frame_repeats):
+            for bf16 in ((True, False) if repeat % 2 == 0 else (False, True)):
+                scene.meta = metas[bf16]
+                t0 = time.perf_counter()
+                images[bf16], gt = render_frame(scene, val, i, 256, 256)
+                seconds[bf16].append(time.perf_counter() - t0)
+        for bf16, name in ((True, "bf16"), (False, "fp32")):
+            row[f"seconds_{name}"] = statistics.median(seconds[bf16])
+            row[f"psnr_{name}"] = psnr(images[bf16], gt)
         row["psnr_bf16_from_fp32"] = psnr(images[True], images[False])
         rows.append(row)
     return rows
@@ -114,7 +125,8 @@ def write_markdown(path: Path, record: dict[str, Any]) -> None:
         "",
         f"float32 / bfloat16 step time (medians): {steps[False]['median_ms'] / steps[True]['median_ms']:.2f}x.",
         "",
-        f"Frames ({len(frames)} held-out 256x256 frames, full quality, each way in turn):",
+        f"Frames ({len(frames)} held-out 256x256 frames, full quality, {record['frame_repeats']} renders each way "
+        "in turn, the order flipping; the union occupancy grid, no per-setting cache):",
         "",
         "| decoders | median s per frame | mean PSNR to ground truth |",
         "| --- | --- | --- |",
@@ -133,9 +145,10 @@ def main() -> int:
     add_trained_model_args(ap, "nyx_hour_1125.safetensors")
     add_step_timing_args(ap, steps=5, per="precision")
     ap.add_argument("--frames", type=int, default=6, help="held-out frames rendered each way")
+    ap.add_argument("--frame-repeats", type=int, default=3, help="renders of each frame each way (median)")
     args = ap.parse_args()
-    if args.rounds < 1 or args.steps < 1 or args.frames < 1:
-        ap.error("--rounds, --steps and --frames must be at least 1")
+    if min(args.rounds, args.steps, args.frames, args.frame_repeats) < 1:
+        ap.error("--rounds, --steps, --frames and --frame-repeats must be at least 1")
     if not Path(args.checkpoint).is_file():
         ap.error(f"--checkpoint {args.checkpoint}: no such file (train one with bench/nyx_train.py)")
     load_before = load_average()
@@ -150,7 +163,8 @@ def main() -> int:
         "load_average_1min": {"before": load_before, "between": load_between, "after": load_average()},
         "checkpoint": args.checkpoint, "resolution": list(field.resolution),
         "bf16_native": bf16_native(torch.device("cpu")),
-        "rounds": args.rounds, "steps_per_round": args.steps, "steps": steps, "frames": frames,
+        "rounds": args.rounds, "steps_per_round": args.steps, "steps": steps,
+        "frame_repeats": args.frame_repeats, "frames": frames,
     }
     write_results(Path(args.results), "mixed_precision_speed", record, write_markdown)
     for row in steps:
