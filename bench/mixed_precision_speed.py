@@ -12,7 +12,7 @@ measures both paths each way on the machine it runs on, from a trained checkpoin
   and off in turn, ``--frame-repeats`` times each, the order flipping: seconds per frame (median),
   PSNR against the ground truth, and PSNR of the bf16 frame against the float32 one.
 
-    python bench/mixed_precision_speed.py --checkpoint runs/nyx_hour_1125.safetensors
+    python bench/mixed_precision_speed.py --checkpoint runs/nyx.safetensors
 
 Writes bench/results/mixed_precision_speed.{json,md}.
 """
@@ -142,7 +142,7 @@ def write_markdown(path: Path, record: dict[str, Any]) -> None:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_trained_model_args(ap, "nyx_hour_1125.safetensors")
+    add_trained_model_args(ap, "nyx.safetensors")
     add_step_timing_args(ap, steps=5, per="precision")
     ap.add_argument("--frames", type=int, default=6, help="held-out frames rendered each way")
     ap.add_argument("--frame-repeats", type=int, default=3, help="renders of each frame each way (median)")
