@@ -42,10 +42,11 @@ from bench_common import (
 )
 from nyx_train import late_phase_trainer
 
-from visnerf.checkpoint import load_checkpoint
+from visnerf.checkpoint import CheckpointMeta, load_checkpoint
 from visnerf.evaluation.metrics import psnr
 from visnerf.inference import SceneRenderer
 from visnerf.rendering.setting_occupancy import SettingOccupancyConfig
+from visnerf.representation.field import VisNerfField
 from visnerf.runtime import bf16_native
 from visnerf.training.trainer import Trainer, set_mixed_precision
 
@@ -73,12 +74,11 @@ def time_steps(args: argparse.Namespace, train: Any) -> list[dict[str, Any]]:  #
     return [{"bf16": bf16, **step_time_summary(times[bf16])} for bf16 in trainers]
 
 
-def time_frames(args: argparse.Namespace, val: Any) -> list[dict[str, Any]]:  # noqa: ANN401
+def time_frames(args: argparse.Namespace, val: Any, field: VisNerfField, meta: CheckpointMeta) -> list[dict[str, Any]]:  # noqa: ANN401
     """Each frame rendered ``--frame-repeats`` times each way, the order flipping at each repeat;
     the per-setting occupancy cache is off, so every render marches the same union grid (with it
     on, the second request of a setting starts a background build that would run beside one of
-    the two timed renders)."""
-    field, meta = load_checkpoint(args.checkpoint, torch.device("cpu"))
+    the two timed renders). ``field`` is the checkpoint as loaded, not stepped by ``time_steps``."""
     scene = SceneRenderer(field, meta, torch.device("cpu"), SettingOccupancyConfig(capacity=0))
     metas = {bf16: dataclasses.replace(meta, render=dataclasses.replace(meta.render, bf16=bf16))
              for bf16 in (True, False)}  # the frame settings come from the scene's meta at each render
@@ -155,8 +155,8 @@ def main() -> int:
     train, val = nyx_split(args.data)
     steps = time_steps(args, train)
     load_between = load_average()
-    frames = time_frames(args, val)
-    field, _ = load_checkpoint(args.checkpoint, torch.device("cpu"))
+    field, meta = load_checkpoint(args.checkpoint, torch.device("cpu"))
+    frames = time_frames(args, val, field, meta)
     record = {
         **machine_record(),
         "command": " ".join(["python bench/mixed_precision_speed.py", *sys.argv[1:]]),
