@@ -59,6 +59,12 @@ def add_trained_model_args(ap: argparse.ArgumentParser, checkpoint: str) -> None
     ap.add_argument("--results", default=str(RESULTS))
 
 
+def require_checkpoint(ap: argparse.ArgumentParser, path: str | Path) -> None:
+    """Stop with a usage error, before any data loads, when the ``--checkpoint`` file is missing."""
+    if not Path(path).is_file():
+        ap.error(f"{path} does not exist: train one with bench/nyx_train.py, or pass --checkpoint")
+
+
 def add_step_timing_args(ap: argparse.ArgumentParser, steps: int, per: str) -> None:
     """``--rounds``, ``--steps`` and ``--micro-batch-samples`` of the benchmarks that time
     training steps of several configurations in turn."""

@@ -37,6 +37,7 @@ from bench_common import (
     markdown_header,
     nyx_split,
     render_frame,
+    require_checkpoint,
     step_time_summary,
     write_results,
 )
@@ -149,8 +150,7 @@ def main() -> int:
     args = ap.parse_args()
     if min(args.rounds, args.steps, args.frames, args.frame_repeats) < 1:
         ap.error("--rounds, --steps, --frames and --frame-repeats must be at least 1")
-    if not Path(args.checkpoint).is_file():
-        ap.error(f"--checkpoint {args.checkpoint}: no such file (train one with bench/nyx_train.py)")
+    require_checkpoint(ap, args.checkpoint)
     load_before = load_average()
     train, val = nyx_split(args.data)
     steps = time_steps(args, train)

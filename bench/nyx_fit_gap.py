@@ -26,6 +26,7 @@ from bench_common import (
     markdown_header,
     nyx_split,
     render_frame,
+    require_checkpoint,
     write_results,
 )
 
@@ -68,8 +69,7 @@ def main() -> int:
     add_trained_model_args(ap, "nyx.safetensors")
     ap.add_argument("--frames", type=int, default=24, help="frames of each set (default 24)")
     args = ap.parse_args()
-    if not Path(args.checkpoint).is_file():
-        ap.error(f"{args.checkpoint} does not exist (train one with bench/nyx_train.py)")
+    require_checkpoint(ap, args.checkpoint)
     load_before = load_average()
     train, val = nyx_split(args.data)
     scene = load_scene(Path(args.checkpoint), torch.device("cpu"))

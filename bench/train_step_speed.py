@@ -40,7 +40,16 @@ from pathlib import Path
 
 import torch
 import torch.nn.functional as F
-from bench_common import RESULTS, ROOT, load_average, machine_record, markdown_header, nyx_split, write_results
+from bench_common import (
+    RESULTS,
+    ROOT,
+    load_average,
+    machine_record,
+    markdown_header,
+    nyx_split,
+    require_checkpoint,
+    write_results,
+)
 from nyx_train import late_phase_trainer
 
 BACKWARDS = ("embedding_bag", "transposed product", "in-place product")
@@ -222,8 +231,7 @@ def main(argv: list[str] | None = None) -> int:
         print(json.dumps(measure_step(backward, allocator, int(samples), args.checkpoint, args.data, args.steps,
                                       args.threads)))
         return 0
-    if not args.checkpoint.is_file():
-        parser.error(f"{args.checkpoint} does not exist: train one with bench/nyx_train.py, or pass --checkpoint")
+    require_checkpoint(parser, args.checkpoint)
     if min(args.steps, args.rounds, args.lookup_bags, args.lookup_repeats, args.threads, *args.micro_batch_samples) < 1:
         parser.error("--steps, --rounds, --micro-batch-samples, --lookup-bags, --lookup-repeats and --threads "
                      "must be positive")
