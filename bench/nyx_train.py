@@ -89,6 +89,14 @@ NYX_FACTOR_STORAGE = "int8"
 """Planes stored as int8 codes with row scales: the 26.85 dB record's 24 held-out frames rendered
 26.8479 dB from it against 26.8486 dB from its float16 planes, in a 6.76 MB file instead of
 12.17 MB (bench/results/factor_storage_int8.md)."""
+NYX_TV_APPEARANCE = 0.0
+"""No total variation on the appearance factors (the library keeps the paper's 0.01): Nyx's fit
+is limited by capacity, not by noise (training frames score about as well as held-out ones). The
+hour without it reached 27.32 dB / 0.950 on the 24 held-out frames (bench/results/
+nyx_train_tv_appearance0_hour/), against 27.18 dB for the hour with it on the same CPU in another
+session (nyx_train_b2048_run2/), ahead at every validation by 0.10 to 0.37 dB with 9 % fewer
+steps; 35 minutes side by side, one thread each, it led at every validation too, by 0.05 to
+0.25 dB (nyx_train_ab_tv_appearance/)."""
 NYX_OCCUPANCY_REFINE_AT = (0.25, 0.5, 0.75)
 """Progress fractions at which the occupancy grid is rebuilt within itself
 (``TrainConfig.occupancy_refine_at``)."""
@@ -248,8 +256,9 @@ def main() -> int:
                                           f"(default {NYX_OCCUPANCY_REFINE_DILATION})")
     ap.add_argument("--tv-density", type=non_negative_float, default=TrainConfig.tv_weight_density,
                     help=f"total-variation weight of the density factors (default {TrainConfig.tv_weight_density:g})")
-    ap.add_argument("--tv-appearance", type=non_negative_float, default=TrainConfig.tv_weight_appearance,
-                    help=f"total-variation weight of the appearance factors (default {TrainConfig.tv_weight_appearance:g})")
+    ap.add_argument("--tv-appearance", type=non_negative_float, default=NYX_TV_APPEARANCE,
+                    help=f"total-variation weight of the appearance factors (default {NYX_TV_APPEARANCE:g}; "
+                         f"the library's is {TrainConfig.tv_weight_appearance:g})")
     ap.add_argument("--density-grad-keep", type=unit_interval_open_below, default=NYX_DENSITY_GRAD_KEEP,
                     help="fraction of the near-empty density samples each step back-propagates "
                          f"(default {NYX_DENSITY_GRAD_KEEP:g}; 1: all)")
