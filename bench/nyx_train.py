@@ -90,7 +90,7 @@ NYX_FACTOR_STORAGE = "int8"
 26.8479 dB from it against 26.8486 dB from its float16 planes, in a 6.76 MB file instead of
 12.17 MB (bench/results/factor_storage_int8.md)."""
 NYX_TV_APPEARANCE = 0.0
-"""No total variation on the appearance factors (the library keeps the paper's 0.01): Nyx's fit
+"""No total variation on the appearance factors (the library keeps 0.01): Nyx's fit
 is limited by capacity, not by noise (training frames score about as well as held-out ones). The
 hour without it reached 27.32 dB / 0.950 on the 24 held-out frames (bench/results/
 nyx_train_tv_appearance0_hour/), against 27.18 dB for the hour with it on the same CPU in another
