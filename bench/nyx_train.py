@@ -333,9 +333,10 @@ def main() -> int:
              "unrestricted_cells": int(trainer.field.occupancy.sum()), "unrestricted_psnr": unrestricted["psnr"],
              "unrestricted_ssim": unrestricted["ssim"]}
     trainer.field.set_occupancy(kept)
+    threads = torch.get_num_threads()
     result = {
         "command": "python bench/nyx_train.py " + " ".join(sys.argv[1:]),
-        "machine": (f"{cpu_description()}, {torch.get_num_threads()} threads, torch {torch.__version__}"
+        "machine": (f"{cpu_description()}, {threads} thread{'' if threads == 1 else 's'}, torch {torch.__version__}"
                     + (f", {torch.cuda.get_device_name(device)}" if device.type == "cuda" else "")),
         "device": device.type,
         "budget_minutes": None if by_iterations else args.minutes,
