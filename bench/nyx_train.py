@@ -59,14 +59,28 @@ NYX_CARVE_MIN_SEEN_FRACTION = 0.75
 """Every view sees all of Nyx, so a cell that a quarter of a setting's views do not see is not
 content: the box carves to +-0.19 instead of +-0.31 on two axes (data/carving.py). The library
 keeps 0, which cannot carve content that only a few views see."""
-NYX_RESOLUTION = 170
-"""Voxels per axis at the end. Nyx's detail sits at the pixel scale: its images downsampled 1.5
-and 2 times and upsampled back are 24.48 and 23.92 dB from themselves
-(bench/results/resolution_ceiling.md), and 160 beat 120 on the carved box at every validation
-(bench/results/nyx_train_box/). 170 is 0.0023 world units a voxel (a pixel is 0.0021 at the
-origin), and 12.1 MB with float16 factors."""
-NYX_STEP_RATIO = 1.4
-"""Training samples 1.4 voxels apart: 0.0032 world units, the spacing the 160-voxel trial ran at."""
+NYX_RESOLUTION = 200
+"""Voxels per axis at the end: 0.0019 world units a voxel (a pixel is 0.0021 at the origin), 8.92 MB
+with int8 planes. Nyx's detail sits at the pixel scale: its images downsampled 1.5 and 2 times and
+upsampled back are 24.48 and 23.92 dB from themselves (bench/results/resolution_ceiling.md). 160
+beat 120 on the carved box at every validation (bench/results/nyx_train_box/); 200 beat 170 side
+by side for 35 minutes, one thread each, ahead by 0.10 to 0.16 dB at every validation after the
+first and 26.63 against 26.43 dB on the 24 held-out frames with 3 % fewer steps
+(bench/results/nyx_train_ab_resolution/), and its hour reached 27.49 dB against the 170 record's
+27.32 (bench/results/nyx_train_r200_hour/). Finer does not pay in the hour: 230 was behind 200 by
+0.49 to 0.59 dB over 25 minutes, on its own training rays too (bench/results/nyx_train_ab_resolution2/)."""
+NYX_STEP_RATIO = 1.647
+"""Training samples 1.647 voxels of the ``NYX_RESOLUTION`` grid apart: 0.0032 world units, the
+spacing the 160-voxel trial ran at (1.4 voxels at 170). Other grids keep the world distance
+(``nyx_step_ratio``); at 170, 1.7 voxels instead of 1.4 was behind by 0.13 to 0.32 dB."""
+
+
+def nyx_step_ratio(resolution: int) -> float:
+    """The recipe's training sample spacing in voxels of a ``resolution`` grid: the same world
+    distance as ``NYX_STEP_RATIO`` at ``NYX_RESOLUTION``, so that a finer grid is compared at the
+    same samples per ray (1.4 at 170, 1.894 at 230)."""
+    return NYX_STEP_RATIO * resolution / NYX_RESOLUTION
+
 
 NYX_BATCH_RAYS = 2048
 """Rays per step: half the paper's 4096. A step's cost is mostly per ray, so the hour makes about
@@ -115,8 +129,7 @@ def late_phase_trainer(train, field, micro_batch_samples: int, **overrides) -> T
     res = field.resolution[0]
     cfg = TrainConfig(iterations=10**9, resolution_init=res, resolution_final=res, upsample_at=(), occupancy_at=(),
                       trim_every=10**9, micro_batch_samples=micro_batch_samples, **overrides)
-    return Trainer(train, None, cfg, torch.device("cpu"), render_cfg=RenderConfig(step_ratio=NYX_STEP_RATIO),
-                   init_field=field)
+    return Trainer(train, None, cfg, torch.device("cpu"), render_cfg=RenderConfig(step_ratio=nyx_step_ratio(res)), init_field=field)
 
 
 def peak_rss_mb() -> float:
@@ -264,8 +277,14 @@ def main() -> int:
                          f"(default {NYX_DENSITY_GRAD_KEEP:g}; 1: all)")
     ap.add_argument("--factor-storage", choices=sorted(FACTOR_STORAGE_DTYPES), default=NYX_FACTOR_STORAGE,
                     help=f"how the checkpoint stores the VM factors (default {NYX_FACTOR_STORAGE})")
-    ap.add_argument("--step-ratio", type=positive_float, default=NYX_STEP_RATIO,
-                    help=f"training sample spacing in voxels (default {NYX_STEP_RATIO:g})")
+    ap.add_argument("--step-ratio", type=positive_float, default=None,
+                    help=f"training sample spacing in voxels (default: {NYX_STEP_RATIO:g} at {NYX_RESOLUTION}^3, "
+                         "the same world distance at other resolutions)")
+    ap.add_argument("--lr-factors", type=positive_float, default=TrainConfig.lr_factors,
+                    help=f"Adam learning rate of the factors and parameter vectors (default {TrainConfig.lr_factors:g})")
+    ap.add_argument("--lr-decay-ratio", type=unit_interval_open_below, default=TrainConfig.lr_decay_ratio,
+                    help="fraction of the starting learning rates left at the end of the run "
+                         f"(default {TrainConfig.lr_decay_ratio:g})")
     ap.add_argument("--lr-upsample-reset", action="store_true",
                     help="restart the learning-rate decay at each upsample (TrainConfig.lr_upsample_reset)")
     ap.add_argument("--threads", type=int, default=None, help="torch threads (default: all cores)")
@@ -280,6 +299,8 @@ def main() -> int:
     args = ap.parse_args()
     if args.results is None:
         args.results = str(ROOT / "bench" / "results" / f"nyx_train_{Path(args.out).stem}")
+    if args.step_ratio is None:
+        args.step_ratio = round(nyx_step_ratio(args.resolution), 3)
     if not args.figure_only and not args.force:
         taken = [p for p in (Path(args.out), Path(args.results) / "nyx_train.json") if p.exists()]
         if taken:  # an hour of training must not end by writing over an earlier run
@@ -316,6 +337,7 @@ def main() -> int:
                       tv_weight_appearance=args.tv_appearance,
                       occupancy_refine_at=args.occupancy_refine_at, density_grad_keep=args.density_grad_keep,
                       occupancy_refine_dilation=args.occupancy_refine_dilation,
+                      lr_factors=args.lr_factors, lr_decay_ratio=args.lr_decay_ratio,
                       lr_upsample_reset=args.lr_upsample_reset)
     trainer = Trainer(train, val, cfg, device, field_cfg=field_cfg, render_cfg=RenderConfig(step_ratio=args.step_ratio))
     trainer.run(progress_bar=sys.stderr.isatty(), on_validate=lambda row: print(json.dumps(row), flush=True))
@@ -363,6 +385,7 @@ def main() -> int:
                    "occupancy_refine_at": list(args.occupancy_refine_at),
                    "occupancy_refine_dilation": cfg.occupancy_refine_dilation, "full_step_ratio": trainer.render_cfg.full_step_ratio,
                    "factor_storage": trainer.field.cfg.factor_storage, "density_grad_keep": cfg.density_grad_keep,
+                   "lr_factors": cfg.lr_factors, "lr_decay_ratio": cfg.lr_decay_ratio,
                    "lr_upsample_reset": cfg.lr_upsample_reset},
         "full_spacing": trainer.spacing_note,
         "final_grid": grids,
