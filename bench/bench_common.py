@@ -74,16 +74,23 @@ def add_step_timing_args(ap: argparse.ArgumentParser, steps: int, per: str) -> N
 
 
 def alternate_steps(
-    trainers: dict[Any, Any], rounds: int, steps: int, after_step: Callable[[Any], None] | None = None
+    trainers: dict[Any, Any],
+    rounds: int,
+    steps: int,
+    after_step: Callable[[Any], None] | None = None,
+    before_step: Callable[[Any], None] | None = None,
 ) -> tuple[dict[Any, list[float]], dict[Any, list[dict[str, float]]]]:
     """``steps`` training steps of each trainer in turn, ``rounds`` times, so that all share the
     machine's noise: per key, the milliseconds of each step and what each ``train_step`` returned.
-    ``after_step(key)`` runs after each step, outside its time."""
+    ``before_step(key)`` and ``after_step(key)`` run before and after each step, outside its time
+    (the way to give trainers that share a field or a trainer their own setting)."""
     times: dict[Any, list[float]] = {k: [] for k in trainers}
     outputs: dict[Any, list[dict[str, float]]] = {k: [] for k in trainers}
     for _ in range(rounds):
         for key, trainer in trainers.items():
             for _ in range(steps):
+                if before_step is not None:
+                    before_step(key)
                 t0 = time.perf_counter()
                 outputs[key].append(trainer.train_step())
                 times[key].append(1000 * (time.perf_counter() - t0))

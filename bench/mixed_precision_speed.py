@@ -41,7 +41,7 @@ from bench_common import (
     step_time_summary,
     write_results,
 )
-from nyx_train import late_phase_trainer
+from nyx_train import NYX_BATCH_RAYS, late_phase_trainer
 
 from visnerf.checkpoint import CheckpointMeta, load_checkpoint
 from visnerf.evaluation.metrics import psnr
@@ -49,30 +49,24 @@ from visnerf.inference import SceneRenderer
 from visnerf.rendering.setting_occupancy import SettingOccupancyConfig
 from visnerf.representation.field import VisNerfField
 from visnerf.runtime import bf16_native
-from visnerf.training.trainer import Trainer, set_mixed_precision
+from visnerf.training.trainer import set_mixed_precision
 
 
-class PrecisionTrainer:
-    """A trainer whose steps run the shared field's decoders in bfloat16 or not: the flag lives on
-    the field's decoders, which both trainers share, so it is set before each step (not timed
-    apart: setting two attributes)."""
-
-    def __init__(self, trainer: Trainer, bf16: bool) -> None:
-        self.trainer, self.bf16 = trainer, bf16
-
-    def train_step(self) -> dict[str, float]:
-        set_mixed_precision(self.trainer.field, self.bf16)
-        return self.trainer.train_step()
-
-
-def time_steps(args: argparse.Namespace, train: Any) -> list[dict[str, Any]]:  # noqa: ANN401
+def time_steps(args: argparse.Namespace, train: Any) -> tuple[list[dict[str, Any]], int]:  # noqa: ANN401
+    """Median step times each way, and the rays per step. Both trainers step the same field; the
+    bfloat16 flag lives on that field's decoders, so it is set before each step, outside its time."""
     field, _ = load_checkpoint(args.checkpoint, torch.device("cpu"))
-    trainers = {bf16: PrecisionTrainer(late_phase_trainer(train, field, args.micro_batch_samples), bf16)
+    trainers = {bf16: late_phase_trainer(train, field, args.micro_batch_samples, batch_rays=NYX_BATCH_RAYS)
                 for bf16 in (True, False)}
-    for t in trainers.values():
-        t.train_step()  # warm-up: oneDNN builds its kernels on first use
-    times, _ = alternate_steps(trainers, args.rounds, args.steps)
-    return [{"bf16": bf16, **step_time_summary(times[bf16])} for bf16 in trainers]
+
+    def set_precision(bf16: bool) -> None:
+        set_mixed_precision(field, bf16)
+
+    for bf16, t in trainers.items():  # warm-up: oneDNN builds its kernels on first use
+        set_precision(bf16)
+        t.train_step()
+    times, _ = alternate_steps(trainers, args.rounds, args.steps, before_step=set_precision)
+    return [{"bf16": bf16, **step_time_summary(times[bf16])} for bf16 in trainers], trainers[True].cfg.batch_rays
 
 
 def time_frames(args: argparse.Namespace, val: Any, field: VisNerfField, meta: CheckpointMeta) -> list[dict[str, Any]]:  # noqa: ANN401
@@ -117,7 +111,8 @@ def write_markdown(path: Path, record: dict[str, Any]) -> None:
         f"Checkpoint: `{record['checkpoint']}` (grid {record['resolution']}); bf16 instructions "
         f"(`runtime.bf16_native`): {record['bf16_native']}.",
         "",
-        f"Training steps ({record['rounds']} rounds of {record['steps_per_round']} steps each way, alternating):",
+        f"Training steps of {record['batch_rays']} rays ({record['rounds']} rounds of "
+        f"{record['steps_per_round']} steps each way, alternating):",
         "",
         "| decoders | median ms per step | min | max |",
         "| --- | --- | --- | --- |",
@@ -153,7 +148,7 @@ def main() -> int:
     require_checkpoint(ap, args.checkpoint)
     load_before = load_average()
     train, val = nyx_split(args.data)
-    steps = time_steps(args, train)
+    steps, batch_rays = time_steps(args, train)
     load_between = load_average()
     field, meta = load_checkpoint(args.checkpoint, torch.device("cpu"))
     frames = time_frames(args, val, field, meta)
@@ -163,7 +158,7 @@ def main() -> int:
         "load_average_1min": {"before": load_before, "between": load_between, "after": load_average()},
         "checkpoint": args.checkpoint, "resolution": list(field.resolution),
         "bf16_native": bf16_native(torch.device("cpu")),
-        "rounds": args.rounds, "steps_per_round": args.steps, "steps": steps,
+        "batch_rays": batch_rays, "rounds": args.rounds, "steps_per_round": args.steps, "steps": steps,
         "frame_repeats": args.frame_repeats, "frames": frames,
     }
     write_results(Path(args.results), "mixed_precision_speed", record, write_markdown)

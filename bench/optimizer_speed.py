@@ -50,17 +50,6 @@ def adam_like(optimizer: torch.optim.Adam, fused: bool) -> torch.optim.Adam:
     return torch.optim.Adam(groups, betas=optimizer.defaults["betas"], fused=fused, foreach=None if fused else False)
 
 
-class SwappingTrainer:
-    """The shared trainer stepping with one of the two optimizers (swapping is an assignment)."""
-
-    def __init__(self, trainer: Trainer, optimizer: torch.optim.Adam) -> None:
-        self.trainer, self.optimizer = trainer, optimizer
-
-    def train_step(self) -> dict[str, float]:
-        self.trainer.optimizer = self.optimizer
-        return self.trainer.train_step()
-
-
 def update_difference(trainer: Trainer) -> float:
     """Largest |fused - default| over the parameters after one step of each from the same state."""
     params = [p for g in trainer.optimizer.param_groups for p in g["params"]]
@@ -100,10 +89,13 @@ def main() -> int:
                 t0 = time.perf_counter()
                 optimizer.step()
                 alone[kind].append(1000 * (time.perf_counter() - t0))
-    trainers = {kind: SwappingTrainer(trainer, optimizer) for kind, optimizer in optimizers.items()}
-    for t in trainers.values():
-        t.train_step()
-    step_ms, _ = alternate_steps(trainers, args.rounds, args.steps)
+    def use_optimizer(kind: str) -> None:  # the shared trainer steps with one of the two (an assignment)
+        trainer.optimizer = optimizers[kind]
+
+    for kind in KINDS:
+        use_optimizer(kind)
+        trainer.train_step()
+    step_ms, _ = alternate_steps(dict.fromkeys(KINDS, trainer), args.rounds, args.steps, before_step=use_optimizer)
     record: dict[str, Any] = {
         **machine_record(),
         "command": " ".join(["python bench/optimizer_speed.py", *sys.argv[1:]]),
