@@ -167,7 +167,7 @@ def _train(args: argparse.Namespace) -> int:
         batch_rays=args.batch_rays, seed=args.seed, resolution_final=args.resolution,
         validate_every_s=args.validate_every, carve_min_seen_fraction=args.carve_min_seen_fraction,
         occupancy_refine_at=args.occupancy_refine_at, density_grad_keep=args.density_grad_keep,
-        occupancy_refine_dilation=args.occupancy_refine_dilation,
+        occupancy_refine_dilation=args.occupancy_refine_dilation, tv_weight_appearance=args.tv_appearance,
     )
     field_cfg = None if args.factor_storage is None else FieldConfig(factor_storage=args.factor_storage)
     render_cfg = RenderConfig()
@@ -335,6 +335,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    metavar="F", help="fraction of the near-empty density samples (alpha below "
                                      f"{TrainConfig.density_grad_floor:g}) each step back-propagates, their gradient "
                                      "scaled by 1/F: an unbiased, cheaper step (default 1: all; the Nyx recipe 0.125)")
+    p.add_argument("--tv-appearance", type=non_negative_float, default=TrainConfig.tv_weight_appearance,
+                   metavar="W", help="total-variation weight of the appearance factors "
+                                     f"(default {TrainConfig.tv_weight_appearance:g}; the Nyx recipe 0)")
     p.add_argument("--factor-storage", choices=sorted(FACTOR_STORAGE_DTYPES), default=None,
                    help=f"how the checkpoint stores the VM factors (default {FieldConfig.factor_storage}; "
                         "with --resume, the checkpoint's); int8: planes as int8 codes with row scales, about "

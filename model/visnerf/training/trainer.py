@@ -69,6 +69,13 @@ class TrainState:
     log: list[dict] = field(default_factory=list)
 
 
+PROVENANCE_RECIPE = ("batch_rays", "lr_factors", "lr_networks", "lr_decay_ratio", "l1_weight_initial",
+                     "l1_weight_rest", "param_l1_weight", "tv_weight_density", "tv_weight_appearance",
+                     "tv_weight_params", "density_grad_keep")
+"""The ``TrainConfig`` fields a checkpoint's provenance records under ``recipe`` (``visnerf info``
+shows them): the step, the rates and the priors a model was fitted with."""
+
+
 FUSED_ADAM_DEVICES = ("cpu", "cuda")
 """Devices whose parameters get torch's fused Adam: one pass over each tensor instead of about ten
 elementwise kernels, the same update. On a 170^3 Nyx field (5.6 M factors) on the 2-core CPU,
@@ -418,7 +425,8 @@ class Trainer:
                         "val_psnr": last.get("val_psnr"), "val_ssim": last.get("val_ssim"),
                         "seed": self.cfg.seed, "upsamples_done": self.state.upsamples_done,
                         "occupancy_done": self.state.occupancy_done,
-                        "refines_done": self.state.refines_done, "full_spacing": self.spacing_note},
+                        "refines_done": self.state.refines_done, "full_spacing": self.spacing_note,
+                        "recipe": {name: getattr(self.cfg, name) for name in PROVENANCE_RECIPE}},
         )
         save_checkpoint(self.field, meta, path)
         write_log(self.state.log, path.with_suffix(".log.csv"))

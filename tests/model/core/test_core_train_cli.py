@@ -7,6 +7,7 @@ import pytest
 import torch
 
 from visnerf.checkpoint import read_checkpoint
+from visnerf.config import TrainConfig
 
 
 def _visnerf(*args: str) -> subprocess.CompletedProcess:
@@ -40,10 +41,14 @@ def test_step_ratio_is_stored_and_kept_on_resume(plume, tmp_path) -> None:
 def test_factor_storage_and_sampled_density_gradients(plume, tmp_path) -> None:
     first = tmp_path / "q.safetensors"
     run = _visnerf("train", str(plume), "--out", str(first), "--iterations", "5", "--resolution", "16",
-                   "--factor-storage", "int8", "--density-grad-keep", "0.25", "--device", "cpu", "--quiet")
+                   "--factor-storage", "int8", "--density-grad-keep", "0.25", "--tv-appearance", "0",
+                   "--device", "cpu", "--quiet")
     assert run.returncode == 0, run.stderr
     meta, tensors = read_checkpoint(first)
     assert meta.field.factor_storage == "int8" and tensors["density_grid.planes.0"].dtype == torch.int8
+    recipe = meta.provenance["recipe"]
+    assert recipe["tv_weight_appearance"] == 0.0 and recipe["density_grad_keep"] == 0.25
+    assert recipe["tv_weight_density"] == TrainConfig.tv_weight_density and recipe["batch_rays"] == TrainConfig.batch_rays
     resumed = tmp_path / "h.safetensors"
     run = _visnerf("train", str(plume), "--out", str(resumed), "--iterations", "7", "--resume", str(first),
                    "--factor-storage", "float16", "--device", "cpu", "--quiet")
@@ -59,6 +64,7 @@ def test_factor_storage_and_sampled_density_gradients(plume, tmp_path) -> None:
     ("--occupancy-refine-at", "0.5,0.2", "fractions must increase"),
     ("--occupancy-refine-at", "0.5,2", "fraction in [0, 1]"),
     ("--density-grad-keep", "0", "fraction in (0, 1]"),
+    ("--tv-appearance", "-0.1", "at least 0"),
     ("--occupancy-refine-dilation", "-1", "whole number >= 0"),
     ("--occupancy-refine-dilation", "0.5", "whole number >= 0"),
     ("--factor-storage", "int4", "invalid choice"),
