@@ -78,10 +78,10 @@ shows them): the step, the rates and the priors a model was fitted with."""
 
 FUSED_ADAM_DEVICES = ("cpu", "cuda")
 """Devices whose parameters get torch's fused Adam: one pass over each tensor instead of about ten
-elementwise kernels, the same update. On a 170^3 Nyx field (5.6 M factors) on the 2-core CPU,
-1.6 against 5.2 ms per optimizer step and 51.0 against 54.6 ms per 2048-ray training step
-(medians, alternating), parameters within 5e-7 of the default's after a step
-(bench/results/optimizer_speed.md)."""
+elementwise kernels, the same update. On the 200^3 Nyx record (7.7 M parameters) on the 2-core
+CPU, 2.9 against 9.4 ms per optimizer step and 50.6 against 56.4 ms per 2048-ray training step
+(1.12x, medians, alternating), parameters within 1e-6 of the default's after a step
+(bench/results/optimizer_speed.md; on a 170^3 field before, 51.0 against 54.6 ms, 1.07x)."""
 
 
 def make_optimizer(field_: VisNerfField, cfg: TrainConfig, scale: float) -> torch.optim.Adam:
