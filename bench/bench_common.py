@@ -79,13 +79,21 @@ def alternate_steps(
     steps: int,
     after_step: Callable[[Any], None] | None = None,
     before_step: Callable[[Any], None] | None = None,
+    warm_up: bool = False,
 ) -> tuple[dict[Any, list[float]], dict[Any, list[dict[str, float]]]]:
     """``steps`` training steps of each trainer in turn, ``rounds`` times, so that all share the
     machine's noise: per key, the milliseconds of each step and what each ``train_step`` returned.
     ``before_step(key)`` and ``after_step(key)`` run before and after each step, outside its time
-    (the way to give trainers that share a field or a trainer their own setting)."""
+    (the way to give trainers that share a field or a trainer their own setting). With ``warm_up``,
+    each trainer first takes one untimed step, after its ``before_step`` (oneDNN builds its kernels
+    on first use), so that the warm-up runs each trainer's own setting."""
     times: dict[Any, list[float]] = {k: [] for k in trainers}
     outputs: dict[Any, list[dict[str, float]]] = {k: [] for k in trainers}
+    if warm_up:
+        for key, trainer in trainers.items():
+            if before_step is not None:
+                before_step(key)
+            trainer.train_step()
     for _ in range(rounds):
         for key, trainer in trainers.items():
             for _ in range(steps):

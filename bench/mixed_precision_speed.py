@@ -62,10 +62,7 @@ def time_steps(args: argparse.Namespace, train: Any) -> tuple[list[dict[str, Any
     def set_precision(bf16: bool) -> None:
         set_mixed_precision(field, bf16)
 
-    for bf16, t in trainers.items():  # warm-up: oneDNN builds its kernels on first use
-        set_precision(bf16)
-        t.train_step()
-    times, _ = alternate_steps(trainers, args.rounds, args.steps, before_step=set_precision)
+    times, _ = alternate_steps(trainers, args.rounds, args.steps, before_step=set_precision, warm_up=True)
     return [{"bf16": bf16, **step_time_summary(times[bf16])} for bf16 in trainers], trainers[True].cfg.batch_rays
 
 

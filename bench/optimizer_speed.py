@@ -92,10 +92,8 @@ def main() -> int:
     def use_optimizer(kind: str) -> None:  # the shared trainer steps with one of the two (an assignment)
         trainer.optimizer = optimizers[kind]
 
-    for kind in KINDS:
-        use_optimizer(kind)
-        trainer.train_step()
-    step_ms, _ = alternate_steps(dict.fromkeys(KINDS, trainer), args.rounds, args.steps, before_step=use_optimizer)
+    step_ms, _ = alternate_steps(dict.fromkeys(KINDS, trainer), args.rounds, args.steps, before_step=use_optimizer,
+                                 warm_up=True)
     record: dict[str, Any] = {
         **machine_record(),
         "command": " ".join(["python bench/optimizer_speed.py", *sys.argv[1:]]),
