@@ -168,6 +168,7 @@ def _train(args: argparse.Namespace) -> int:
         validate_every_s=args.validate_every, carve_min_seen_fraction=args.carve_min_seen_fraction,
         occupancy_refine_at=args.occupancy_refine_at, density_grad_keep=args.density_grad_keep,
         occupancy_refine_dilation=args.occupancy_refine_dilation, tv_weight_appearance=args.tv_appearance,
+        lr_factors=args.lr_factors, lr_decay_ratio=args.lr_decay_ratio,
     )
     field_cfg = None if args.factor_storage is None else FieldConfig(factor_storage=args.factor_storage)
     render_cfg = RenderConfig()
@@ -338,6 +339,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--tv-appearance", type=non_negative_float, default=TrainConfig.tv_weight_appearance,
                    metavar="W", help="total-variation weight of the appearance factors "
                                      f"(default {TrainConfig.tv_weight_appearance:g}; the Nyx recipe 0)")
+    p.add_argument("--lr-factors", type=positive_float, default=TrainConfig.lr_factors, metavar="LR",
+                   help="Adam learning rate of the VM factors and parameter vectors at the start "
+                        f"(default {TrainConfig.lr_factors:g}, the paper's; the decoders keep {TrainConfig.lr_networks:g})")
+    p.add_argument("--lr-decay-ratio", type=unit_interval_open_below, default=TrainConfig.lr_decay_ratio,
+                   metavar="F", help="fraction of the starting learning rates left at the end of the run, "
+                                     f"reached by exponential decay (default {TrainConfig.lr_decay_ratio:g}; "
+                                     "1: constant rates)")
     p.add_argument("--factor-storage", choices=sorted(FACTOR_STORAGE_DTYPES), default=None,
                    help=f"how the checkpoint stores the VM factors (default {FieldConfig.factor_storage}; "
                         "with --resume, the checkpoint's); int8: planes as int8 codes with row scales, about "
@@ -349,7 +357,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--bbox", type=parse_bbox, default=None, metavar="X0,Y0,Z0,X1,Y1,Z1",
                    help="world box that holds the content (write --bbox=-1,... for negative numbers); "
                         "default: the dataset's bbox, else a box every camera sees, carved from the images")
-    p.add_argument("--validate-every", type=float, default=120.0, metavar="SECONDS")
+    p.add_argument("--validate-every", type=positive_float, default=TrainConfig.validate_every_s, metavar="SECONDS",
+                   help=f"training seconds between validations on the held-out frames (default {TrainConfig.validate_every_s:g})")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N")
     p.add_argument("--resume", default=None, metavar="CKPT", help="continue from this checkpoint's weights")
