@@ -33,6 +33,7 @@ from bench_common import (
 )
 
 from visnerf.commands import (
+    add_learning_rate_args,
     non_negative_float,
     non_negative_int,
     parse_bbox,
@@ -78,8 +79,8 @@ spacing the 160-voxel trial ran at (1.4 voxels at 170). Other grids keep the wor
 def nyx_step_ratio(resolution: int) -> float:
     """The recipe's training sample spacing in voxels of a ``resolution`` grid: the same world
     distance as ``NYX_STEP_RATIO`` at ``NYX_RESOLUTION``, so that a finer grid is compared at the
-    same samples per ray (1.4 at 170, 1.894 at 230)."""
-    return NYX_STEP_RATIO * resolution / NYX_RESOLUTION
+    same samples per ray (1.4 at 170, 1.894 at 230), rounded to 3 decimals as the reports record it."""
+    return round(NYX_STEP_RATIO * resolution / NYX_RESOLUTION, 3)
 
 
 NYX_BATCH_RAYS = 2048
@@ -280,11 +281,7 @@ def main() -> int:
     ap.add_argument("--step-ratio", type=positive_float, default=None,
                     help=f"training sample spacing in voxels (default: {NYX_STEP_RATIO:g} at {NYX_RESOLUTION}^3, "
                          "the same world distance at other resolutions)")
-    ap.add_argument("--lr-factors", type=positive_float, default=TrainConfig.lr_factors,
-                    help=f"Adam learning rate of the factors and parameter vectors (default {TrainConfig.lr_factors:g})")
-    ap.add_argument("--lr-decay-ratio", type=unit_interval_open_below, default=TrainConfig.lr_decay_ratio,
-                    help="fraction of the starting learning rates left at the end of the run "
-                         f"(default {TrainConfig.lr_decay_ratio:g})")
+    add_learning_rate_args(ap)
     ap.add_argument("--lr-upsample-reset", action="store_true",
                     help="restart the learning-rate decay at each upsample (TrainConfig.lr_upsample_reset)")
     ap.add_argument("--threads", type=int, default=None, help="torch threads (default: all cores)")
@@ -300,7 +297,7 @@ def main() -> int:
     if args.results is None:
         args.results = str(ROOT / "bench" / "results" / f"nyx_train_{Path(args.out).stem}")
     if args.step_ratio is None:
-        args.step_ratio = round(nyx_step_ratio(args.resolution), 3)
+        args.step_ratio = nyx_step_ratio(args.resolution)
     if not args.figure_only and not args.force:
         taken = [p for p in (Path(args.out), Path(args.results) / "nyx_train.json") if p.exists()]
         if taken:  # an hour of training must not end by writing over an earlier run

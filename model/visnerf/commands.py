@@ -308,6 +308,18 @@ def _info(args: argparse.Namespace) -> int:
     return 0
 
 
+def add_learning_rate_args(p: argparse.ArgumentParser) -> None:
+    """``--lr-factors`` and ``--lr-decay-ratio``, for ``TrainConfig.lr_factors`` and ``lr_decay_ratio``
+    (``visnerf train`` and bench/nyx_train.py)."""
+    p.add_argument("--lr-factors", type=positive_float, default=TrainConfig.lr_factors, metavar="LR",
+                   help="Adam learning rate of the VM factors and parameter vectors at the start "
+                        f"(default {TrainConfig.lr_factors:g}, the paper's; the decoders keep {TrainConfig.lr_networks:g})")
+    p.add_argument("--lr-decay-ratio", type=unit_interval_open_below, default=TrainConfig.lr_decay_ratio,
+                   metavar="F", help="fraction of the starting learning rates left at the end of the run, "
+                                     f"reached by exponential decay (default {TrainConfig.lr_decay_ratio:g}; "
+                                     "1: constant rates)")
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("train", help="train a ViSNeRF model on a dataset folder")
     p.add_argument("data", help="dataset folder with transforms_train.json")
@@ -339,13 +351,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--tv-appearance", type=non_negative_float, default=TrainConfig.tv_weight_appearance,
                    metavar="W", help="total-variation weight of the appearance factors "
                                      f"(default {TrainConfig.tv_weight_appearance:g}; the Nyx recipe 0)")
-    p.add_argument("--lr-factors", type=positive_float, default=TrainConfig.lr_factors, metavar="LR",
-                   help="Adam learning rate of the VM factors and parameter vectors at the start "
-                        f"(default {TrainConfig.lr_factors:g}, the paper's; the decoders keep {TrainConfig.lr_networks:g})")
-    p.add_argument("--lr-decay-ratio", type=unit_interval_open_below, default=TrainConfig.lr_decay_ratio,
-                   metavar="F", help="fraction of the starting learning rates left at the end of the run, "
-                                     f"reached by exponential decay (default {TrainConfig.lr_decay_ratio:g}; "
-                                     "1: constant rates)")
+    add_learning_rate_args(p)
     p.add_argument("--factor-storage", choices=sorted(FACTOR_STORAGE_DTYPES), default=None,
                    help=f"how the checkpoint stores the VM factors (default {FieldConfig.factor_storage}; "
                         "with --resume, the checkpoint's); int8: planes as int8 codes with row scales, about "
