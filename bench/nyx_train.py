@@ -33,6 +33,7 @@ from bench_common import (
 )
 
 from visnerf.commands import (
+    add_error_sampling_args,
     add_learning_rate_args,
     non_negative_float,
     non_negative_int,
@@ -261,6 +262,9 @@ def main() -> int:
     ap.add_argument("--sh-degree", type=int, choices=range(4), default=FieldConfig.sh_degree,
                     help="spherical-harmonics degree (0..3) of the colour decoder's view-direction encoding "
                          f"(default {FieldConfig.sh_degree}; 0: colour does not depend on the view)")
+    ap.add_argument("--upsample-at", type=parse_fractions, default=TrainConfig.upsample_at, metavar="P1,P2,...",
+                    help="progress fractions at which the grid is upsampled, log-spaced from 64^3 to --resolution "
+                         f"(default {','.join(map(str, TrainConfig.upsample_at))})")
     ap.add_argument("--occupancy-refine-at", type=parse_fractions,
                     default=NYX_OCCUPANCY_REFINE_AT, metavar="P1,P2,...",
                     help="progress fractions at which the occupancy grid is rebuilt within itself "
@@ -282,6 +286,7 @@ def main() -> int:
                     help=f"training sample spacing in voxels (default: {NYX_STEP_RATIO:g} at {NYX_RESOLUTION}^3, "
                          "the same world distance at other resolutions)")
     add_learning_rate_args(ap)
+    add_error_sampling_args(ap)
     ap.add_argument("--lr-upsample-reset", action="store_true",
                     help="restart the learning-rate decay at each upsample (TrainConfig.lr_upsample_reset)")
     ap.add_argument("--threads", type=int, default=None, help="torch threads (default: all cores)")
@@ -334,8 +339,9 @@ def main() -> int:
                       tv_weight_appearance=args.tv_appearance,
                       occupancy_refine_at=args.occupancy_refine_at, density_grad_keep=args.density_grad_keep,
                       occupancy_refine_dilation=args.occupancy_refine_dilation,
-                      lr_factors=args.lr_factors, lr_decay_ratio=args.lr_decay_ratio,
-                      lr_upsample_reset=args.lr_upsample_reset)
+                      lr_factors=args.lr_factors, lr_networks=args.lr_networks, lr_decay_ratio=args.lr_decay_ratio,
+                      upsample_at=args.upsample_at, lr_upsample_reset=args.lr_upsample_reset, error_sampling_tile=args.error_sampling_tile,
+                      error_sampling_uniform=args.error_sampling_uniform)
     trainer = Trainer(train, val, cfg, device, field_cfg=field_cfg, render_cfg=RenderConfig(step_ratio=args.step_ratio))
     trainer.run(progress_bar=sys.stderr.isatty(), on_validate=lambda row: print(json.dumps(row), flush=True))
     ckpt = trainer.save(args.out, dataset="shared/data/nyx")
@@ -382,8 +388,10 @@ def main() -> int:
                    "occupancy_refine_at": list(args.occupancy_refine_at),
                    "occupancy_refine_dilation": cfg.occupancy_refine_dilation, "full_step_ratio": trainer.render_cfg.full_step_ratio,
                    "factor_storage": trainer.field.cfg.factor_storage, "density_grad_keep": cfg.density_grad_keep,
-                   "lr_factors": cfg.lr_factors, "lr_decay_ratio": cfg.lr_decay_ratio,
-                   "lr_upsample_reset": cfg.lr_upsample_reset},
+                   "lr_factors": cfg.lr_factors, "lr_networks": cfg.lr_networks, "lr_decay_ratio": cfg.lr_decay_ratio,
+                   "upsample_at": list(cfg.upsample_at),
+                   "lr_upsample_reset": cfg.lr_upsample_reset, "error_sampling_tile": cfg.error_sampling_tile,
+                   "error_sampling_uniform": cfg.error_sampling_uniform},
         "full_spacing": trainer.spacing_note,
         "final_grid": grids,
         "box": [[round(float(x), 4) for x in row] for row in trainer.field.aabb.cpu()],

@@ -168,7 +168,8 @@ def _train(args: argparse.Namespace) -> int:
         validate_every_s=args.validate_every, carve_min_seen_fraction=args.carve_min_seen_fraction,
         occupancy_refine_at=args.occupancy_refine_at, density_grad_keep=args.density_grad_keep,
         occupancy_refine_dilation=args.occupancy_refine_dilation, tv_weight_appearance=args.tv_appearance,
-        lr_factors=args.lr_factors, lr_decay_ratio=args.lr_decay_ratio,
+        lr_factors=args.lr_factors, lr_networks=args.lr_networks, lr_decay_ratio=args.lr_decay_ratio,
+        error_sampling_tile=args.error_sampling_tile, error_sampling_uniform=args.error_sampling_uniform,
     )
     field_cfg = None if args.factor_storage is None else FieldConfig(factor_storage=args.factor_storage)
     render_cfg = RenderConfig()
@@ -309,15 +310,29 @@ def _info(args: argparse.Namespace) -> int:
 
 
 def add_learning_rate_args(p: argparse.ArgumentParser) -> None:
-    """``--lr-factors`` and ``--lr-decay-ratio``, for ``TrainConfig.lr_factors`` and ``lr_decay_ratio``
-    (``visnerf train`` and bench/nyx_train.py)."""
+    """``--lr-factors``, ``--lr-networks`` and ``--lr-decay-ratio``, for ``TrainConfig.lr_factors``,
+    ``lr_networks`` and ``lr_decay_ratio`` (``visnerf train`` and bench/nyx_train.py)."""
     p.add_argument("--lr-factors", type=positive_float, default=TrainConfig.lr_factors, metavar="LR",
                    help="Adam learning rate of the VM factors and parameter vectors at the start "
                         f"(default {TrainConfig.lr_factors:g}, the paper's; the decoders keep {TrainConfig.lr_networks:g})")
+    p.add_argument("--lr-networks", type=positive_float, default=TrainConfig.lr_networks, metavar="LR",
+                   help=f"Adam learning rate of the decoders at the start (default {TrainConfig.lr_networks:g}, the paper's)")
     p.add_argument("--lr-decay-ratio", type=unit_interval_open_below, default=TrainConfig.lr_decay_ratio,
                    metavar="F", help="fraction of the starting learning rates left at the end of the run, "
                                      f"reached by exponential decay (default {TrainConfig.lr_decay_ratio:g}; "
                                      "1: constant rates)")
+
+
+def add_error_sampling_args(p: argparse.ArgumentParser, tile_default: int = TrainConfig.error_sampling_tile) -> None:
+    """``--error-sampling-tile`` and ``--error-sampling-uniform``, for ``TrainConfig.error_sampling_tile``
+    and ``error_sampling_uniform`` (``visnerf train`` and bench/nyx_train.py)."""
+    p.add_argument("--error-sampling-tile", type=non_negative_int, default=tile_default, metavar="PIXELS",
+                   help="draw training pixels in proportion to the root of a running estimate of their "
+                        "tile's squared error, each ray weighted by its inverse probability; the tiles' "
+                        f"side in pixels (default {tile_default}; 0: uniform pixels)")
+    p.add_argument("--error-sampling-uniform", type=unit_interval_open_below, default=TrainConfig.error_sampling_uniform,
+                   metavar="F", help="with --error-sampling-tile, the fraction of the draw kept uniform over the "
+                                     f"pixels; bounds a ray's weight by 1/F (default {TrainConfig.error_sampling_uniform:g})")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -352,6 +367,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    metavar="W", help="total-variation weight of the appearance factors "
                                      f"(default {TrainConfig.tv_weight_appearance:g}; the Nyx recipe 0)")
     add_learning_rate_args(p)
+    add_error_sampling_args(p)
     p.add_argument("--factor-storage", choices=sorted(FACTOR_STORAGE_DTYPES), default=None,
                    help=f"how the checkpoint stores the VM factors (default {FieldConfig.factor_storage}; "
                         "with --resume, the checkpoint's); int8: planes as int8 codes with row scales, about "

@@ -253,6 +253,12 @@ class TrainConfig:
     density_grad_floor: float = 1e-4
     """Alpha over one sample's interval below which a sample counts as near-empty (the occupancy
     grid's and the colour pass's threshold)."""
+    error_sampling_tile: int = 0
+    """Draw training pixels where the model errs (``data/error_map.py``): side in pixels of the
+    tiles whose squared error is tracked, each ray weighted by its inverse probability. 0: pixels
+    drawn uniformly."""
+    error_sampling_uniform: float = 0.2
+    """With ``error_sampling_tile``, the fraction of the probability kept uniform over the pixels."""
     validate_every_s: float = 120.0
     """Seconds of training between validations."""
     validate_max_images: int = 8
@@ -273,6 +279,10 @@ class TrainConfig:
             raise ValueError(f"occupancy_refine_dilation must be >= 0 cells, got {self.occupancy_refine_dilation}")
         if not 0.0 < self.density_grad_keep <= 1.0:
             raise ValueError(f"density_grad_keep must be in (0, 1], got {self.density_grad_keep}")
+        if self.error_sampling_tile < 0:
+            raise ValueError(f"error_sampling_tile must be >= 0 pixels (0: off), got {self.error_sampling_tile}")
+        if not 0.0 < self.error_sampling_uniform <= 1.0:
+            raise ValueError(f"error_sampling_uniform must be in (0, 1], got {self.error_sampling_uniform}")
         if not 0.0 <= self.density_grad_floor < 1.0:
             raise ValueError(f"density_grad_floor must be in [0, 1), got {self.density_grad_floor}")
 
