@@ -2,7 +2,7 @@
 
 Uniformly drawn pixels spend most of a batch where the model is already right: on Nyx, 63 to 69 %
 of a training frame is background, and in the 60-minute model the worst 20 % of pixels hold 96 %
-of the squared error. Drawing a pixel with probability ``p`` and weighting its error by ``1 / p``
+of the squared error (bench/results/nyx_error_concentration.md). Drawing a pixel with probability ``p`` and weighting its error by ``1 / p``
 keeps the gradient an unbiased estimate of the uniform mean's and, with ``p`` following the error's
 root (the optimal density for a gradient proportional to the residual), lowers its variance.
 
