@@ -34,6 +34,8 @@ from bench_common import (
     write_results,
 )
 
+from visnerf.data.error_map import ErrorMapConfig, PixelErrorMap
+from visnerf.evaluation.metrics import psnr
 from visnerf.inference import load_scene
 
 WORST_FRACTIONS = (0.01, 0.05, 0.1, 0.2, 0.5)
@@ -51,19 +53,19 @@ def error_share_of_worst(errors: np.ndarray, fraction: float) -> float:
 def second_moment_ratio(errors: np.ndarray, tile: int, uniform: float) -> float:
     """Uniform draw's second moment over the root-error draw's, with tiles of ``tile`` pixels a side.
 
-    With per-pixel squared errors ``e`` and a tile ``t`` holding ``S_t = sum e``, a draw of tile
-    probabilities ``p_t`` (uniform within the tile) weighted by ``1 / p`` has second moment
-    proportional to ``sum_t S_t / p_t``: ``T * sum S`` for the uniform draw's ``p_t = 1 / T``."""
+    The draw is the training's own (``PixelErrorMap.tile_masses``) with each tile's estimate set to
+    its pixels' mean error. With per-pixel squared errors ``e`` and a tile ``t`` holding
+    ``S_t = sum e``, a draw of tile probabilities ``p_t`` (uniform within the tile) weighted by
+    ``1 / p`` has second moment proportional to ``sum_t S_t / p_t``: ``T * sum S`` for the uniform
+    draw's ``p_t = 1 / T``."""
     f, h, w = errors.shape
     if h % tile or w % tile:
         raise ValueError(f"{h}x{w} frames do not split into {tile}-pixel tiles")
     sums = errors.reshape(f, h // tile, tile, w // tile, tile).sum(axis=(2, 4)).ravel().astype(np.float64)
-    n_tiles = sums.size
-    root = np.sqrt(sums / (tile * tile))
-    if root.sum() <= 0:
-        return 1.0
-    p = (1.0 - uniform) * root / root.sum() + uniform / n_tiles
-    return float(n_tiles * sums.sum() / (sums / p).sum())
+    error_map = PixelErrorMap(f, h, w, ErrorMapConfig(tile=tile, uniform=uniform))
+    error_map.error = torch.from_numpy(sums / (tile * tile)).float()
+    p = error_map.tile_masses().double().numpy()
+    return float(sums.size * sums.sum() / (sums / p).sum())
 
 
 def write_markdown(path: Path, record: dict) -> None:
@@ -111,7 +113,7 @@ def main() -> int:
         pred, gt = render_frame(scene, train, i, train.intrinsics.width, train.intrinsics.height)
         e = ((pred - gt) ** 2).mean(-1)  # [h, w]
         errors.append(e)
-        rows.append({"frame": int(i), "psnr": float(-10 * np.log10(max(float(e.mean()), 1e-12))),
+        rows.append({"frame": int(i), "psnr": psnr(pred, gt),
                      "background_fraction": float((np.abs(gt - background).max(-1) < 1e-3).mean())})
     stack = np.stack(errors)
     record = {
