@@ -35,6 +35,7 @@ from bench_common import (
 from visnerf.commands import (
     add_error_sampling_args,
     add_learning_rate_args,
+    add_weight_average_args,
     non_negative_float,
     non_negative_int,
     parse_bbox,
@@ -287,6 +288,7 @@ def main() -> int:
                          "the same world distance at other resolutions)")
     add_learning_rate_args(ap)
     add_error_sampling_args(ap)
+    add_weight_average_args(ap)
     ap.add_argument("--lr-upsample-reset", action="store_true",
                     help="restart the learning-rate decay at each upsample (TrainConfig.lr_upsample_reset)")
     ap.add_argument("--threads", type=int, default=None, help="torch threads (default: all cores)")
@@ -341,7 +343,8 @@ def main() -> int:
                       occupancy_refine_dilation=args.occupancy_refine_dilation,
                       lr_factors=args.lr_factors, lr_networks=args.lr_networks, lr_decay_ratio=args.lr_decay_ratio,
                       upsample_at=args.upsample_at, lr_upsample_reset=args.lr_upsample_reset, error_sampling_tile=args.error_sampling_tile,
-                      error_sampling_uniform=args.error_sampling_uniform)
+                      error_sampling_uniform=args.error_sampling_uniform,
+                      weight_average_span=args.weight_average_span, weight_average_from=args.weight_average_from)
     trainer = Trainer(train, val, cfg, device, field_cfg=field_cfg, render_cfg=RenderConfig(step_ratio=args.step_ratio))
     trainer.run(progress_bar=sys.stderr.isatty(), on_validate=lambda row: print(json.dumps(row), flush=True))
     ckpt = trainer.save(args.out, dataset="shared/data/nyx")
@@ -391,7 +394,8 @@ def main() -> int:
                    "lr_factors": cfg.lr_factors, "lr_networks": cfg.lr_networks, "lr_decay_ratio": cfg.lr_decay_ratio,
                    "upsample_at": list(cfg.upsample_at),
                    "lr_upsample_reset": cfg.lr_upsample_reset, "error_sampling_tile": cfg.error_sampling_tile,
-                   "error_sampling_uniform": cfg.error_sampling_uniform},
+                   "error_sampling_uniform": cfg.error_sampling_uniform,
+                   "weight_average_span": cfg.weight_average_span, "weight_average_from": cfg.weight_average_from},
         "full_spacing": trainer.spacing_note,
         "final_grid": grids,
         "box": [[round(float(x), 4) for x in row] for row in trainer.field.aabb.cpu()],

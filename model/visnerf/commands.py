@@ -170,6 +170,7 @@ def _train(args: argparse.Namespace) -> int:
         occupancy_refine_dilation=args.occupancy_refine_dilation, tv_weight_appearance=args.tv_appearance,
         lr_factors=args.lr_factors, lr_networks=args.lr_networks, lr_decay_ratio=args.lr_decay_ratio,
         error_sampling_tile=args.error_sampling_tile, error_sampling_uniform=args.error_sampling_uniform,
+        weight_average_span=args.weight_average_span, weight_average_from=args.weight_average_from,
     )
     field_cfg = None if args.factor_storage is None else FieldConfig(factor_storage=args.factor_storage)
     render_cfg = RenderConfig()
@@ -335,6 +336,18 @@ def add_error_sampling_args(p: argparse.ArgumentParser, tile_default: int = Trai
                                      f"pixels; bounds a ray's weight by 1/F (default {TrainConfig.error_sampling_uniform:g})")
 
 
+def add_weight_average_args(p: argparse.ArgumentParser) -> None:
+    """``--weight-average-span`` and ``--weight-average-from``, for ``TrainConfig.weight_average_span``
+    and ``weight_average_from`` (``visnerf train`` and bench/nyx_train.py)."""
+    p.add_argument("--weight-average-span", type=non_negative_float, default=TrainConfig.weight_average_span,
+                   metavar="F", help="save the parameters' moving average over the end of the run instead of "
+                                     "their last values; the fraction of the run over which an old value's weight "
+                                     f"falls by e (default {TrainConfig.weight_average_span:g}: off)")
+    p.add_argument("--weight-average-from", type=unit_fraction, default=TrainConfig.weight_average_from, metavar="F",
+                   help="with --weight-average-span, the fraction of the run from which the average is kept "
+                        f"(default {TrainConfig.weight_average_from:g})")
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("train", help="train a ViSNeRF model on a dataset folder")
     p.add_argument("data", help="dataset folder with transforms_train.json")
@@ -368,6 +381,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                                      f"(default {TrainConfig.tv_weight_appearance:g}; the Nyx recipe 0)")
     add_learning_rate_args(p)
     add_error_sampling_args(p)
+    add_weight_average_args(p)
     p.add_argument("--factor-storage", choices=sorted(FACTOR_STORAGE_DTYPES), default=None,
                    help=f"how the checkpoint stores the VM factors (default {FieldConfig.factor_storage}; "
                         "with --resume, the checkpoint's); int8: planes as int8 codes with row scales, about "

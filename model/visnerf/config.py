@@ -259,6 +259,15 @@ class TrainConfig:
     drawn uniformly."""
     error_sampling_uniform: float = 0.2
     """With ``error_sampling_tile``, the fraction of the probability kept uniform over the pixels."""
+    weight_average_span: float = 0.0
+    """Return the parameters' moving average over the end of the run instead of their last values
+    (``training/weight_average.py``): the span of progress over which an old value's weight falls
+    by a factor of e. 0: off."""
+    weight_average_from: float = 0.5
+    """Progress fraction from which the average is kept; it restarts if the grid is upsampled
+    later, and on ``--resume`` (it is not in the checkpoint)."""
+    weight_average_every: int = 4
+    """Steps between updates of the average (each is a pass over every parameter)."""
     validate_every_s: float = 120.0
     """Seconds of training between validations."""
     validate_max_images: int = 8
@@ -283,6 +292,12 @@ class TrainConfig:
             raise ValueError(f"error_sampling_tile must be >= 0 pixels (0: off), got {self.error_sampling_tile}")
         if not 0.0 < self.error_sampling_uniform <= 1.0:
             raise ValueError(f"error_sampling_uniform must be in (0, 1], got {self.error_sampling_uniform}")
+        if not (math.isfinite(self.weight_average_span) and self.weight_average_span >= 0.0):
+            raise ValueError(f"weight_average_span must be a progress fraction >= 0 (0: off), got {self.weight_average_span}")
+        if not 0.0 <= self.weight_average_from <= 1.0:
+            raise ValueError(f"weight_average_from must be in [0, 1], got {self.weight_average_from}")
+        if self.weight_average_every < 1:
+            raise ValueError(f"weight_average_every must be at least 1 step, got {self.weight_average_every}")
         if not 0.0 <= self.density_grad_floor < 1.0:
             raise ValueError(f"density_grad_floor must be in [0, 1), got {self.density_grad_floor}")
 

@@ -44,6 +44,7 @@ from visnerf.representation.field import VisNerfField
 from visnerf.representation.vm_taps import table_gradients_in_place
 from visnerf.runtime import bf16_native, keep_freed_blocks, release_free_memory
 from visnerf.training.regularizers import RegularizerWeights, backward_regularization
+from visnerf.training.weight_average import WeightAverage
 
 
 def resolution_for_box(extent: torch.Tensor, voxels_per_axis: int | float) -> tuple[int, int, int]:
@@ -72,7 +73,8 @@ class TrainState:
 
 PROVENANCE_RECIPE = ("batch_rays", "lr_factors", "lr_networks", "lr_decay_ratio", "l1_weight_initial",
                      "l1_weight_rest", "param_l1_weight", "tv_weight_density", "tv_weight_appearance",
-                     "tv_weight_params", "density_grad_keep", "error_sampling_tile", "error_sampling_uniform")
+                     "tv_weight_params", "density_grad_keep", "error_sampling_tile", "error_sampling_uniform",
+                     "weight_average_span", "weight_average_from")
 """The ``TrainConfig`` fields a checkpoint's provenance records under ``recipe`` (``visnerf info``
 shows them): the step, the rates and the priors a model was fitted with."""
 
@@ -175,6 +177,7 @@ class Trainer:
         self.sampler.set_aabb(self.field.aabb)
         self.optimizer = make_optimizer(self.field, cfg, 1.0)
         self.settings_all = parameter_settings(train_scene.knots(), cfg.occupancy_max_settings, self.generator)
+        self.weight_average: WeightAverage | None = None
 
     def progress(self) -> float:
         p = self.state.iteration / max(1, self.cfg.iterations)
@@ -381,8 +384,9 @@ class Trainer:
             t0 = time.perf_counter()  # milestones (upsampling, occupancy grids) are training time
             self._milestones()
             stats = self.train_step()
-            dt = time.perf_counter() - t0
             self.state.iteration += 1
+            self._average_weights()
+            dt = time.perf_counter() - t0
             self.state.train_seconds += dt
             if self.state.iteration % self.cfg.trim_every == 0:
                 release_free_memory()
@@ -395,6 +399,7 @@ class Trainer:
                 last_val = self.state.train_seconds
                 self._record(mse_to_psnr(ema_mse), wall0, on_validate)
         bar.close()
+        compared = self._use_weight_average()
         self.finish_occupancy()  # final grid, for fast inference
         if self.val_scene is not None and cfg.choose_full_spacing:
             choice = choose_full_spacing(self.field, self.val_scene, self.render_cfg, cfg.validate_max_images)
@@ -402,10 +407,43 @@ class Trainer:
             self.spacing_note = choice.describe()
             if progress_bar:
                 tqdm.write(self.spacing_note)
-        self._record(mse_to_psnr(ema_mse) if ema_mse else float("nan"), wall0, on_validate)
+        self._record(mse_to_psnr(ema_mse) if ema_mse else float("nan"), wall0, on_validate, compared)
         return self.state.log
 
-    def _record(self, train_psnr: float, wall0: float, on_validate: Callable | None) -> None:
+    def _average_weights(self) -> None:
+        """Keep the parameters' moving average from ``weight_average_from`` on, every
+        ``weight_average_every`` steps; (re)start it where it does not follow the field's current
+        parameters (none yet, or the grid was upsampled since)."""
+        cfg = self.cfg
+        p = self.progress()
+        if cfg.weight_average_span <= 0.0 or p < cfg.weight_average_from:
+            return
+        if self.weight_average is None or not self.weight_average.follows(self.field):
+            self.weight_average = WeightAverage.start(self.field, cfg.weight_average_span, p)
+        elif self.state.iteration % cfg.weight_average_every == 0:
+            self.weight_average.update(p)
+
+    def _use_weight_average(self) -> dict[str, float]:
+        """At the end of training, replace the parameters by their moving average (if one is kept).
+        With validation frames, returns the last live parameters' and the average's validation
+        PSNR on them, both rendered the same way just before and after the swap (before the final
+        occupancy grid and spacing), so that a run's log compares the two."""
+        average = self.weight_average
+        if average is None or not average.follows(self.field):
+            return {}
+        average.update(self.progress())
+        compared = {}
+        if self.val_scene is not None:
+            compared["live_val_psnr"] = validate(self.field, self.val_scene, self.render_cfg,
+                                                 self.cfg.validate_max_images)["val_psnr"]
+        average.copy_into(self.field)
+        if self.val_scene is not None:
+            compared["average_val_psnr"] = validate(self.field, self.val_scene, self.render_cfg,
+                                                    self.cfg.validate_max_images)["val_psnr"]
+        return compared
+
+    def _record(self, train_psnr: float, wall0: float, on_validate: Callable | None,
+                extra: dict[str, float] | None = None) -> None:
         row = {"iteration": self.state.iteration, "train_seconds": round(self.state.train_seconds, 2),
                "wall_seconds": round(time.perf_counter() - wall0, 2), "train_psnr": round(train_psnr, 3),
                "resolution": self.field.resolution[0]}
@@ -414,6 +452,7 @@ class Trainer:
         if self.val_scene is not None:
             row.update({k: round(v, 4) for k, v in validate(self.field, self.val_scene, self.render_cfg,
                                                               self.cfg.validate_max_images).items()})
+        row.update({k: round(v, 4) for k, v in (extra or {}).items()})
         self.state.log.append(row)
         if on_validate is not None:
             on_validate(row)
