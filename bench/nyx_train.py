@@ -124,6 +124,24 @@ fewer density samples, 1.20 times faster steps, and its 24 held-out frames rende
 27.105 dB (bench/results/refine_dilation.md). The hour with it made 31875 iterations and reached
 27.22 dB (bench/results/nyx_train_ring0/)."""
 
+NYX_MICRO_BATCH_RAYS = 2048
+NYX_MICRO_BATCH_SAMPLES = 131072
+"""A step's 2048 rays rendered and back-propagated as one micro-batch where their occupied windows
+hold at most 131072 samples (all of the late phase; ``TrainConfig.micro_batch_rays`` and
+``micro_batch_samples``, the library's 1024 and 32768). The gradient is the same; each
+micro-batch has fixed costs (per factor table a sort of its taps and a product into the whole
+table's gradient, the decoders' weight gradients, the renderer's Python). From the 27.49 dB model,
+a late-phase step took 44.2 ms in one micro-batch against 67.5 ms in the library's four (1.53x;
+53.8 ms in two; medians, alternating, bench/results/micro_batch_speed.md). The hour with it (and
+``NYX_WEIGHT_AVERAGE_SPAN``) made 73167 steps against the 27.49 dB record's 52616 and reached
+27.89 dB / 0.956 on the 24 held-out frames, peak RSS 1977 MB (bench/results/nyx_train_one_chunk_hour/)."""
+NYX_WEIGHT_AVERAGE_SPAN = 0.03
+"""The parameters saved are their moving average over about the last 0.03 of the run
+(``TrainConfig.weight_average_span``, kept from half-way on): from the 27.49 dB model, 10 more
+minutes at the schedule's final rates rendered the 24 held-out frames 0.076 dB better from the
+average than from the last parameters (27.631 against 27.555 dB; spans of 0.01 and 0.1: +0.058
+and +0.080 dB; bench/results/nyx_weight_average.md)."""
+
 
 def late_phase_trainer(train, field, micro_batch_samples: int, **overrides) -> Trainer:  # noqa: ANN001
     """A trainer that steps a trained Nyx ``field`` as the late phase of a run does (its grid and
@@ -197,6 +215,10 @@ def write_report(result: dict, out_dir: Path) -> None:
         *([f"| inference grid | {g['cells']} cells, within the grid training last sampled; rebuilt from the density alone: "
            f"{g['unrestricted_cells']} cells, {g['unrestricted_psnr']:.2f} dB / {g['unrestricted_ssim']:.3f} on the same frames |"]
           if (g := result.get("final_grid")) else []),
+        *([f"| parameters saved | their moving average (span {result['recipe']['weight_average_span']:g} of the run): "
+           f"{w['average_val_psnr']:.2f} dB on the validation frames against {w['live_val_psnr']:.2f} dB from the last "
+           "values, both before the final grid |"]
+          if "live_val_psnr" in (w := result["log"][-1] if result.get("log") else {}) else []),
         f"| seconds per 256x256 frame (median) | {f['seconds_per_frame_256_median']:.2f} s |",
         "",
         "Validation PSNR against training time:",
@@ -246,9 +268,11 @@ def main() -> int:
                     help=f"final voxels per axis (default {NYX_RESOLUTION})")
     ap.add_argument("--validate-every", type=float, default=300.0, help="seconds of training")
     ap.add_argument("--eval-frames", type=int, default=24)
-    ap.add_argument("--micro-batch-samples", type=int, default=TrainConfig.micro_batch_samples,
+    ap.add_argument("--micro-batch-samples", type=positive_int, default=NYX_MICRO_BATCH_SAMPLES,
                     help="most samples back-propagated together (bounds activation memory; "
-                         f"default {TrainConfig.micro_batch_samples})")
+                         f"default {NYX_MICRO_BATCH_SAMPLES}, the library's {TrainConfig.micro_batch_samples})")
+    ap.add_argument("--micro-batch-rays", type=positive_int, default=NYX_MICRO_BATCH_RAYS,
+                    help=f"most rays per micro-batch (default {NYX_MICRO_BATCH_RAYS}, the library's {TrainConfig.micro_batch_rays})")
     ap.add_argument("--density-shift", type=float, default=FieldConfig.density_shift,
                     help=f"bias of the density activation of a fresh field (default {FieldConfig.density_shift:g})")
     ap.add_argument("--carve-min-seen-fraction", type=unit_fraction, default=NYX_CARVE_MIN_SEEN_FRACTION,
@@ -288,7 +312,7 @@ def main() -> int:
                          "the same world distance at other resolutions)")
     add_learning_rate_args(ap)
     add_error_sampling_args(ap)
-    add_weight_average_args(ap)
+    add_weight_average_args(ap, NYX_WEIGHT_AVERAGE_SPAN)
     ap.add_argument("--lr-upsample-reset", action="store_true",
                     help="restart the learning-rate decay at each upsample (TrainConfig.lr_upsample_reset)")
     ap.add_argument("--threads", type=int, default=None, help="torch threads (default: all cores)")
@@ -335,7 +359,7 @@ def main() -> int:
     by_iterations = args.iterations is not None
     cfg = TrainConfig(iterations=args.iterations if by_iterations else 10**9,
                       time_budget_s=None if by_iterations else args.minutes * 60, batch_rays=args.batch_rays,
-                      micro_batch_samples=args.micro_batch_samples, resolution_final=args.resolution,
+                      micro_batch_samples=args.micro_batch_samples, micro_batch_rays=args.micro_batch_rays, resolution_final=args.resolution,
                       validate_every_s=args.validate_every, validate_max_images=NYX_VALIDATION_FRAMES,
                       carve_min_seen_fraction=args.carve_min_seen_fraction, tv_weight_density=args.tv_density,
                       tv_weight_appearance=args.tv_appearance,
@@ -395,7 +419,8 @@ def main() -> int:
                    "upsample_at": list(cfg.upsample_at),
                    "lr_upsample_reset": cfg.lr_upsample_reset, "error_sampling_tile": cfg.error_sampling_tile,
                    "error_sampling_uniform": cfg.error_sampling_uniform,
-                   "weight_average_span": cfg.weight_average_span, "weight_average_from": cfg.weight_average_from},
+                   "weight_average_span": cfg.weight_average_span, "weight_average_from": cfg.weight_average_from,
+                   "micro_batch_rays": cfg.micro_batch_rays, "micro_batch_samples": cfg.micro_batch_samples},
         "full_spacing": trainer.spacing_note,
         "final_grid": grids,
         "box": [[round(float(x), 4) for x in row] for row in trainer.field.aabb.cpu()],

@@ -164,7 +164,8 @@ def _train(args: argparse.Namespace) -> int:
         val = load_dataset(args.data, "val")
     cfg = TrainConfig(
         iterations=args.iterations, time_budget_s=args.time_budget * 60 if args.time_budget else None,
-        batch_rays=args.batch_rays, seed=args.seed, resolution_final=args.resolution,
+        batch_rays=args.batch_rays, micro_batch_rays=args.micro_batch_rays,
+        micro_batch_samples=args.micro_batch_samples, seed=args.seed, resolution_final=args.resolution,
         validate_every_s=args.validate_every, carve_min_seen_fraction=args.carve_min_seen_fraction,
         occupancy_refine_at=args.occupancy_refine_at, density_grad_keep=args.density_grad_keep,
         occupancy_refine_dilation=args.occupancy_refine_dilation, tv_weight_appearance=args.tv_appearance,
@@ -336,13 +337,13 @@ def add_error_sampling_args(p: argparse.ArgumentParser, tile_default: int = Trai
                                      f"pixels; bounds a ray's weight by 1/F (default {TrainConfig.error_sampling_uniform:g})")
 
 
-def add_weight_average_args(p: argparse.ArgumentParser) -> None:
+def add_weight_average_args(p: argparse.ArgumentParser, span_default: float = TrainConfig.weight_average_span) -> None:
     """``--weight-average-span`` and ``--weight-average-from``, for ``TrainConfig.weight_average_span``
     and ``weight_average_from`` (``visnerf train`` and bench/nyx_train.py)."""
-    p.add_argument("--weight-average-span", type=non_negative_float, default=TrainConfig.weight_average_span,
+    p.add_argument("--weight-average-span", type=non_negative_float, default=span_default,
                    metavar="F", help="save the parameters' moving average over the end of the run instead of "
                                      "their last values; the fraction of the run over which an old value's weight "
-                                     f"falls by e (default {TrainConfig.weight_average_span:g}: off)")
+                                     f"falls by e (default {span_default:g}; 0: off)")
     p.add_argument("--weight-average-from", type=unit_fraction, default=TrainConfig.weight_average_from, metavar="F",
                    help="with --weight-average-span, the fraction of the run from which the average is kept "
                         f"(default {TrainConfig.weight_average_from:g})")
@@ -356,6 +357,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--time-budget", type=positive_float, default=None, metavar="MINUTES", help="wall-clock training budget")
     p.add_argument("--batch-rays", type=positive_int, default=TrainConfig.batch_rays,
                    help=f"rays per step (default {TrainConfig.batch_rays}, the paper's; the Nyx recipe 2048)")
+    p.add_argument("--micro-batch-rays", type=positive_int, default=TrainConfig.micro_batch_rays,
+                   help="most rays rendered and back-propagated together; the step is the same for any value, "
+                        f"fewer micro-batches are faster and need more memory (default {TrainConfig.micro_batch_rays}; "
+                        "the Nyx recipe 2048)")
+    p.add_argument("--micro-batch-samples", type=positive_int, default=TrainConfig.micro_batch_samples,
+                   help="most samples (in the rays' occupied windows) per micro-batch, which bounds activation "
+                        f"memory (default {TrainConfig.micro_batch_samples}; the Nyx recipe 131072)")
     p.add_argument("--resolution", type=int, default=TrainConfig.resolution_final,
                    help="final voxels per axis (cube root of the grid size)")
     p.add_argument("--step-ratio", type=positive_float, default=None, metavar="VOXELS",

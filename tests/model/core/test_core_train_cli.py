@@ -43,7 +43,8 @@ def test_factor_storage_and_sampled_density_gradients(plume, tmp_path) -> None:
     run = _visnerf("train", str(plume), "--out", str(first), "--iterations", "5", "--resolution", "16",
                    "--factor-storage", "int8", "--density-grad-keep", "0.25", "--tv-appearance", "0",
                    "--lr-factors", "0.03", "--lr-decay-ratio", "0.05", "--lr-networks", "0.002", "--error-sampling-tile", "2",
-                   "--error-sampling-uniform", "0.5", "--device", "cpu", "--quiet")
+                   "--error-sampling-uniform", "0.5", "--weight-average-span", "0.2", "--weight-average-from", "0.4",
+                   "--micro-batch-rays", "64", "--micro-batch-samples", "4096", "--device", "cpu", "--quiet")
     assert run.returncode == 0, run.stderr
     meta, tensors = read_checkpoint(first)
     assert meta.field.factor_storage == "int8" and tensors["density_grid.planes.0"].dtype == torch.int8
@@ -53,6 +54,7 @@ def test_factor_storage_and_sampled_density_gradients(plume, tmp_path) -> None:
     assert recipe["lr_factors"] == 0.03 and recipe["lr_decay_ratio"] == 0.05
     assert recipe["lr_networks"] == 0.002
     assert recipe["error_sampling_tile"] == 2 and recipe["error_sampling_uniform"] == 0.5
+    assert recipe["weight_average_span"] == 0.2 and recipe["weight_average_from"] == 0.4
     resumed = tmp_path / "h.safetensors"
     run = _visnerf("train", str(plume), "--out", str(resumed), "--iterations", "7", "--resume", str(first),
                    "--factor-storage", "float16", "--device", "cpu", "--quiet")
@@ -81,6 +83,10 @@ def test_factor_storage_and_sampled_density_gradients(plume, tmp_path) -> None:
     ("--occupancy-refine-dilation", "0.5", "whole number >= 0"),
     ("--factor-storage", "int4", "invalid choice"),
     ("--batch-rays", "0", "whole number above 0"),
+    ("--micro-batch-rays", "0", "whole number above 0"),
+    ("--micro-batch-samples", "-5", "whole number above 0"),
+    ("--weight-average-span", "-0.1", "at least 0"),
+    ("--weight-average-from", "1.5", "fraction in [0, 1]"),
     ("--batch-rays", "2048.5", "whole number above 0"),
     ("--iterations", "-1", "whole number above 0"),
     ("--time-budget", "0", "above 0"),
