@@ -10,6 +10,7 @@ import csv
 import json
 import math
 import time
+import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -436,7 +437,11 @@ class Trainer:
         if self.val_scene is not None:
             compared["live_val_psnr"] = validate(self.field, self.val_scene, self.render_cfg,
                                                  self.cfg.validate_max_images)["val_psnr"]
-        average.copy_into(self.field)
+        try:
+            average.copy_into(self.field)
+        except FloatingPointError as exc:  # the run's result stays: the last parameters, unchanged
+            warnings.warn(f"{exc}; the checkpoint holds the last parameters", RuntimeWarning, stacklevel=2)
+            return compared
         if self.val_scene is not None:
             compared["average_val_psnr"] = validate(self.field, self.val_scene, self.render_cfg,
                                                     self.cfg.validate_max_images)["val_psnr"]

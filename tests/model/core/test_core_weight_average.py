@@ -135,3 +135,16 @@ def test_trainer_without_a_span_keeps_no_average() -> None:
     trainer = _trainer(span=0.0, iterations=6)
     trainer.run(progress_bar=False)
     assert trainer.weight_average is None
+
+
+def test_a_non_finite_average_at_the_end_keeps_the_last_parameters_with_a_warning() -> None:
+    trainer = _trainer(span=0.05, iterations=20)
+    trainer.run(progress_bar=False)  # ends with the average swapped in
+    avg = trainer.weight_average
+    assert avg is not None
+    avg.average[0].view(-1)[0] = float("nan")
+    before = [p.detach().clone() for p in trainer.field.parameters()]
+    with pytest.warns(RuntimeWarning, match="holds the last parameters"):
+        assert trainer._use_weight_average() == {}
+    for p, b in zip(trainer.field.parameters(), before, strict=True):
+        assert torch.equal(p.detach(), b)
