@@ -33,7 +33,7 @@ from bench_common import (
     step_time_summary,
     write_results,
 )
-from nyx_train import NYX_BATCH_RAYS, NYX_DENSITY_GRAD_KEEP, NYX_TV_APPEARANCE, late_phase_trainer
+from nyx_train import NYX_BATCH_RAYS, NYX_LATE_PHASE_STEP, late_phase_trainer
 
 from visnerf.inference import load_scene
 from visnerf.rendering.renderer import empty_space_of
@@ -101,8 +101,7 @@ def main() -> int:
     field = load_scene(Path(args.checkpoint), torch.device("cpu")).field
     trainers = {
         (rays, samples): late_phase_trainer(
-            train, field, samples, micro_batch_rays=rays, batch_rays=NYX_BATCH_RAYS, lr_factors=0.0, lr_networks=0.0,
-            l1_switch_iteration=0, density_grad_keep=NYX_DENSITY_GRAD_KEEP, tv_weight_appearance=NYX_TV_APPEARANCE)
+            train, field, samples, micro_batch_rays=rays, lr_factors=0.0, lr_networks=0.0, **NYX_LATE_PHASE_STEP)
         for rays, samples in args.settings}
     # Rates of 0: the field stays as trained, so every setting steps the same field.
     times, outputs = alternate_steps(trainers, args.rounds, args.steps, warm_up=True)

@@ -142,6 +142,11 @@ minutes at the schedule's final rates rendered the 24 held-out frames 0.076 dB b
 average than from the last parameters (27.631 against 27.555 dB; spans of 0.01 and 0.1: +0.058
 and +0.080 dB; bench/results/nyx_weight_average.md)."""
 
+NYX_LATE_PHASE_STEP = {"batch_rays": NYX_BATCH_RAYS, "l1_switch_iteration": 0,
+                       "density_grad_keep": NYX_DENSITY_GRAD_KEEP, "tv_weight_appearance": NYX_TV_APPEARANCE}
+"""The recipe's step late in a run, as ``TrainConfig`` fields for ``late_phase_trainer``: its rays,
+the L1 weight after the switch, the sampled density gradients, no appearance total variation."""
+
 
 def late_phase_trainer(train, field, micro_batch_samples: int, **overrides) -> Trainer:  # noqa: ANN001
     """A trainer that steps a trained Nyx ``field`` as the late phase of a run does (its grid and

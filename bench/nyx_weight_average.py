@@ -30,7 +30,7 @@ from bench_common import (
     write_results,
 )
 from nyx_fit_gap import evaluate_frames
-from nyx_train import NYX_BATCH_RAYS, NYX_DENSITY_GRAD_KEEP, NYX_TV_APPEARANCE, late_phase_trainer
+from nyx_train import NYX_BATCH_RAYS, NYX_LATE_PHASE_STEP, late_phase_trainer
 
 from visnerf.commands import parse_fractions, positive_float
 from visnerf.config import TrainConfig
@@ -93,10 +93,8 @@ def main() -> int:
     scene = load_scene(Path(args.checkpoint), torch.device("cpu"))
     start = [p.detach().clone() for p in scene.field.parameters()]
     trainer = late_phase_trainer(
-        train, scene.field, args.micro_batch_samples, batch_rays=NYX_BATCH_RAYS,
-        lr_factors=TrainConfig.lr_factors * args.lr_scale, lr_networks=TrainConfig.lr_networks * args.lr_scale,
-        lr_decay_ratio=1.0, l1_switch_iteration=0, density_grad_keep=NYX_DENSITY_GRAD_KEEP,
-        tv_weight_appearance=NYX_TV_APPEARANCE)
+        train, scene.field, args.micro_batch_samples, lr_factors=TrainConfig.lr_factors * args.lr_scale,
+        lr_networks=TrainConfig.lr_networks * args.lr_scale, lr_decay_ratio=1.0, **NYX_LATE_PHASE_STEP)
     averages = {span: WeightAverage.start(scene.field, span, 0.0) for span in args.spans}
     train_seconds, steps = 0.0, 0
     while train_seconds < 60.0 * args.minutes:
