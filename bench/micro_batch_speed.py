@@ -2,8 +2,8 @@
 rendered in one.
 
 ``Trainer.train_step`` renders and back-propagates a step's rays in micro-batches of at most
-``micro_batch_rays`` rays and ``micro_batch_samples`` samples (counted along each ray's occupied
-window, ``trainer.micro_batches``); the gradient is the same for any split. Each micro-batch has
+``micro_batch_rays`` rays and ``micro_batch_samples`` samples (those the rays evaluate, in
+occupied cells, ``trainer.micro_batches``); the gradient is the same for any split. Each micro-batch has
 fixed costs besides its samples: a pass of Python over the renderer, the decoders' weight
 gradients, and per factor table a sort of its taps and a sparse product into the whole table's
 gradient. From a trained checkpoint, one trainer per setting steps the field as the late phase of
@@ -36,7 +36,7 @@ from bench_common import (
 from nyx_train import NYX_BATCH_RAYS, NYX_LATE_PHASE_STEP, late_phase_trainer
 
 from visnerf.inference import load_scene
-from visnerf.rendering.renderer import empty_space_of
+from visnerf.rendering.renderer import empty_space_of, place_samples
 from visnerf.training.trainer import Trainer, micro_batches, occupied_windows
 
 
@@ -57,15 +57,17 @@ def parse_settings(text: str) -> list[tuple[int, int]]:
 
 def chunks_of(trainer: Trainer, batches: int) -> dict[str, float]:
     """Median micro-batches per step, and samples in the rays' occupied windows, over ``batches``
-    fresh batches of the trainer's sampler."""
+    fresh batches of the trainer's sampler, placed as ``Trainer.train_step`` places them."""
     chunks, window = [], []
     cfg = trainer.cfg
+    step = trainer.step_size()
     for _ in range(batches):
         b = trainer.sampler.sample(cfg.batch_rays)
-        w = occupied_windows(trainer.field, b.rays_o, b.rays_d, trainer.step_size(), empty_space_of(trainer.field))
+        w = occupied_windows(trainer.field, b.rays_o, b.rays_d, step, empty_space_of(trainer.field))
         window.append(int((w[1] - w[0] + 1).clamp_min(0).sum()))
-        chunks.append(len(micro_batches(trainer.field, b.rays_o, b.rays_d, trainer.step_size(),
-                                        cfg.micro_batch_rays, cfg.micro_batch_samples, w)))
+        placed = place_samples(trainer.field, b.rays_o, b.rays_d, b.params, step, trainer.render_cfg.max_samples,
+                               trainer.field.occupancy, trainer.generator, 0, w)
+        chunks.append(len(micro_batches(placed.per_ray(), cfg.micro_batch_rays, cfg.micro_batch_samples)))
     return {"micro_batches": statistics.median(chunks), "window_samples": statistics.median(window)}
 
 
@@ -74,7 +76,8 @@ def write_markdown(path: Path, record: dict) -> None:
         "",
         f"Checkpoint: `{record['checkpoint']}` (grid {record['resolution']}); steps of {record['batch_rays']} rays, "
         f"{record['rounds']} rounds of {record['steps']} steps per setting, alternating. Samples are those the step "
-        "evaluated (in occupied cells); window samples those the micro-batching counts.",
+        "evaluated (in occupied cells), which the micro-batching counts; window samples those in the rays' occupied "
+        "windows, which it counted before.",
         "",
         "| rays per micro-batch | samples per micro-batch | micro-batches per step | window samples per step | samples evaluated | s per step (median) | against the first |",
         "| --- | --- | --- | --- | --- | --- | --- |",

@@ -1,7 +1,7 @@
 """Peak memory and time of one training step against the micro-batch sample budget.
 
 A training step renders and back-propagates its 4096 rays in micro-batches of at most
-``TrainConfig.micro_batch_samples`` samples (``trainer.micro_batches``), so activation memory is
+``TrainConfig.micro_batch_samples`` evaluated samples (``trainer.micro_batches``), so activation memory is
 bounded by that budget, not by the batch. This measures, for each budget, one full step (every
 micro-batch forward and backward, as ``Trainer.train_step`` does) on a field the size of the Nyx
 model at its finest grid (88x140x140 in the carved box, K = 3) in the state that costs most: a
@@ -26,7 +26,7 @@ import torch
 from bench_common import RESULTS, load_average, machine_record, markdown_header, write_results
 
 from visnerf.config import FieldConfig, TrainConfig
-from visnerf.rendering.renderer import render_rays
+from visnerf.rendering.renderer import place_samples, shade_rays
 from visnerf.representation.field import VisNerfField
 from visnerf.training.trainer import micro_batches, set_mixed_precision
 
@@ -58,10 +58,11 @@ def measure(budget: int, batch_rays: int, repeats: int, threads: int) -> dict:
     for _ in range(repeats):
         field_.zero_grad(set_to_none=True)
         t0 = time.perf_counter()
-        slices = micro_batches(field_, origins, directions, step, TrainConfig.micro_batch_rays, budget)
+        placed = place_samples(field_, origins, directions, params, step, 1024, None)
+        slices = micro_batches(placed.per_ray(), TrainConfig.micro_batch_rays, budget)
         samples = 0
         for sl in slices:
-            out = render_rays(field_, origins[sl], directions[sl], params[sl], background[sl], step, 1024, None)
+            out = shade_rays(field_, directions[sl], params[sl], background[sl], placed.of_rays(sl))
             (((out["rgb"] - target[sl]) ** 2).sum() / (3 * batch_rays)).backward()
             samples += int(out["n_samples"])
         seconds.append(time.perf_counter() - t0)

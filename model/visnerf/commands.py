@@ -362,7 +362,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         f"fewer micro-batches are faster and need more memory (default {TrainConfig.micro_batch_rays}; "
                         "the Nyx recipe 2048)")
     p.add_argument("--micro-batch-samples", type=positive_int, default=TrainConfig.micro_batch_samples,
-                   help="most samples (in the rays' occupied windows) per micro-batch, which bounds activation "
+                   help="most samples evaluated (in occupied cells) per micro-batch, which bounds activation "
                         f"memory (default {TrainConfig.micro_batch_samples}; the Nyx recipe 131072)")
     p.add_argument("--resolution", type=int, default=TrainConfig.resolution_final,
                    help="final voxels per axis (cube root of the grid size)")

@@ -198,36 +198,48 @@ def _shade_frame_samples(
     return tau.sum(dim=-1)
 
 
-def render_rays(
+@dataclass(frozen=True)
+class RaySamples:
+    """Where a batch of rays is sampled, before shading (``place_samples``)."""
+
+    points: Float[Tensor, "n s 3"]
+    deltas: Float[Tensor, "n s"]
+    valid: Bool[Tensor, "n s"]
+    """The samples evaluated: in the box, in the ray's window and in an occupied cell."""
+
+    def of_rays(self, rays: slice) -> "RaySamples":
+        return RaySamples(self.points[rays], self.deltas[rays], self.valid[rays])
+
+    def per_ray(self) -> Int[Tensor, " n"]:
+        """Samples evaluated per ray."""
+        return self.valid.sum(dim=1)
+
+
+@torch.no_grad()
+def place_samples(
     field: VisNerfField,
     rays_o: Float[Tensor, "n 3"],
     rays_d: Float[Tensor, "n 3"],
     params: Float[Tensor, "n k"],
-    background: Float[Tensor, "n 3"],
     step: float,
     max_samples: int,
     occupancy: Bool[Tensor, "x y z"] | None,
-    weight_threshold: float = 1e-4,
     generator: torch.Generator | None = None,
     importance_samples: int = 0,
     windows: tuple[Int[Tensor, " n"], Int[Tensor, " n"]] | None = None,
-    density_grads: DensityGradientSampling | None = None,
-) -> dict[str, Tensor]:
-    """Differentiable render of a batch of rays (training and tests).
+) -> RaySamples:
+    """The training path's sample positions (no gradient flows through them).
 
-    Stratified sample positions when ``generator`` is given: sample ``i`` of a ray at
-    ``t_near + step * (i + u)``, one ``u`` per ray. ``windows`` (first, last), from
-    ``EmptySpace.sample_window(..., near=1)``, restricts each ray to samples ``first .. last``:
-    the samples left out lie in empty cells, which the occupancy test would drop anyway. With
-    ``importance_samples > 0`` a no-grad coarse pass at twice the step places that many samples
-    per ray by importance (``windows`` is ignored). ``density_grads`` back-propagates near-empty
-    samples at random, unbiased (``rendering.density_gradients``). Returns ``rgb`` [n, 3],
-    ``opacity`` [n] and ``n_samples`` (valid samples evaluated).
+    Stratified when ``generator`` is given: sample ``i`` of a ray at ``t_near + step * (i + u)``,
+    one ``u`` per ray. ``windows`` (first, last), from ``EmptySpace.sample_window(..., near=1)``,
+    restricts each ray to samples ``first .. last``: the samples left out lie in empty cells,
+    which the occupancy test would drop anyway. With ``importance_samples > 0`` a coarse pass at
+    twice the step places that many samples per ray by importance (``windows`` is ignored).
     """
     t_near, t_far, hit = intersect_aabb(rays_o, rays_d, field.aabb)
     span = float((t_far - t_near).max()) if hit.any() else 0.0
-    q_d, q_a = field.param_features(params)
     if importance_samples > 0 and span > 0:
+        q_d, _ = field.param_features(params)
         t, deltas, valid = _importance_positions(
             field, rays_o, rays_d, t_near, t_far, hit, q_d, 2.0 * step, max_samples,
             occupancy, importance_samples, generator,
@@ -252,15 +264,53 @@ def render_rays(
     points = rays_o[:, None, :] + rays_d[:, None, :] * t[..., None]  # [n, s, 3]
     if occupancy is not None:
         valid = valid.masked_scatter(valid, query_occupancy(occupancy, field.aabb, points[valid]))
-    tau0 = torch.zeros_like(t_near)
-    rgb, tau, _ = _shade_samples(field, rays_d, points, deltas, valid, q_d, q_a, tau0, weight_threshold,
-                                 density_grads)
+    return RaySamples(points, deltas, valid)
+
+
+def shade_rays(
+    field: VisNerfField,
+    rays_d: Float[Tensor, "n 3"],
+    params: Float[Tensor, "n k"],
+    background: Float[Tensor, "n 3"],
+    samples: RaySamples,
+    weight_threshold: float = 1e-4,
+    density_grads: DensityGradientSampling | None = None,
+) -> dict[str, Tensor]:
+    """Differentiable colour of rays at their ``samples``. ``density_grads`` back-propagates
+    near-empty samples at random, unbiased (``rendering.density_gradients``). Returns ``rgb``
+    [n, 3], ``opacity`` [n] and ``n_samples`` (valid samples evaluated)."""
+    q_d, q_a = field.param_features(params)
+    tau0 = torch.zeros(rays_d.shape[0], dtype=rays_d.dtype, device=rays_d.device)
+    rgb, tau, _ = _shade_samples(field, rays_d, samples.points, samples.deltas, samples.valid, q_d, q_a, tau0,
+                                 weight_threshold, density_grads)
     opacity = -torch.expm1(-tau)
     return {
         "rgb": rgb + background * (1.0 - opacity)[:, None],
         "opacity": opacity,
-        "n_samples": valid.sum(),
+        "n_samples": samples.valid.sum(),
     }
+
+
+def render_rays(
+    field: VisNerfField,
+    rays_o: Float[Tensor, "n 3"],
+    rays_d: Float[Tensor, "n 3"],
+    params: Float[Tensor, "n k"],
+    background: Float[Tensor, "n 3"],
+    step: float,
+    max_samples: int,
+    occupancy: Bool[Tensor, "x y z"] | None,
+    weight_threshold: float = 1e-4,
+    generator: torch.Generator | None = None,
+    importance_samples: int = 0,
+    windows: tuple[Int[Tensor, " n"], Int[Tensor, " n"]] | None = None,
+    density_grads: DensityGradientSampling | None = None,
+) -> dict[str, Tensor]:
+    """Differentiable render of a batch of rays (training and tests): ``place_samples`` then
+    ``shade_rays``."""
+    samples = place_samples(field, rays_o, rays_d, params, step, max_samples, occupancy, generator,
+                            importance_samples, windows)
+    return shade_rays(field, rays_d, params, background, samples, weight_threshold, density_grads)
 
 
 @torch.no_grad()

@@ -39,7 +39,7 @@ from visnerf.rendering.occupancy import (
     parameter_settings,
     query_occupancy,
 )
-from visnerf.rendering.renderer import RenderSettings, empty_space_of, render_image, render_rays
+from visnerf.rendering.renderer import RenderSettings, empty_space_of, place_samples, render_image, shade_rays
 from visnerf.rendering.spacing import choose_full_spacing
 from visnerf.representation.field import VisNerfField
 from visnerf.representation.vm_taps import table_gradients_in_place
@@ -309,8 +309,8 @@ class Trainer:
 
         The photometric loss is a mean over the whole batch, so each chunk's squared error is
         divided by the batch size and its gradient accumulated: the step is the same as one pass
-        over the batch, with activation memory bounded by ``micro_batch_rays`` rays and about
-        ``micro_batch_samples`` samples per chunk (see ``micro_batches``). With error sampling
+        over the batch, with activation memory bounded by ``micro_batch_rays`` rays and
+        ``micro_batch_samples`` evaluated samples per chunk (see ``micro_batches``). With error sampling
         (``TrainConfig.error_sampling_tile``) each ray's squared error counts with its importance
         weight (``RayBatch.weight``, mean 1), and the rays' measured errors go back to the error map.
         """
@@ -332,24 +332,24 @@ class Trainer:
         importance = cfg.importance_samples if self.progress() >= cfg.importance_from else 0
         self.optimizer.zero_grad(set_to_none=True)
         sq_error = 0.0
-        samples = 0
+        evaluated = 0
+        step = self.step_size()
         # Each ray samples only its occupied span; with importance sampling, anywhere along its box span.
         empty = empty_space_of(self.field) if importance == 0 else None
-        if empty is not None and self.step_size() > empty.min_cell_size():
+        if empty is not None and step > empty.min_cell_size():
             empty = None  # a grid finer than the step: the windows would not hold every jittered sample
-        windows = None if empty is None else occupied_windows(
-            self.field, batch.rays_o, batch.rays_d, self.step_size(), empty)
+        windows = None if empty is None else occupied_windows(self.field, batch.rays_o, batch.rays_d, step, empty)
         density_grads = None
         if cfg.density_grad_keep < 1.0:
             density_grads = DensityGradientSampling(cfg.density_grad_floor, cfg.density_grad_keep, self.generator)
         track_errors = self.sampler.error_map is not None
         errors: list[Tensor] = []
-        for sl in micro_batches(self.field, batch.rays_o, batch.rays_d, self.step_size(),
-                                cfg.micro_batch_rays, cfg.micro_batch_samples, windows):
-            out = render_rays(self.field, batch.rays_o[sl], batch.rays_d[sl], batch.params[sl], bg[sl],
-                              self.step_size(), self.render_cfg.max_samples, self.field.occupancy,
-                              self.render_cfg.weight_threshold, self.generator, importance,
-                              None if windows is None else (windows[0][sl], windows[1][sl]), density_grads)
+        # The whole batch's positions at once; micro-batches count the samples each ray evaluates.
+        samples = place_samples(self.field, batch.rays_o, batch.rays_d, batch.params, step,
+                                self.render_cfg.max_samples, self.field.occupancy, self.generator, importance, windows)
+        for sl in micro_batches(samples.per_ray(), cfg.micro_batch_rays, cfg.micro_batch_samples):
+            out = shade_rays(self.field, batch.rays_d[sl], batch.params[sl], bg[sl], samples.of_rays(sl),
+                             self.render_cfg.weight_threshold, density_grads)
             ray_error = ((out["rgb"] - target[sl]) ** 2).mean(-1)  # [chunk]
             part = (batch.weight[sl] * ray_error).sum() / n  # this chunk's share of the (weighted) batch mean
             if track_errors:
@@ -360,14 +360,14 @@ class Trainer:
                 with table_gradients_in_place():  # each chunk's factor gradients add into .grad
                     part.backward()
             sq_error += float(part.detach())
-            samples += int(out["n_samples"])
+            evaluated += int(out["n_samples"])
         if track_errors:
             self.sampler.record(batch, torch.cat(errors))
         reg_value = sum(backward_regularization(self.field, self._weights()).values())
         if not math.isfinite(reg_value):  # before the step: the factors stay as they were
             raise FloatingPointError(f"non-finite regularization at iteration {self.state.iteration}")
         self.optimizer.step()
-        return {"mse": sq_error, "loss": sq_error + reg_value, "samples": float(samples)}
+        return {"mse": sq_error, "loss": sq_error + reg_value, "samples": float(evaluated)}
 
     def run(
         self,
@@ -506,33 +506,18 @@ def occupied_windows(
     return empty_space.sample_window(rays_o, rays_d, t_near, step, torch.zeros_like(last), last, near=1)
 
 
-def micro_batches(
-    field_: VisNerfField,
-    rays_o: Float[Tensor, "n 3"],
-    rays_d: Float[Tensor, "n 3"],
-    step: float,
-    max_rays: int,
-    max_samples: int,
-    windows: tuple[Int[Tensor, " n"], Int[Tensor, " n"]] | None = None,
-) -> list[slice]:
-    """Consecutive slices of the batch with at most ``max_rays`` rays and, where a single ray does
-    not exceed it alone, at most ``max_samples`` samples per slice.
+def micro_batches(per_ray: Int[Tensor, " n"], max_rays: int, max_samples: int) -> list[slice]:
+    """Consecutive slices of a batch whose rays evaluate ``per_ray`` samples each
+    (``RaySamples.per_ray``), with at most ``max_rays`` rays and, where a single ray does not
+    exceed it alone, at most ``max_samples`` samples per slice.
 
-    A ray's samples are counted along its span through the box or, with ``windows``
-    (``occupied_windows``), the samples ``render_rays`` takes in its window: only those are
-    evaluated and back-propagated. Samples per ray grow with the grid resolution (the step is a
-    fixed number of voxels), so a fixed number of rays per chunk would let activation memory grow
-    with every upsampling; a sample budget keeps it flat. Counting the occupied span instead of the box span gives fewer,
-    fuller chunks once content is carved or learned (on Nyx, 26 chunks of a 4096-ray step became
-    7), and each chunk costs its backward pass's fixed work (a sort of its taps per table, the
-    decoders' weight gradients).
+    Activation memory grows with the samples evaluated and back-propagated, so a sample budget
+    keeps it flat as the grid (and with it the samples per ray) grows, and in a fresh field's fog,
+    where every sample in the box is evaluated. Once content is carved or learned, most samples in
+    the box are skipped and the same budget holds many more rays: each micro-batch costs its
+    backward pass's fixed work (a sort of its taps per table, the decoders' weight gradients), so
+    fewer, fuller micro-batches are faster.
     """
-    t_near, t_far, hit = intersect_aabb(rays_o, rays_d, field_.aabb)
-    if windows is None:
-        per_ray = torch.where(hit, ((t_far - t_near).clamp_min(0.0) / step).ceil(), torch.zeros_like(t_far)).long()
-    else:
-        first, last = windows
-        per_ray = torch.where(hit & (first <= last), last - first + 1, 0)
     counts = per_ray.tolist()
     slices, start, total = [], 0, 0
     for i, c in enumerate(counts):
