@@ -2,6 +2,7 @@
 
 import math
 
+import pytest
 import torch
 
 import visnerf.training.trainer as trainer_module
@@ -19,7 +20,9 @@ def _occupied_ball() -> torch.Tensor:
     return (x**2 + y**2 + z**2).sqrt() < 0.3
 
 
-def _gradients(micro_rays: int, micro_samples: int, occupancy: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+def _gradients(
+    micro_rays: int, micro_samples: int, monkeypatch: pytest.MonkeyPatch, occupancy: torch.Tensor | None = None
+) -> dict[str, torch.Tensor]:
     """One step's gradients (the optimizer step skipped), and how many micro-batches it took. The
     batch's stratified positions are placed once for the whole batch, so any split shades the
     same samples."""
@@ -29,12 +32,8 @@ def _gradients(micro_rays: int, micro_samples: int, occupancy: torch.Tensor | No
     trainer.field.set_occupancy(occupancy)
     trainer.optimizer.step = lambda: None  # keep the gradients, change nothing
     chunks: list[list[slice]] = []
-    original = trainer_module.micro_batches
-    trainer_module.micro_batches = lambda *args: chunks.append(original(*args)) or chunks[-1]
-    try:
-        trainer.train_step()
-    finally:
-        trainer_module.micro_batches = original
+    monkeypatch.setattr(trainer_module, "micro_batches", lambda *args: chunks.append(micro_batches(*args)) or chunks[-1])
+    trainer.train_step()
     grads = {name: p.grad.clone() for name, p in trainer.field.named_parameters() if p.grad is not None}
     grads["micro-batches"] = torch.tensor(len(chunks[0]))
     return grads
@@ -47,12 +46,15 @@ def _assert_same_step(whole: dict[str, torch.Tensor], split: dict[str, torch.Ten
         assert torch.allclose(whole[name], split[name], rtol=1e-4, atol=1e-7), name
 
 
-def test_micro_batched_gradients_equal_the_whole_batch() -> None:
-    _assert_same_step(_gradients(10_000, 10**9), _gradients(37, 2_000))
+def test_micro_batched_gradients_equal_the_whole_batch(monkeypatch: pytest.MonkeyPatch) -> None:
+    _assert_same_step(_gradients(10_000, 10**9, monkeypatch), _gradients(37, 2_000, monkeypatch))
 
 
-def test_micro_batched_gradients_equal_the_whole_batch_when_chunks_count_occupied_samples() -> None:
-    _assert_same_step(_gradients(10_000, 10**9, _occupied_ball()), _gradients(10_000, 60, _occupied_ball()))
+def test_micro_batched_gradients_equal_the_whole_batch_when_chunks_count_occupied_samples(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    _assert_same_step(_gradients(10_000, 10**9, monkeypatch, _occupied_ball()),
+                      _gradients(10_000, 60, monkeypatch, _occupied_ball()))
 
 
 def test_micro_batches_hold_the_samples_each_ray_evaluates_within_both_budgets() -> None:
