@@ -126,21 +126,32 @@ fewer density samples, 1.20 times faster steps, and its 24 held-out frames rende
 
 NYX_MICRO_BATCH_RAYS = 2048
 NYX_MICRO_BATCH_SAMPLES = 131072
-"""A step's 2048 rays rendered and back-propagated as one micro-batch where their occupied windows
-hold at most 131072 samples (all of the late phase; ``TrainConfig.micro_batch_rays`` and
-``micro_batch_samples``, the library's 1024 and 32768). The gradient is the same; each
+"""A step's 2048 rays rendered and back-propagated as one micro-batch where they evaluate at most
+131072 samples (``TrainConfig.micro_batch_rays`` and ``micro_batch_samples``, the library's 4096
+and 32768). The gradient is the same; each
 micro-batch has fixed costs (per factor table a sort of its taps and a product into the whole
-table's gradient, the decoders' weight gradients, the renderer's Python). From the 27.49 dB model,
-a late-phase step took 44.2 ms in one micro-batch against 67.5 ms in the library's four (1.53x;
-53.8 ms in two; medians, alternating, bench/results/micro_batch_speed.md). The hour with it (and
-``NYX_WEIGHT_AVERAGE_SPAN``) made 73167 steps against the 27.49 dB record's 52616 and reached
-27.89 dB / 0.956 on the 24 held-out frames, peak RSS 1977 MB (bench/results/nyx_train_one_chunk_hour/)."""
+table's gradient, the decoders' weight gradients, the renderer's Python). When the micro-batches
+still counted the samples in the rays' occupied windows (about 6 times those evaluated), the
+library's limits split a late-phase step in four: from the 27.49 dB model it took 44.2 ms in one
+micro-batch against 67.5 ms in four (1.53x). The hour with one (and ``NYX_WEIGHT_AVERAGE_SPAN``)
+made 73167 steps against the 27.49 dB record's 52616 and reached 27.89 dB / 0.956 on the 24
+held-out frames, peak RSS 1977 MB (bench/results/nyx_train_one_chunk_hour/). Counting the samples
+evaluated, the library's limits take one micro-batch in the late phase too (38.5 ms against
+45.5 ms at the former 1024-ray limit, bench/results/micro_batch_speed.md); the larger budget here
+keeps the early phase, whose fog evaluates every sample, in fewer micro-batches."""
 NYX_WEIGHT_AVERAGE_SPAN = 0.03
 """The parameters saved are their moving average over about the last 0.03 of the run
 (``TrainConfig.weight_average_span``, kept from half-way on): from the 27.49 dB model, 10 more
 minutes at the schedule's final rates rendered the 24 held-out frames 0.076 dB better from the
 average than from the last parameters (27.631 against 27.555 dB; spans of 0.01 and 0.1: +0.058
 and +0.080 dB; bench/results/nyx_weight_average.md)."""
+
+NYX_LR_NETWORKS = 0.002
+"""The decoders' starting learning rate, twice the paper's 0.001 (``TrainConfig.lr_networks``; the
+factors keep 0.02). 30 minutes side by side on one thread each, it led at every validation by 0.03
+to 0.32 dB, 26.62 against 26.37 dB on the 24 held-out frames (bench/results/
+nyx_train_ab_lr_networks/); its hour reached 28.09 dB / 0.958 against the 27.89 dB record, ahead
+at every validation by 0.11 to 0.29 dB (bench/results/nyx_train_lr_networks_hour/)."""
 
 NYX_LATE_PHASE_STEP = {"batch_rays": NYX_BATCH_RAYS, "l1_switch_iteration": 0,
                        "density_grad_keep": NYX_DENSITY_GRAD_KEEP, "tv_weight_appearance": NYX_TV_APPEARANCE}
@@ -315,7 +326,7 @@ def main() -> int:
     ap.add_argument("--step-ratio", type=positive_float, default=None,
                     help=f"training sample spacing in voxels (default: {NYX_STEP_RATIO:g} at {NYX_RESOLUTION}^3, "
                          "the same world distance at other resolutions)")
-    add_learning_rate_args(ap)
+    add_learning_rate_args(ap, NYX_LR_NETWORKS)
     add_error_sampling_args(ap)
     add_weight_average_args(ap, NYX_WEIGHT_AVERAGE_SPAN)
     ap.add_argument("--lr-upsample-reset", action="store_true",

@@ -311,14 +311,15 @@ def _info(args: argparse.Namespace) -> int:
     return 0
 
 
-def add_learning_rate_args(p: argparse.ArgumentParser) -> None:
+def add_learning_rate_args(p: argparse.ArgumentParser, networks_default: float = TrainConfig.lr_networks) -> None:
     """``--lr-factors``, ``--lr-networks`` and ``--lr-decay-ratio``, for ``TrainConfig.lr_factors``,
     ``lr_networks`` and ``lr_decay_ratio`` (``visnerf train`` and bench/nyx_train.py)."""
     p.add_argument("--lr-factors", type=positive_float, default=TrainConfig.lr_factors, metavar="LR",
                    help="Adam learning rate of the VM factors and parameter vectors at the start "
-                        f"(default {TrainConfig.lr_factors:g}, the paper's; the decoders keep {TrainConfig.lr_networks:g})")
-    p.add_argument("--lr-networks", type=positive_float, default=TrainConfig.lr_networks, metavar="LR",
-                   help=f"Adam learning rate of the decoders at the start (default {TrainConfig.lr_networks:g}, the paper's)")
+                        f"(default {TrainConfig.lr_factors:g}, the paper's; the decoders keep {networks_default:g})")
+    paper = ", the paper's" if networks_default == TrainConfig.lr_networks else f"; the paper's {TrainConfig.lr_networks:g}"
+    p.add_argument("--lr-networks", type=positive_float, default=networks_default, metavar="LR",
+                   help=f"Adam learning rate of the decoders at the start (default {networks_default:g}{paper})")
     p.add_argument("--lr-decay-ratio", type=unit_interval_open_below, default=TrainConfig.lr_decay_ratio,
                    metavar="F", help="fraction of the starting learning rates left at the end of the run, "
                                      f"reached by exponential decay (default {TrainConfig.lr_decay_ratio:g}; "

@@ -153,17 +153,19 @@ class TrainConfig:
     """Wall-clock budget; progress is the larger of iteration and time fraction."""
     batch_rays: int = 4096
     """Rays per iteration."""
-    micro_batch_rays: int = 1024
-    """Most rays rendered and back-propagated together within an iteration (bounds activation
-    memory; the step is the same for any value)."""
+    micro_batch_rays: int = 4096
+    """Most rays rendered and back-propagated together within an iteration; the step is the same
+    for any value. Activation memory follows the samples evaluated, which ``micro_batch_samples``
+    bounds, so by default this does not split a batch of its own (see bench/results/
+    micro_batch_speed.md and train_step_memory.md)."""
     micro_batch_samples: int = 32768
     """Most samples evaluated (in the box and in occupied cells) per micro-batch: keeps activation
     memory flat as the grid, and with it the number of samples per ray, grows, and lets a
     micro-batch hold more rays once content is carved or learned. One step of 4096 rays on a
-    Nyx-sized field (88x140x140, fresh fog) peaks 0.8 to 1.1 GB lower at 32768 than at 131072
-    (1029 to 1074 against 1900 to 2097 MB over three runs) and is no slower: two runs beside other
-    jobs gave 9.8 to 11.9 s per step at every budget in no order, one on an idle machine 6.9
-    against 9.7 s (bench/results/train_step_memory.md)."""
+    Nyx-sized field (88x140x140, fresh fog, where every sample is evaluated) peaks 0.6 GB lower at
+    32768 than at 131072 (675 against 1289 MB; earlier runs, with micro-batches counted along the
+    box span, 1029 to 1074 against 1900 to 2097 MB) and is no slower (4.47 against 7.95 s;
+    bench/results/train_step_memory.md)."""
     trim_every: int = 25
     """Iterations between returns of freed heap memory to the system (bounds resident memory)."""
     lr_factors: float = 0.02
