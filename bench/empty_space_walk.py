@@ -38,9 +38,8 @@ from nyx_train import NYX_LATE_PHASE_STEP, NYX_MICRO_BATCH_SAMPLES, late_phase_t
 
 from visnerf.data.cameras import image_rays
 from visnerf.inference import load_scene
-from visnerf.rendering.aabb import intersect_aabb
 from visnerf.rendering.empty_space import EmptySpace
-from visnerf.rendering.renderer import empty_space_of
+from visnerf.rendering.renderer import empty_space_of, ray_windows
 
 Window = tuple[torch.Tensor, torch.Tensor]
 
@@ -62,12 +61,10 @@ WALKS = {"one loop per end": walk_each_end, "both ends in one loop": walk_both_e
 
 
 def ray_set(field, rays_o: torch.Tensor, rays_d: torch.Tensor, step: float) -> dict:  # noqa: ANN001
-    """Rays with their whole lattice window through the box, as ``occupied_windows`` and
-    ``ray_windows`` start them."""
-    t_near, t_far, hit = intersect_aabb(rays_o, rays_d, field.aabb)
-    count = torch.ceil((t_far - t_near) / step - 0.5 + 1e-3).clamp_min(0).long()
-    last = torch.where(hit, count - 1, -1)
-    return {"o": rays_o, "d": rays_d, "t_near": t_near, "step": step, "first": torch.zeros_like(last), "last": last}
+    """Rays with their whole lattice window through the box, where ``occupied_windows`` and
+    ``ray_windows`` start their walks."""
+    box = ray_windows(field, rays_o, rays_d, step, None, None)
+    return {"o": rays_o, "d": rays_d, "t_near": box.t_near, "step": step, "first": box.first, "last": box.last}
 
 
 def frame_rays(field, frames, i: int, step: float) -> dict:  # noqa: ANN001

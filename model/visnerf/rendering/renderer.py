@@ -387,17 +387,22 @@ def ray_windows(
     rays_o: Float[Tensor, "n 3"],
     rays_d: Float[Tensor, "n 3"],
     step: float,
-    max_samples: int,
+    max_samples: int | None,
     empty_space: EmptySpace | None,
+    near: int = 0,
 ) -> RayWindows:
-    """Box interval of every ray and its window of samples: the whole lattice inside the box (at
-    most ``max_samples``), narrowed to the occupied samples' span when ``empty_space`` is given."""
+    """Box interval of every ray and its window of lattice samples (``t_near + step * (i + 0.5)``):
+    the whole lattice inside the box (at most ``max_samples`` unless None), narrowed to the span
+    of the samples in occupied cells when ``empty_space`` is given (``near = 1``: within one cell
+    of an occupied one, ``EmptySpace.sample_window``)."""
     t_near, t_far, hit = intersect_aabb(rays_o, rays_d, field.aabb)
-    count = torch.ceil((t_far - t_near) / step - 0.5 + 1e-3).clamp(0, max_samples)  # may count one beyond t_far
+    count = torch.ceil((t_far - t_near) / step - 0.5 + 1e-3).clamp_min(0)  # may count one beyond t_far
+    if max_samples is not None:
+        count = count.clamp_max(max_samples)
     last = torch.where(hit, count.long() - 1, -1)
     first = torch.zeros_like(last)
     if empty_space is not None:
-        first, last = empty_space.sample_window(rays_o, rays_d, t_near, step, first, last)
+        first, last = empty_space.sample_window(rays_o, rays_d, t_near, step, first, last, near)
     return RayWindows(t_near, t_far, first, last)
 
 

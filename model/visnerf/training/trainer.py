@@ -29,7 +29,6 @@ from visnerf.data.parsers.blender import estimate_bbox
 from visnerf.data.ray_batches import RayBatchSampler
 from visnerf.data.scene import SceneData
 from visnerf.evaluation.metrics import mse_to_psnr, psnr, ssim
-from visnerf.rendering.aabb import intersect_aabb
 from visnerf.rendering.density_gradients import DensityGradientSampling
 from visnerf.rendering.empty_space import EmptySpace
 from visnerf.rendering.occupancy import (
@@ -39,7 +38,14 @@ from visnerf.rendering.occupancy import (
     parameter_settings,
     query_occupancy,
 )
-from visnerf.rendering.renderer import RenderSettings, empty_space_of, place_samples, render_image, shade_rays
+from visnerf.rendering.renderer import (
+    RenderSettings,
+    empty_space_of,
+    place_samples,
+    ray_windows,
+    render_image,
+    shade_rays,
+)
 from visnerf.rendering.spacing import choose_full_spacing
 from visnerf.representation.field import VisNerfField
 from visnerf.representation.vm_taps import table_gradients_in_place
@@ -500,10 +506,8 @@ def occupied_windows(
     cells lie between them (``EmptySpace.sample_window``). Needs a step no larger than a cell."""
     if step > empty_space.min_cell_size():
         raise ValueError(f"step {step} is larger than the occupancy grid's cells ({empty_space.min_cell_size()})")
-    t_near, t_far, hit = intersect_aabb(rays_o, rays_d, field_.aabb)
-    count = torch.ceil((t_far - t_near) / step - 0.5 + 1e-3).clamp_min(0).long()
-    last = torch.where(hit, count - 1, -1)
-    return empty_space.sample_window(rays_o, rays_d, t_near, step, torch.zeros_like(last), last, near=1)
+    windows = ray_windows(field_, rays_o, rays_d, step, None, empty_space, near=1)
+    return windows.first, windows.last
 
 
 def micro_batches(per_ray: Int[Tensor, " n"], max_rays: int, max_samples: int) -> list[slice]:
