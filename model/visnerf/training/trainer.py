@@ -338,7 +338,6 @@ class Trainer:
         importance = cfg.importance_samples if self.progress() >= cfg.importance_from else 0
         self.optimizer.zero_grad(set_to_none=True)
         sq_error = 0.0
-        evaluated = 0
         step = self.step_size()
         # Each ray samples only its occupied span; with importance sampling, anywhere along its box span.
         empty = empty_space_of(self.field) if importance == 0 else None
@@ -353,7 +352,8 @@ class Trainer:
         # The whole batch's positions at once; micro-batches count the samples each ray evaluates.
         samples = place_samples(self.field, batch.rays_o, batch.rays_d, batch.params, step,
                                 self.render_cfg.max_samples, self.field.occupancy, self.generator, importance, windows)
-        for sl in micro_batches(samples.per_ray(), cfg.micro_batch_rays, cfg.micro_batch_samples):
+        per_ray = samples.per_ray()
+        for sl in micro_batches(per_ray, cfg.micro_batch_rays, cfg.micro_batch_samples):
             out = shade_rays(self.field, batch.rays_d[sl], batch.params[sl], bg[sl], samples.of_rays(sl),
                              self.render_cfg.weight_threshold, density_grads)
             ray_error = ((out["rgb"] - target[sl]) ** 2).mean(-1)  # [chunk]
@@ -366,14 +366,13 @@ class Trainer:
                 with table_gradients_in_place():  # each chunk's factor gradients add into .grad
                     part.backward()
             sq_error += float(part.detach())
-            evaluated += int(out["n_samples"])
         if track_errors:
             self.sampler.record(batch, torch.cat(errors))
         reg_value = sum(backward_regularization(self.field, self._weights()).values())
         if not math.isfinite(reg_value):  # before the step: the factors stay as they were
             raise FloatingPointError(f"non-finite regularization at iteration {self.state.iteration}")
         self.optimizer.step()
-        return {"mse": sq_error, "loss": sq_error + reg_value, "samples": float(evaluated)}
+        return {"mse": sq_error, "loss": sq_error + reg_value, "samples": float(per_ray.sum())}
 
     def run(
         self,
