@@ -26,11 +26,11 @@ import time
 from pathlib import Path
 
 import torch
-from bench_common import write_json
+from bench_common import cpu_description, write_json
 
 from visnerf import runtime
 from visnerf.commands import pick_device
-from visnerf.config import HoldoutConfig, TrainConfig
+from visnerf.config import FieldConfig, HoldoutConfig, TrainConfig
 from visnerf.data.holdout import split_holdout
 from visnerf.data.parsers.blender import load_dataset
 from visnerf.evaluation.evaluate import EvalConfig, evaluate_checkpoint
@@ -40,23 +40,24 @@ from visnerf.evaluation.sweeps import SweepConfig
 from visnerf.evaluation.training_curves import read_training_log
 from visnerf.scenes.catalog import SceneSpec, scene_catalog
 from visnerf.scenes.writer import DatasetOptions, write_scene
+from visnerf.training.recipe import choose_recipe
 from visnerf.training.trainer import Trainer
 
 ROOT = Path(__file__).resolve().parents[1]
 HOLDOUT_VIEWS = (3, 11, 25)
 README_BEGIN, README_END = "<!-- eval_scenes:begin -->", "<!-- eval_scenes:end -->"
 
-# The paper's figures at hand (../shared/DESIGN.md and ../shared/data/nyx/README.md): Nyx-DVR only.
-PAPER_ROWS = {
-    "cosmo_sim": {
-        "dataset": "Nyx-DVR (3 simulation parameters, 1890 images 256x256, V100 GPU)",
-        "K": 3, "psnr": 30.02, "ssim": 0.978, "lpips": 0.018, "train_minutes": 1.66 * 60,
-        "ms_per_frame": 540.0, "model_mb": 12.79,
-        "note": "analogue, not the same data: a toy cosmic web at 128x128 on this machine's CPU against "
-                "the Nyx simulation at 256x256 on a V100",
-    },
-}  # fmt: skip
-NO_PAPER_ROW = "the paper's figures at hand (../shared) give only Nyx-DVR"
+# The paper's figures for the real datasets these scenes stand in for (181 test views each).
+PAPER_PSNR = {
+    "plume_time": ("five jets, timestep", 27.51),
+    "tangle_iso": ("Tangaroa, isosurfaces", 29.36),
+    "vortex_tf1": ("vortex, TF-1", 37.26),
+    "vortex_tf2": ("vortex, TF-2", 36.58),
+    "cosmo_sim": ("Nyx-DVR, 3 simulation parameters", 30.02),
+}
+PAPER_STATIC = ("static scenes", "27.0 to 38.7")
+BUNDLED = ("plume_time", "tangle_iso", "vortex_tf1", "cosmo_sim")
+"""The scenes shipped in checkpoints/ (``--bundle``): one of each slider kind the product exists for."""
 
 
 def machine(device: torch.device) -> dict:
@@ -67,6 +68,7 @@ def machine(device: torch.device) -> dict:
         "torch": torch.__version__,
         "torch_threads": torch.get_num_threads(),
         "python": platform.python_version(),
+        "cpu": cpu_description(),
     }
 
 
@@ -85,26 +87,44 @@ def dataset_for(spec: SceneSpec, root: Path, options: DatasetOptions, workers: i
     return folder, summary.seconds
 
 
-def train_scene(data: Path, ckpt: Path, minutes: float, resolution: int, device: torch.device) -> float:
-    """Train under the budget; returns the training seconds (carving included, validation excluded)."""
+def train_scene(data: Path, ckpt: Path, minutes: float, device: torch.device) -> Trainer:
+    """Train under the budget with the product's recipe, as `visnerf train DATA --time-budget MINUTES`
+    does (the recipe's look at the data counts as training time, validation does not)."""
     train, val = split_holdout(load_dataset(data, "train"), HoldoutConfig(views=HOLDOUT_VIEWS))
     budget = 60.0 * minutes
-    cfg = TrainConfig(time_budget_s=budget, validate_every_s=max(budget / 6.0, 5.0), resolution_final=resolution)
-    trainer = Trainer(train, val, cfg, device)
+    t0 = time.perf_counter()
+    recipe = choose_recipe(train, TrainConfig(time_budget_s=budget, validate_every_s=max(budget / 6.0, 5.0)), FieldConfig())
+    trainer = Trainer(train, val, recipe.train, device, field_cfg=recipe.field, carved=recipe.carved,
+                      setup_seconds=time.perf_counter() - t0)
+    trainer.recipe_choices = recipe.describe()
     trainer.run(progress_bar=False)
     trainer.save(ckpt, dataset=str(data))
-    return trainer.state.train_seconds
+    return trainer
 
 
-def scene_row(spec: SceneSpec, summary: dict, train_seconds: float, gen_seconds: float) -> dict:
+def scene_row(spec: SceneSpec, summary: dict, trainer: Trainer, gen_seconds: float) -> dict:
     m, groups = summary["metrics"], summary["parameter_space"]["groups"]
+    paper = PAPER_PSNR.get(spec.name) if spec.axes else PAPER_STATIC
     return {
         "scene": spec.name, "kind": spec.kind, "K": len(spec.axes), "frames": m["n"],
-        "psnr": m["psnr"], "ssim": m["ssim"], "lpips": m["lpips"], "train_minutes": train_seconds / 60.0,
+        "psnr": m["psnr"], "ssim": m["ssim"], "lpips": m["lpips"], "train_minutes": trainer.state.train_seconds / 60.0,
+        "iterations": trainer.state.iteration, "resolution": list(trainer.field.resolution),
         "ms_per_frame": m["ms_median"], "model_mb": summary["model_mb"],
         "psnr_between_training_values": groups["between_training_values"]["psnr"],
-        "generation_seconds": gen_seconds, "paper": PAPER_ROWS.get(spec.name),
+        "generation_seconds": gen_seconds, "choices": trainer.recipe_choices,
+        "paper": None if paper is None else {"dataset": paper[0], "psnr": paper[1]},
     }  # fmt: skip
+
+
+def bundle_scene(ckpt: Path, folder: Path, report: Path, bundled_report: Path) -> None:
+    """Copy a trained scene into the bundled checkpoints (each file replaced whole) and its report beside the others."""
+    folder.mkdir(parents=True, exist_ok=True)
+    for src in (ckpt, ckpt.with_suffix(".log.csv")):
+        tmp = folder / (src.name + ".tmp")
+        shutil.copyfile(src, tmp)
+        tmp.replace(folder / src.name)
+    shutil.rmtree(bundled_report, ignore_errors=True)
+    shutil.copytree(report, bundled_report)
 
 
 def _f(value: object, digits: int) -> str:
@@ -112,21 +132,17 @@ def _f(value: object, digits: int) -> str:
 
 
 def table_lines(record: dict) -> list[str]:
-    """The results table, each scene followed by the paper's row where there is one."""
+    """The results table, with the paper's PSNR on the real dataset each scene stands in for."""
     lines = [
-        "| scene | K | PSNR (dB) | SSIM | train minutes | ms per frame | model MB | paper |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| scene | kind | K | PSNR (dB) | SSIM | iterations | grid | ms per frame | model MB | paper: real counterpart, PSNR |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for r in record["scenes"]:
         paper = r["paper"]
-        lines.append(f"| {r['scene']} | {r['K']} | {_f(r['psnr'], 2)} | {_f(r['ssim'], 3)} | "
-                     f"{_f(r['train_minutes'], 1)} | {_f(r['ms_per_frame'], 0)} | {_f(r['model_mb'], 2)} | "
-                     f"{'see next row' if paper else '-'} |")
-        if paper:
-            lines.append(f"| paper: {paper['dataset']} | {paper['K']} | {paper['psnr']:.2f} | {paper['ssim']:.3f} | "
-                         f"{paper['train_minutes']:.0f} | {paper['ms_per_frame']:.0f} | {paper['model_mb']:.2f} | "
-                         f"{paper['note']} |")
-    lines += ["", f"Paper column: {NO_PAPER_ROW}, so only the scenes with a row under them have a counterpart."]
+        grid = "x".join(map(str, r["resolution"])) if r.get("resolution") else "n/a"
+        lines.append(f"| {r['scene']} | {r['kind']} | {r['K']} | {_f(r['psnr'], 2)} | {_f(r['ssim'], 3)} | "
+                     f"{r.get('iterations', 'n/a')} | {grid} | {_f(r['ms_per_frame'], 0)} | {_f(r['model_mb'], 2)} | "
+                     f"{'-' if not paper else paper['dataset'] + ', ' + str(paper['psnr'])} |")
     return lines
 
 
@@ -135,12 +151,12 @@ def write_markdown(path: Path, record: dict) -> None:
     lines = [
         "# Synthetic scenes: error against training and rendering time",
         "",
-        f"`{record['command']}` on {m['platform']}, {m['cpu_cores']} CPU cores, device {m['device']}, "
+        f"`{record['command']}` on {m.get('cpu', m['platform'])}, {m['cpu_cores']} CPU cores, device {m['device']}, "
         f"torch {m['torch']} with {m['torch_threads']} thread(s), {record['date']}.",
         "",
         f"Each scene: dataset at {record['resolution']}x{record['resolution']} ({record['views']} views per "
         f"parameter setting), training for {record['minutes_per_scene']:g} minute(s) of wall-clock time "
-        f"({record['voxels_per_axis']} voxels per axis at the end) with views "
+        "(the product's recipe, no flags) with views "
         f"{', '.join(map(str, HOLDOUT_VIEWS))} held out, then `visnerf eval` on {record['test_views']} test views "
         "(parameters between training values). PSNR and SSIM are means over the evaluated test frames, "
         "ms per frame the median full-quality render time.",
@@ -181,8 +197,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--scenes", nargs="+", default=list(catalog), choices=list(catalog), metavar="NAME")
     parser.add_argument("--minutes-per-scene", type=float, default=10.0, help="training budget (default 10)")
     parser.add_argument("--res", type=int, default=128, help="image size (default 128)")
-    parser.add_argument("--resolution", type=int, default=72,
-                        help="final voxels per axis of each model (default 72, as the bundled checkpoints)")
+    parser.add_argument("--bundle", type=Path, default=None, metavar="DIR",
+                        help=f"copy the checkpoints (and logs) of {', '.join(BUNDLED)} into DIR, their reports "
+                             "into RESULTS/bundled_eval/ (scripts/train_bundled.sh)")
     parser.add_argument("--test-views", type=int, default=181, help="views on the test path (default 181)")
     parser.add_argument("--max-eval-frames", type=int, default=None, help="evaluate only N test frames")
     parser.add_argument("--sweep-frames", type=int, default=4, help="frames per render setting (default 4)")
@@ -208,7 +225,7 @@ def main(argv: list[str] | None = None) -> int:
         "command": "python bench/eval_scenes.py " + " ".join(argv if argv is not None else sys.argv[1:]),
         "date": time.strftime("%Y-%m-%d %H:%M:%S UTC", time.gmtime()), "machine": machine(device),
         "resolution": args.res, "views": options.n_views, "test_views": args.test_views,
-        "minutes_per_scene": args.minutes_per_scene, "voxels_per_axis": args.resolution, "reports": str(reports.relative_to(ROOT))
+        "minutes_per_scene": args.minutes_per_scene, "reports": str(reports.relative_to(ROOT))
         if reports.is_relative_to(ROOT) else str(reports), "scenes": [],
     }  # fmt: skip
     runs = []
@@ -218,9 +235,12 @@ def main(argv: list[str] | None = None) -> int:
             data, gen_seconds = dataset_for(spec, data_root, options, args.workers)
             ckpt = work / f"{name}.safetensors"
             print(f"{name}: training {args.minutes_per_scene:g} min on {data}", file=sys.stderr)
-            train_seconds = train_scene(data, ckpt, args.minutes_per_scene, args.resolution, device)
+            trainer = train_scene(data, ckpt, args.minutes_per_scene, device)
             summary = write_report(evaluate_checkpoint(ckpt, data, eval_cfg, device), eval_cfg, reports / name)
-            record["scenes"].append(scene_row(spec, summary, train_seconds, gen_seconds))
+            record["scenes"].append(scene_row(spec, summary, trainer, gen_seconds))
+            del trainer
+            if args.bundle is not None and name in BUNDLED:
+                bundle_scene(ckpt, args.bundle, reports / name, args.results / "bundled_eval" / name)
             runs.append(read_training_log(ckpt.with_suffix(".log.csv"), name=name))
             print(f"{name}: PSNR {_f(summary['metrics']['psnr'], 2)} dB, SSIM {_f(summary['metrics']['ssim'], 3)}",
                   file=sys.stderr)

@@ -165,17 +165,20 @@ def _train(args: argparse.Namespace) -> int:
     cfg = TrainConfig(
         iterations=args.iterations, time_budget_s=args.time_budget * 60 if args.time_budget else None,
         batch_rays=args.batch_rays, micro_batch_rays=args.micro_batch_rays,
-        micro_batch_samples=args.micro_batch_samples, seed=args.seed, resolution_final=args.resolution,
-        validate_every_s=args.validate_every, carve_min_seen_fraction=args.carve_min_seen_fraction,
+        micro_batch_samples=args.micro_batch_samples, seed=args.seed,
+        resolution_final=TrainConfig.resolution_final if args.resolution is None else args.resolution,
+        validate_every_s=args.validate_every,
+        carve_min_seen_fraction=(TrainConfig.carve_min_seen_fraction if args.carve_min_seen_fraction is None
+                                 else args.carve_min_seen_fraction),
         occupancy_refine_at=args.occupancy_refine_at, density_grad_keep=args.density_grad_keep,
         occupancy_refine_dilation=args.occupancy_refine_dilation, tv_weight_appearance=args.tv_appearance,
         lr_factors=args.lr_factors, lr_networks=args.lr_networks, lr_decay_ratio=args.lr_decay_ratio,
         error_sampling_tile=args.error_sampling_tile, error_sampling_uniform=args.error_sampling_uniform,
         weight_average_span=args.weight_average_span, weight_average_from=args.weight_average_from,
     )
-    field_cfg = None if args.factor_storage is None else FieldConfig(factor_storage=args.factor_storage)
+    field_cfg = FieldConfig() if args.factor_storage is None else FieldConfig(factor_storage=args.factor_storage)
     render_cfg = RenderConfig()
-    init_field, start = None, None
+    init_field, start, carved, choices = None, None, None, []
     if args.resume:
         from visnerf.checkpoint import load_checkpoint
         from visnerf.training.trainer import TrainState
@@ -197,8 +200,21 @@ def _train(args: argparse.Namespace) -> int:
           f"K={train.n_params}, {train.intrinsics.width}x{train.intrinsics.height}, device {device}", file=sys.stderr)
     if args.step_ratio is not None:
         render_cfg = dataclasses.replace(render_cfg, step_ratio=args.step_ratio)
+    setup_seconds = 0.0
+    if init_field is None:
+        from visnerf.training.recipe import choose_recipe
+
+        t0 = time.perf_counter()
+        fixed = {name for name, given in (("resolution_final", args.resolution),
+                                          ("carve_min_seen_fraction", args.carve_min_seen_fraction)) if given is not None}
+        recipe = choose_recipe(train, cfg, field_cfg, frozenset(fixed))
+        cfg, field_cfg, carved, choices = recipe.train, recipe.field, recipe.carved, recipe.describe()
+        setup_seconds = time.perf_counter() - t0
+        for choice in choices:
+            print(f"  {choice['name']} = {choice['value']}: {choice['reason']}", file=sys.stderr)
     trainer = Trainer(train, val, cfg, device, field_cfg=field_cfg, render_cfg=render_cfg, init_field=init_field,
-                      start=start)
+                      start=start, carved=carved, setup_seconds=setup_seconds)
+    trainer.recipe_choices = choices
 
     def report(row: dict) -> None:
         print("  " + json.dumps(row), file=sys.stderr)
@@ -357,37 +373,38 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--iterations", type=positive_int, default=30000, help="maximum iterations (default 30000)")
     p.add_argument("--time-budget", type=positive_float, default=None, metavar="MINUTES", help="wall-clock training budget")
     p.add_argument("--batch-rays", type=positive_int, default=TrainConfig.batch_rays,
-                   help=f"rays per step (default {TrainConfig.batch_rays}, the paper's; the Nyx recipe 2048)")
+                   help=f"rays per step (default {TrainConfig.batch_rays}; the paper's 4096)")
     p.add_argument("--micro-batch-rays", type=positive_int, default=TrainConfig.micro_batch_rays,
                    help="most rays rendered and back-propagated together; the step is the same for any value, "
-                        f"fewer micro-batches are faster and need more memory (default {TrainConfig.micro_batch_rays}; "
-                        "the Nyx recipe 2048)")
+                        f"fewer micro-batches are faster and need more memory (default {TrainConfig.micro_batch_rays})")
     p.add_argument("--micro-batch-samples", type=positive_int, default=TrainConfig.micro_batch_samples,
                    help="most samples evaluated (in occupied cells) per micro-batch, which bounds activation "
-                        f"memory (default {TrainConfig.micro_batch_samples}; the Nyx recipe 131072)")
-    p.add_argument("--resolution", type=int, default=TrainConfig.resolution_final,
-                   help="final voxels per axis (cube root of the grid size)")
+                        f"memory (default {TrainConfig.micro_batch_samples})")
+    p.add_argument("--resolution", type=positive_int, default=None,
+                   help="final voxels per axis (cube root of the grid size; default: chosen from the pixel size "
+                        "at the content, see `visnerf info`)")
     p.add_argument("--step-ratio", type=positive_float, default=None, metavar="VOXELS",
                    help=f"training sample spacing in voxels (default {RenderConfig.step_ratio:g}; "
                         "with --resume, the checkpoint's)")
-    p.add_argument("--carve-min-seen-fraction", type=unit_fraction, default=TrainConfig.carve_min_seen_fraction,
-                   metavar="F", help="fraction of a setting's views that must see a cell for the image carving "
-                                     f"to keep it (default {TrainConfig.carve_min_seen_fraction:g}: any view; "
-                                     "0.75 when every view sees all of the content)")
+    p.add_argument("--carve-min-seen-fraction", type=unit_fraction, default=None,
+                   metavar="F", help="fraction of a setting's views that must have a cell in frame for the image "
+                                     "carving to keep it (default: 0.75 where every image shows its content whole, "
+                                     "else 0)")
     p.add_argument("--occupancy-refine-at", type=parse_fractions, default=TrainConfig.occupancy_refine_at,
                    metavar="P1,P2,..", help="fractions of the run at which the occupancy grid is rebuilt "
-                                            "within itself, so later steps sample fewer empty cells (default: none)")
+                                            "within itself, so later steps sample fewer empty cells (default "
+                                            f"{','.join(f'{x:g}' for x in TrainConfig.occupancy_refine_at)})")
     p.add_argument("--occupancy-refine-dilation", type=non_negative_int,
                    default=TrainConfig.occupancy_refine_dilation, metavar="CELLS",
                    help="cells by which a refined occupancy grid grows around the cells with content "
-                        f"(default {TrainConfig.occupancy_refine_dilation}; the Nyx recipe 0)")
+                        f"(default {TrainConfig.occupancy_refine_dilation})")
     p.add_argument("--density-grad-keep", type=unit_interval_open_below, default=TrainConfig.density_grad_keep,
                    metavar="F", help="fraction of the near-empty density samples (alpha below "
                                      f"{TrainConfig.density_grad_floor:g}) each step back-propagates, their gradient "
-                                     "scaled by 1/F: an unbiased, cheaper step (default 1: all; the Nyx recipe 0.125)")
+                                     f"scaled by 1/F: an unbiased, cheaper step (default {TrainConfig.density_grad_keep:g}; 1: all)")
     p.add_argument("--tv-appearance", type=non_negative_float, default=TrainConfig.tv_weight_appearance,
                    metavar="W", help="total-variation weight of the appearance factors "
-                                     f"(default {TrainConfig.tv_weight_appearance:g}; the Nyx recipe 0)")
+                                     f"(default {TrainConfig.tv_weight_appearance:g})")
     add_learning_rate_args(p)
     add_error_sampling_args(p)
     add_weight_average_args(p)

@@ -40,9 +40,14 @@ class FieldConfig:
     vortex_tf1 did not move (12.1, 7.7, 11.8 dB), at -2 it rose to 17.4, 12.9 and 17.2 dB. Steps are
     slower while the fog lasts (colour is decoded everywhere), yet a 3-minute run on vortex_tf1
     ended at 19.85 dB held-out against 18.91 dB at -10, ahead at every validation."""
+    density_scale: float = 1.0
+    """Multiplies the softplus of the density decoder's output (per world unit). Opaque surfaces
+    need an optical depth of about 10 within a voxel or two, a density of thousands per world unit,
+    which a decoder reaches only after many steps at 1; the recipe sets one over the voxel size for
+    surface scenes (``training.recipe``), with ``density_shift`` lowered to keep the same fog."""
     init_scale: float = 0.1
     """Standard deviation of the initial VM factors."""
-    factor_storage: str = "float16"
+    factor_storage: str = "int8"
     """How the checkpoint file stores the VM planes and lines: ``float32``, ``float16`` (half the
     bytes) or ``int8`` (planes as int8 codes with a float32 scale per row, ``factor_codec``; lines
     as float16: about a quarter of the float32 bytes). The field computes in float32 either way,
@@ -94,15 +99,12 @@ class FieldConfig:
 class RenderConfig:
     """How rays are marched at inference and in training."""
 
-    step_ratio: float = 1.0
-    """Sample spacing of training as a fraction of the grid's voxel size; the exhaustive reference
-    samples at the finer of this and half a voxel (``renderer.exhaustive_step_ratio``), the
-    preview at that times ``preview_step_factor``. One voxel, not the paper's half: half the
-    samples per step buy 1.7 to 2.1 times the iterations in the same time. Side by side, one
-    thread each: Nyx, 60 minutes, 24.35 against 23.96 dB held-out with 15619 against 9007
-    iterations (bench/results/nyx_train.md, bench/results/nyx_train_step_ratio/), ahead at every
-    validation; 3 minutes (bench/results/train_step_ratio/): vortex_tf1 33.93 against 30.93 dB,
-    tangle_iso 19.01 against 15.81 dB."""
+    step_ratio: float = 1.647
+    """Sample spacing of training in voxels of the grid (the world spacing follows the grid as it
+    is upsampled); the exhaustive reference samples at the finer of this and half a voxel
+    (``renderer.exhaustive_step_ratio``), the preview at that times ``preview_step_factor``. With
+    the recipe's voxels (``training.recipe``, 0.93 of a pixel at the content) samples land about
+    1.5 pixels apart, the spacing the Nyx record trained at (bench/results/nyx_history.md)."""
     full_step_ratio: float = 0.75
     """Sample spacing of full-quality inference frames (stored with each checkpoint), chosen per
     checkpoint from measured frames at the end of training or by ``visnerf calibrate``
@@ -151,27 +153,25 @@ class TrainConfig:
     """Maximum iterations."""
     time_budget_s: float | None = None
     """Wall-clock budget; progress is the larger of iteration and time fraction."""
-    batch_rays: int = 4096
-    """Rays per iteration."""
+    batch_rays: int = 2048
+    """Rays per iteration: half the paper's 4096; more, noisier steps fit faster on a CPU (Nyx, 40
+    minutes side by side: 25.61 against 25.10 dB; bench/results/nyx_history.md)."""
     micro_batch_rays: int = 4096
     """Most rays rendered and back-propagated together within an iteration; the step is the same
     for any value. Activation memory follows the samples evaluated, which ``micro_batch_samples``
     bounds, so by default this does not split a batch of its own (see bench/results/
     micro_batch_speed.md and train_step_memory.md)."""
-    micro_batch_samples: int = 32768
-    """Most samples evaluated (in the box and in occupied cells) per micro-batch: keeps activation
-    memory flat as the grid, and with it the number of samples per ray, grows, and lets a
-    micro-batch hold more rays once content is carved or learned. One step of 4096 rays on a
-    Nyx-sized field (88x140x140, fresh fog, where every sample is evaluated) peaks 0.6 GB lower at
-    32768 than at 131072 (675 against 1289 MB; earlier runs, with micro-batches counted along the
-    box span, 1029 to 1074 against 1900 to 2097 MB) and is no slower (4.47 against 7.95 s;
-    bench/results/train_step_memory.md)."""
+    micro_batch_samples: int = 131072
+    """Most samples evaluated (in the box, in occupied cells, in front of opaque content) per
+    micro-batch: bounds activation memory (one 4096-ray step of a fresh Nyx-sized fog: +996 MB at
+    131072, +382 MB at 32768) while a late step of 2048 rays stays one micro-batch."""
     trim_every: int = 25
     """Iterations between returns of freed heap memory to the system (bounds resident memory)."""
     lr_factors: float = 0.02
     """Adam learning rate of grid factors and parameter vectors."""
-    lr_networks: float = 1e-3
-    """Adam learning rate of the decoders."""
+    lr_networks: float = 2e-3
+    """Adam learning rate of the decoders: twice the paper's 0.001 (Nyx, 30 minutes side by side:
+    26.62 against 26.37 dB)."""
     betas: tuple[float, float] = (0.9, 0.99)
     lr_decay_ratio: float = 0.1
     """Learning rates decay exponentially to this fraction at the end of the run."""
@@ -192,11 +192,11 @@ class TrainConfig:
     """Progress fractions at which planes and lines are upsampled (log-spaced resolutions)."""
     occupancy_at: tuple[float, ...] = (0.067, 0.133)
     """Progress fractions at which the occupancy mask is rebuilt (the first also shrinks the box)."""
-    occupancy_refine_at: tuple[float, ...] = ()
+    occupancy_refine_at: tuple[float, ...] = (0.25, 0.5, 0.75)
     """Progress fractions, after the ``occupancy_at`` milestones, at which the occupancy grid is
     rebuilt from the density within itself (``Trainer.refine_occupancy``: cells leave as the
     density sparsens, none join), so that later steps sample fewer empty cells."""
-    occupancy_refine_dilation: int = 1
+    occupancy_refine_dilation: int = 0
     """Cells by which a refined grid (``occupancy_refine_at`` and the end of training) is grown
     around the cells that hold content. The ``occupancy_at`` grids keep one cell, room for content
     that is still forming to grow into; once it has formed, 0 leaves out a ring of near-empty
@@ -241,15 +241,21 @@ class TrainConfig:
     ahead at every validation, with 10554 against 7973 iterations in the same time; 3-minute runs
     side by side (bench/results/tv_density): vortex_tf1 31.19 against 29.46 dB, tangle_iso 16.06
     against 15.75 dB."""
-    tv_weight_appearance: float = 0.01
+    tv_weight_appearance: float = 0.0
+    """Total variation on the appearance factors: none, the fit is limited by capacity, not noise
+    (Nyx, 35 minutes side by side: 26.46 against 26.36 dB with 0.01)."""
     tv_weight_params: float = 0.01
+    stop_eps: float = 1e-4
+    """Samples a ray reaches with transmittance below this are dropped from a training step
+    (``renderer.drop_occluded``): behind an opaque surface they cost a full differentiable pass
+    and change the render by less than this. 0: every sample is shaded."""
     importance_from: float = 1.0
     """Progress fraction after which samples are drawn by importance from a coarse density pass
     (1.0: never). Off by default: in the 60-minute Nyx run (bench/results/nyx_train.md) switching it
     on at 0.7 dropped held-out PSNR from 21.5 to 20.1 dB within five minutes."""
     importance_samples: int = 64
     """Samples per ray drawn by importance sampling in the late phase."""
-    density_grad_keep: float = 1.0
+    density_grad_keep: float = 0.125
     """Fraction of the near-empty samples (alpha below ``density_grad_floor``) whose density a
     step back-propagates, their gradient scaled by its inverse: an unbiased estimate of the full
     gradient at a fraction of the backward work (``rendering.density_gradients``). 1: every sample."""
@@ -262,10 +268,10 @@ class TrainConfig:
     drawn uniformly."""
     error_sampling_uniform: float = 0.2
     """With ``error_sampling_tile``, the fraction of the probability kept uniform over the pixels."""
-    weight_average_span: float = 0.0
+    weight_average_span: float = 0.03
     """Return the parameters' moving average over the end of the run instead of their last values
     (``training/weight_average.py``): the span of progress over which an old value's weight falls
-    by a factor of e. 0: off."""
+    by a factor of e. 0: off. At 0.03, +0.076 dB on 24 held-out Nyx frames."""
     weight_average_from: float = 0.5
     """Progress fraction from which the average is kept; it restarts if the grid is upsampled
     later, and on ``--resume`` (it is not in the checkpoint)."""

@@ -28,6 +28,7 @@ def make_tiny_field(
             hidden_width=16,
             density_shift=0.0,
             init_scale=0.5,
+            factor_storage="float16",
         )
         field = VisNerfField(cfg, torch.tensor([[-0.5, -0.5, -0.5], [0.5, 0.5, 0.5]]))
         axes = []

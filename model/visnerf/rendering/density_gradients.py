@@ -46,15 +46,17 @@ def density_with_sampled_gradients(
     q_density: Float[Tensor, "m c"],
     deltas: Float[Tensor, " m"],
     sampling: DensityGradientSampling,
+    known: Float[Tensor, " m"] | None = None,
 ) -> Float[Tensor, " m"]:
     """``density(points, q_density)`` in value; differentiable through the samples with
     ``1 - exp(-sigma * delta) >= sampling.floor`` and a random ``sampling.keep`` fraction of the
-    rest (scaled by ``1 / keep``). A keep of 1 back-propagates every sample (the plain call)."""
+    rest (scaled by ``1 / keep``). A keep of 1 back-propagates every sample (the plain call).
+    ``known``: the same densities computed earlier without a graph, which saves that pass."""
     floor, keep, generator = sampling.floor, sampling.keep, sampling.generator
     if keep == 1.0 or not torch.is_grad_enabled():
         return density(points, q_density)
     with torch.no_grad():
-        sigma = density(points, q_density)  # [m]
+        sigma = density(points, q_density) if known is None else known  # [m]
         low = -torch.expm1(-sigma * deltas) < floor
         drawn = uniform_noise(tuple(sigma.shape), generator, sigma.device) < keep
         traced = (~low | drawn).nonzero()[:, 0]  # [k]

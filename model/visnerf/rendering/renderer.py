@@ -124,12 +124,14 @@ def _shade_samples(
     tau_before: Float[Tensor, " n"],
     weight_threshold: float,
     density_grads: DensityGradientSampling | None = None,
+    sigma: Float[Tensor, "n s"] | None = None,
 ) -> tuple[Float[Tensor, "n 3"], Float[Tensor, " n"], Float[Tensor, "n s"]]:
     """Density at valid samples, log-space transmittance, colour where the weight matters.
 
     Returns (colour contribution, optical depth of this segment, weights). ``tau_before`` is the
     optical depth accumulated by earlier segments of the same rays. With ``density_grads``, the
-    backward pass takes near-empty samples at random (``rendering.density_gradients``).
+    backward pass takes near-empty samples at random (``rendering.density_gradients``), from the
+    graph-free densities ``sigma`` where they are given.
     """
     n, s = valid.shape
     # Gathers by index_select on flat sample indices: the backward of advanced indexing is
@@ -143,8 +145,9 @@ def _shade_samples(
         if density_grads is None:
             dens = field.density(sel_points, sel_q)
         else:
+            known = None if sigma is None else sigma.reshape(-1).index_select(0, flat)
             dens = density_with_sampled_gradients(
-                field.density, sel_points, sel_q, deltas.reshape(-1).index_select(0, flat), density_grads)
+                field.density, sel_points, sel_q, deltas.reshape(-1).index_select(0, flat), density_grads, known)
         sigmas = sigmas.index_copy(0, flat, dens)
     sigmas = sigmas.view(n, s)
     tau = sigmas * deltas.clamp_min(0.0)  # [n, s]
@@ -205,10 +208,15 @@ class RaySamples:
     points: Float[Tensor, "n s 3"]
     deltas: Float[Tensor, "n s"]
     valid: Bool[Tensor, "n s"]
-    """The samples evaluated: in the box, in the ray's window and in an occupied cell."""
+    """The samples evaluated: in the box, in the ray's window and in an occupied cell (and, after
+    ``drop_occluded``, not behind an opaque part of the ray)."""
+    sigma: Float[Tensor, "n s"] | None = None
+    """Densities at the valid samples computed without a graph (``drop_occluded``), 0 elsewhere;
+    the shading pass reuses them where it back-propagates only some samples."""
 
     def of_rays(self, rays: slice) -> "RaySamples":
-        return RaySamples(self.points[rays], self.deltas[rays], self.valid[rays])
+        sigma = None if self.sigma is None else self.sigma[rays]
+        return RaySamples(self.points[rays], self.deltas[rays], self.valid[rays], sigma)
 
     def per_ray(self) -> Int[Tensor, " n"]:
         """Samples evaluated per ray."""
@@ -267,6 +275,63 @@ def place_samples(
     return RaySamples(points, deltas, valid)
 
 
+def exclusive_optical_depth(tau: Float[Tensor, "n s"]) -> Float[Tensor, "n s"]:
+    """Optical depth before each sample, ``sum(tau[:, :i])``, as a shifted cumulative sum: a zero,
+    then the running sum without the last term. ``cumsum(tau) - tau`` cancels in float32 where a
+    large term follows small ones; this never subtracts, so it is exact to rounding and monotone."""
+    return torch.cat([torch.zeros_like(tau[:, :1]), torch.cumsum(tau[:, :-1], dim=-1)], dim=-1)
+
+
+@torch.no_grad()
+def drop_occluded(
+    field: VisNerfField,
+    samples: RaySamples,
+    params: Float[Tensor, "n k"],
+    stop_eps: float,
+    first_segment: int = 16,
+) -> RaySamples:
+    """``samples`` without those a ray reaches with transmittance below ``stop_eps`` (hidden
+    behind opaque content), with the densities of the samples kept, evaluated without a graph.
+
+    A dropped sample's weight is below ``stop_eps``, and so is every later one's, so the render
+    changes by at most ``stop_eps`` times the colour range. Behind an opaque isosurface every
+    sample of the ray's occupied window lies in the surface's inside, which the visual hull and
+    the density both count as content; this keeps the differentiable pass to the samples in front
+    of it. The rays are marched in segments (``first_segment`` samples, then doubling, as the
+    inference renderer does) and a ray's densities are evaluated only up to the segment in which
+    it turns opaque. ``stop_eps`` 0 keeps (and evaluates) every sample."""
+    n, s = samples.valid.shape
+    dtype, device = samples.points.dtype, samples.points.device
+    sigma = torch.zeros(n, s, dtype=dtype, device=device)
+    visible = torch.zeros_like(samples.valid)
+    q_d, _ = field.param_features(params)
+    tau_stop = -math.log(stop_eps) if stop_eps > 0.0 else math.inf
+    tau_before = torch.zeros(n, dtype=dtype, device=device)
+    active = samples.valid.any(dim=1).nonzero()[:, 0]  # [a] rays still marching
+    start, seg = 0, first_segment
+    while start < s and active.numel() > 0:
+        stop = min(s, start + seg)
+        valid = samples.valid[:, start:stop].index_select(0, active)  # [a, g]
+        flat = valid.reshape(-1).nonzero()[:, 0]  # [m], into the a * g samples
+        g = stop - start
+        seg_sigma = torch.zeros(active.numel() * g, dtype=dtype, device=device)
+        if flat.numel() > 0:
+            ray = active.index_select(0, flat // g)
+            points = samples.points[:, start:stop].index_select(0, active).reshape(-1, 3).index_select(0, flat)
+            seg_sigma.index_copy_(0, flat, field.density(points, q_d.index_select(0, ray)).to(dtype))
+        seg_sigma = seg_sigma.view(-1, g)
+        tau = seg_sigma * samples.deltas[:, start:stop].index_select(0, active).clamp_min(0.0)  # [a, g]
+        before = tau_before.index_select(0, active)[:, None] + exclusive_optical_depth(tau)
+        seen = valid & (before < tau_stop)
+        sigma[active, start:stop] = seg_sigma * seen
+        visible[active, start:stop] = seen
+        tau_before.index_add_(0, active, tau.sum(dim=1))
+        later = samples.valid[:, stop:].index_select(0, active).any(dim=1)
+        active = active[(tau_before.index_select(0, active) < tau_stop) & later]
+        start, seg = stop, 2 * seg
+    return RaySamples(samples.points, samples.deltas, visible, sigma)
+
+
 def shade_rays(
     field: VisNerfField,
     rays_d: Float[Tensor, "n 3"],
@@ -282,7 +347,7 @@ def shade_rays(
     q_d, q_a = field.param_features(params)
     tau0 = torch.zeros(rays_d.shape[0], dtype=rays_d.dtype, device=rays_d.device)
     rgb, tau, _ = _shade_samples(field, rays_d, samples.points, samples.deltas, samples.valid, q_d, q_a, tau0,
-                                 weight_threshold, density_grads)
+                                 weight_threshold, density_grads, samples.sigma)
     opacity = -torch.expm1(-tau)
     return {
         "rgb": rgb + background * (1.0 - opacity)[:, None],

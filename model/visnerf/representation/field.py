@@ -88,7 +88,7 @@ class VisNerfField(nn.Module):
     ) -> Float[Tensor, " n"]:
         pe = encode_position(coords, self.cfg.pos_encoding_freqs)
         raw = self.density_decoder(torch.cat([modulate(spatial, q), q, pe], dim=-1))[:, 0]
-        return F.softplus(raw + self.cfg.density_shift)
+        return F.softplus(raw + self.cfg.density_shift) * self.cfg.density_scale
 
     def density(self, points: Float[Tensor, "n 3"], q_density: Float[Tensor, "n c"]) -> Float[Tensor, " n"]:
         """Non-negative density (per world unit) at world points. Differentiable."""

@@ -182,7 +182,7 @@ class FrameField:
         encode_position_into(coords, cfg.pos_encoding_freqs, x[:m, n_spatial:])
         hidden = linear_relu(x, self.density_layer.weight, self.density_layer.bias)  # [padded, h]
         raw = F.linear(hidden, *self._density_out)[:m, 0].to(coords.dtype)
-        return F.softplus(raw + cfg.density_shift)
+        return F.softplus(raw + cfg.density_shift) * cfg.density_scale
 
     def direction_terms(self, directions: Float[Tensor, "a 3"]) -> Float[Tensor, "a e"]:
         """The view direction's spherical harmonics per ray, in the compute dtype: encoded once

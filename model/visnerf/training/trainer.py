@@ -40,6 +40,7 @@ from visnerf.rendering.occupancy import (
 )
 from visnerf.rendering.renderer import (
     RenderSettings,
+    drop_occluded,
     empty_space_of,
     place_samples,
     ray_windows,
@@ -78,7 +79,8 @@ class TrainState:
     log: list[dict] = field(default_factory=list)
 
 
-PROVENANCE_RECIPE = ("batch_rays", "lr_factors", "lr_networks", "lr_decay_ratio", "l1_weight_initial",
+PROVENANCE_RECIPE = ("batch_rays", "resolution_final", "carve_min_seen_fraction", "stop_eps",
+                     "occupancy_refine_at", "occupancy_refine_dilation", "lr_factors", "lr_networks", "lr_decay_ratio", "l1_weight_initial",
                      "l1_weight_rest", "param_l1_weight", "tv_weight_density", "tv_weight_appearance",
                      "tv_weight_params", "density_grad_keep", "error_sampling_tile", "error_sampling_uniform",
                      "weight_average_span", "weight_average_from")
@@ -143,7 +145,12 @@ class Trainer:
         render_cfg: RenderConfig | None = None,
         init_field: VisNerfField | None = None,
         start: TrainState | None = None,
+        carved: tuple[Tensor, Tensor] | None = None,
+        setup_seconds: float = 0.0,
     ) -> None:
+        """``carved``: the scene's carved grid and the box it covers, where the caller has carved
+        already (``training.recipe``); otherwise the trainer carves when ``cfg.carve``.
+        ``setup_seconds``: the caller's time spent on the data before (counted as training)."""
         self.scene, self.val_scene, self.cfg, self.device = train_scene, val_scene, cfg, device
         self.render_cfg = render_cfg or RenderConfig()
         self.spacing_note: str | None = None
@@ -152,15 +159,20 @@ class Trainer:
             keep_freed_blocks()  # table-sized tensors every step: no page faults for each (runtime.py)
         torch.manual_seed(cfg.seed)
         self.generator = torch.Generator().manual_seed(cfg.seed)
-        self.setup_seconds = 0.0
+        self.setup_seconds = setup_seconds
+        self.recipe_choices: list[dict] = []
+        """The settings chosen from the data and why (``training.recipe``), saved in the checkpoint."""
         self.carved: tuple[Tensor, Tensor] | None = None  # (grid, its world box)
         if init_field is None:
-            aabb = estimate_bbox(train_scene)
+            aabb = estimate_bbox(train_scene) if carved is None else carved[1].clone()
             if cfg.carve:
                 t0 = time.perf_counter()
-                grid = carve_occupancy(train_scene, aabb, (cfg.carve_resolution,) * 3, cfg.carve_tolerance,
-                                       min_seen_fraction=cfg.carve_min_seen_fraction)
-                self.setup_seconds = time.perf_counter() - t0
+                if carved is not None:
+                    grid = carved[0]
+                else:
+                    grid = carve_occupancy(train_scene, aabb, (cfg.carve_resolution,) * 3, cfg.carve_tolerance,
+                                           min_seen_fraction=cfg.carve_min_seen_fraction)
+                self.setup_seconds += time.perf_counter() - t0
                 bounds = occupied_bounds(grid, aabb)
                 if bounds is not None:
                     self.carved = (grid, aabb.clone())
@@ -352,6 +364,7 @@ class Trainer:
         # The whole batch's positions at once; micro-batches count the samples each ray evaluates.
         samples = place_samples(self.field, batch.rays_o, batch.rays_d, batch.params, step,
                                 self.render_cfg.max_samples, self.field.occupancy, self.generator, importance, windows)
+        samples = drop_occluded(self.field, samples, batch.params, cfg.stop_eps)
         per_ray = samples.per_ray()
         for sl in micro_batches(per_ray, cfg.micro_batch_rays, cfg.micro_batch_samples):
             out = shade_rays(self.field, batch.rays_d[sl], batch.params[sl], bg[sl], samples.of_rays(sl),
@@ -489,7 +502,8 @@ class Trainer:
                         "seed": self.cfg.seed, "upsamples_done": self.state.upsamples_done,
                         "occupancy_done": self.state.occupancy_done,
                         "refines_done": self.state.refines_done, "full_spacing": self.spacing_note,
-                        "recipe": {name: getattr(self.cfg, name) for name in PROVENANCE_RECIPE}},
+                        "recipe": {name: getattr(self.cfg, name) for name in PROVENANCE_RECIPE},
+                        "choices": self.recipe_choices},
         )
         save_checkpoint(self.field, meta, path)
         write_log(self.state.log, path.with_suffix(".log.csv"))

@@ -80,6 +80,7 @@ def test_int8_planes_take_a_quarter_of_the_float32_bytes_plus_their_scales(tmp_p
     field, path = _int8_checkpoint(tmp_path, resolution=24)
     half_field, _ = make_tiny_field([("a", [0.0, 1.0])], resolution=24)
     meta = read_checkpoint(make_tiny_checkpoint(tmp_path / "base2.safetensors"))[0]
+    half_field.cfg = dataclasses.replace(half_field.cfg, factor_storage="float16")
     half = save_checkpoint(half_field, dataclasses.replace(meta, field=half_field.cfg), tmp_path / "h.safetensors")
     planes = [v for k, v in field.state_dict().items() if ".planes." in k]
     # float16 -> int8 saves a byte per plane value and adds a float32 scale per row.

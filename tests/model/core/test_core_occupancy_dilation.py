@@ -75,7 +75,7 @@ def test_refined_grids_use_the_configured_dilation(cells: int) -> None:
                       occupancy_refine_dilation=cells)
     trainer = Trainer(make_noise_scene(), None, cfg, torch.device("cpu"), init_field=field)
     # A threshold at which only part of the ball holds content, so that dilating changes the grid.
-    trainer.render_cfg = dataclasses.replace(trainer.render_cfg, occupancy_threshold=0.07)
+    trainer.render_cfg = dataclasses.replace(trainer.render_cfg, occupancy_threshold=0.07, step_ratio=1.0)
     trainer.field.set_occupancy(_ball())
     bare = trainer.density_occupancy((8, 8, 8), within=_ball(), dilation=0)
     assert 0 < int(bare.sum()) < int((dilate(bare, 1) & _ball()).sum())

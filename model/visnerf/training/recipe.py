@@ -1,0 +1,239 @@
+"""The training recipe chosen from the data: what ``visnerf train`` uses when no flag says otherwise.
+
+The library's ``TrainConfig`` defaults hold what suits every scene (the step, the rates, the
+priors, the schedule as fractions of the run). What depends on the dataset is chosen here from
+the images and cameras alone, each choice with the reason ``visnerf info`` shows:
+
+- the final grid: voxels ``VOXEL_PER_PIXEL`` of the pixel footprint at the content (the world
+  size one pixel spans there, from the focal length and the cameras' distance), over the box the
+  space carving leaves, rounded to a multiple of 8 and kept within ``RESOLUTION_RANGE``;
+- the carving's ``min_seen_fraction``: where every training image shows its content whole (no
+  foreground pixel on the image border), every cell of the content is in every view's image, and a
+  cell that a quarter of its setting's views do not have in frame is camera-box corner, not
+  content (``CARVE_FRAMED_FRACTION``); where content is cut by the border, 0 keeps what few views
+  see;
+- surface-style density for opaque scenes: where no foreground pixel is faint (within a quarter
+  of the image's full contrast of the background, as translucent volume renderings are around
+  their content), the content is an opaque surface, which needs an optical depth of about 10
+  within a voxel or two. The density is then scaled by one over the final voxel size
+  (``FieldConfig.density_scale``), the fog it starts from kept as it is;
+- the parameter factors: none for K = 0 (the field has no parameter axes then).
+
+On Nyx (256x256, a pixel 0.0021 world units at the content, framed) this gives the tuned recipe's
+200 voxels over the carved +-0.19 cube and the 0.75 carving; on the 128x128 synthetic scenes, 96
+voxels (a pixel 0.0088 at the origin).
+"""
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+
+from visnerf.config import FieldConfig, TrainConfig
+from visnerf.data.carving import carve_occupancy, foreground_masks
+from visnerf.data.parsers.blender import estimate_bbox
+from visnerf.data.scene import SceneData
+from visnerf.rendering.occupancy import occupied_bounds
+
+VOXEL_PER_PIXEL = 0.93
+"""Final voxel size over the pixel footprint at the content: Nyx's detail sits at the pixel
+scale (bench/results/nyx_history.md: 200 voxels over its 0.388 box, 0.00194 world units against
+0.00209 a pixel, beat 170 and 230; 0.93 puts Nyx at 199.4 voxels, mid-way between the roundings
+to 192 and 208)."""
+RESOLUTION_RANGE = (48, 256)
+"""Fewest and most voxels per axis the recipe picks (memory and checkpoint size bound the top)."""
+CARVE_FRAMED_FRACTION = 0.75
+"""``carve_min_seen_fraction`` where every image frames its content whole."""
+FAINT_CONTRAST = 0.25
+"""A foreground pixel is faint when its difference from the background is below this fraction of
+the 99th percentile of the foreground's differences."""
+SURFACE_MAX_FAINT = 0.01
+"""Most faint foreground pixels (a fraction) for a scene to count as opaque surfaces: 0.000 on
+tangle_iso and tangle_static (128x128, 32x32), 0.04 to 0.21 on vortex_tf1, vortex_static, plume_time and
+Nyx (32x32 to 256x256 renders)."""
+BORDER_PIXELS = 1
+"""Width of the image border in which a foreground pixel means content cut by the frame."""
+
+
+@dataclass(frozen=True)
+class Choice:
+    """One setting chosen from the data, and why."""
+
+    name: str
+    value: object
+    reason: str
+
+    def to_dict(self) -> dict[str, object]:
+        return {"name": self.name, "value": self.value, "reason": self.reason}
+
+
+@dataclass(frozen=True)
+class SceneTraits:
+    """What the recipe reads from a dataset."""
+
+    pixel_footprint: float
+    """World size of one pixel at the content's centre (median over the training views)."""
+    framed: bool
+    """Every training image shows its content clear of the image border."""
+    border_frames: int
+    """Training images with foreground on their border."""
+    faint_fraction: float
+    """Fraction of the foreground pixels that are faint (``FAINT_CONTRAST``)."""
+    n_params: int
+
+    @property
+    def opaque(self) -> bool:
+        return self.faint_fraction < SURFACE_MAX_FAINT
+
+
+def pixel_footprint(scene: SceneData, centre: torch.Tensor) -> float:
+    """Median over views of the camera's distance to ``centre`` over its focal length (pixels)."""
+    dist = torch.linalg.norm(scene.c2w[:, :3, 3].float() - centre.float()[None], dim=-1)  # [n]
+    focal = max(scene.intrinsics.fx, scene.intrinsics.fy)
+    return float(dist.median()) / focal
+
+
+def frames_cut_by_border(scene: SceneData, tolerance: int, chunk: int = 64) -> int:
+    """Training images with a foreground pixel (farther than ``tolerance`` from the background)
+    within ``BORDER_PIXELS`` of the image's edge."""
+    count, b = 0, BORDER_PIXELS
+    for start in range(0, scene.n_frames, chunk):
+        fg = foreground_masks(scene.images[start : start + chunk], scene.background, tolerance, 0)  # [c, h, w]
+        edge = fg[:, :b, :].flatten(1).any(1) | fg[:, -b:, :].flatten(1).any(1)
+        edge |= fg[:, :, :b].flatten(1).any(1) | fg[:, :, -b:].flatten(1).any(1)
+        count += int(edge.sum())
+    return count
+
+
+def faint_fraction(scene: SceneData, tolerance: int, max_frames: int = 64) -> float:
+    """Fraction of the foreground pixels (of up to ``max_frames`` evenly chosen training images)
+    whose difference from the background is below ``FAINT_CONTRAST`` of the foreground's 99th
+    percentile difference: the soft fringe of translucent content; 0 for opaque surfaces."""
+    pick = torch.linspace(0, scene.n_frames - 1, min(max_frames, scene.n_frames)).round().long().unique()
+    background = (torch.tensor(scene.background) * 255.0).round().to(torch.int16)
+    diff = (scene.images[pick].to(torch.int16) - background).abs().amax(dim=-1)  # [n, h, w]
+    fg = diff[diff > tolerance].float()  # [m]
+    if fg.numel() == 0:
+        return 1.0  # nothing but background: no evidence of a surface
+    top = torch.quantile(fg[:: max(1, fg.numel() // 100_000)], 0.99)
+    return float((fg < FAINT_CONTRAST * top).float().mean())
+
+
+def scene_traits(scene: SceneData, tolerance: int) -> SceneTraits:
+    box = estimate_bbox(scene)
+    border = frames_cut_by_border(scene, tolerance)
+    return SceneTraits(pixel_footprint(scene, box.mean(dim=0)), border == 0, border,
+                       faint_fraction(scene, tolerance), scene.n_params)
+
+
+def surface_density(voxel: float, fog: float) -> tuple[float, float]:
+    """``(density_scale, density_shift)`` for surfaces: a scale of one over the voxel size, and
+    the shift that keeps the fresh field's fog at ``fog`` per world unit
+    (``softplus(shift) * scale = fog``)."""
+    scale = 1.0 / voxel
+    return scale, math.log(math.expm1(fog / scale))
+
+
+def voxels_for(extent: torch.Tensor, voxel: float) -> int:
+    """Voxels per axis (cube root of the count) that give cells of size ``voxel`` over a box of
+    ``extent``, a multiple of 8 within ``RESOLUTION_RANGE``."""
+    per_axis = float(torch.prod(extent)) ** (1.0 / 3.0) / voxel
+    lo, hi = RESOLUTION_RANGE
+    return int(min(hi, max(lo, 8 * round(per_axis / 8))))
+
+
+@dataclass(frozen=True)
+class Recipe:
+    """The configuration a dataset trains with, and the choices made from it."""
+
+    train: TrainConfig
+    field: FieldConfig
+    choices: tuple[Choice, ...]
+    carved: tuple[torch.Tensor, torch.Tensor] | None
+    """The carved grid and the box it covers, for the trainer (None: not carved)."""
+
+    def describe(self) -> list[dict[str, object]]:
+        return [c.to_dict() for c in self.choices]
+
+
+def choose_recipe(scene: SceneData, base: TrainConfig, base_field: FieldConfig,
+                  fixed: frozenset[str] = frozenset()) -> Recipe:
+    """``base`` and ``base_field`` with the data-dependent settings chosen for ``scene``; those
+    named in ``fixed`` (set by the user) are kept as given and recorded as such."""
+    traits = scene_traits(scene, base.carve_tolerance)
+    choices: list[Choice] = []
+    values: dict[str, object] = {}
+
+    if "carve_min_seen_fraction" in fixed:
+        choices.append(Choice("carve_min_seen_fraction", base.carve_min_seen_fraction, "set by the user"))
+    elif traits.framed:
+        values["carve_min_seen_fraction"] = CARVE_FRAMED_FRACTION
+        choices.append(Choice("carve_min_seen_fraction", CARVE_FRAMED_FRACTION,
+                              f"every one of the {scene.n_frames} training images shows its content clear of the "
+                              "border, so content is in every view's frame: cells that a quarter of their "
+                              "setting's views do not frame are carved"))
+    else:
+        values["carve_min_seen_fraction"] = 0.0
+        choices.append(Choice("carve_min_seen_fraction", 0.0,
+                              f"{traits.border_frames} of {scene.n_frames} training images have content on "
+                              "their border: a cell only a few views frame may still be content"))
+
+    carved = carve_content(scene, base.carve, base.carve_resolution, base.carve_tolerance,
+                           float(values.get("carve_min_seen_fraction", base.carve_min_seen_fraction)))
+    box = content_box(scene, carved)
+    extent = box[1] - box[0]
+    if "resolution_final" in fixed:
+        choices.append(Choice("resolution_final", base.resolution_final, "set by the user"))
+    else:
+        resolution = voxels_for(extent, VOXEL_PER_PIXEL * traits.pixel_footprint)
+        values["resolution_final"] = resolution
+        sizes = ", ".join(f"{float(e):.3f}" for e in extent)
+        choices.append(Choice("resolution_final", resolution,
+                              f"a pixel spans {traits.pixel_footprint:.5f} world units at the content; voxels of "
+                              f"{VOXEL_PER_PIXEL} pixel over the content box ({sizes})"))
+    final = int(values.get("resolution_final", base.resolution_final))  # type: ignore[call-overload]
+    if final < base.resolution_init:
+        values["resolution_init"] = final
+
+    field_values: dict[str, object] = {}
+    if "density_scale" in fixed:
+        choices.append(Choice("density_scale", base_field.density_scale, "set by the user"))
+    elif traits.opaque:
+        voxel = float(torch.prod(extent)) ** (1.0 / 3.0) / final
+        fog = F.softplus(torch.tensor(base_field.density_shift)).item() * base_field.density_scale
+        scale, shift = surface_density(voxel, fog)
+        field_values.update(density_scale=scale, density_shift=shift)
+        choices.append(Choice("density_scale", round(scale, 3),
+                              f"{100 * traits.faint_fraction:.1f} % of the foreground pixels are faint (under "
+                              f"{100 * SURFACE_MAX_FAINT:g} %): opaque surfaces, whose density must reach an optical "
+                              "depth of about 10 within a voxel or two; scaled by one over the voxel size, the "
+                              f"starting fog kept at {fog:.3f} per world unit (density_shift {shift:.3f})"))
+    else:
+        choices.append(Choice("density_scale", base_field.density_scale,
+                              f"{100 * traits.faint_fraction:.1f} % of the foreground pixels are faint: translucent "
+                              "content, densities as the decoder gives them"))
+
+    if traits.n_params == 0:
+        choices.append(Choice("parameter_axes", 0, "one setting in the data (K = 0): no parameter factors"))
+    return Recipe(dataclasses.replace(base, **values), dataclasses.replace(base_field, **field_values),  # type: ignore[arg-type]
+                  tuple(choices), carved)
+
+
+def carve_content(scene: SceneData, carve: bool, resolution: int, tolerance: int,
+                  min_seen_fraction: float) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """The carved grid over the camera box and that box (None without carving)."""
+    if not carve:
+        return None
+    box = estimate_bbox(scene)
+    return carve_occupancy(scene, box, (resolution,) * 3, tolerance, min_seen_fraction=min_seen_fraction), box
+
+
+def content_box(scene: SceneData, carved: tuple[torch.Tensor, torch.Tensor] | None) -> torch.Tensor:
+    """The box training starts from: the carved visual hull's bounds, or the camera box."""
+    if carved is None:
+        return estimate_bbox(scene)
+    bounds = occupied_bounds(*carved)
+    return carved[1].clone() if bounds is None else bounds
+

@@ -1,0 +1,101 @@
+"""The settings ``visnerf train`` chooses from the data: each on a scene where it must be made and
+one where it must not."""
+
+import dataclasses
+from pathlib import Path
+
+import pytest
+import torch
+
+from visnerf.config import FieldConfig, TrainConfig
+from visnerf.training.recipe import (
+    CARVE_FRAMED_FRACTION,
+    VOXEL_PER_PIXEL,
+    choose_recipe,
+    content_box,
+    faint_fraction,
+    frames_cut_by_border,
+    pixel_footprint,
+    surface_density,
+    voxels_for,
+)
+
+NYX = Path(__file__).resolve().parents[3].parent / "shared" / "data" / "nyx"
+
+
+def choices_of(recipe) -> dict[str, object]:
+    return {c.name: c.value for c in recipe.choices}
+
+
+def test_opaque_surfaces_get_a_surface_density_and_volumes_do_not(surface_scene, volume_scene):
+    surface = choose_recipe(surface_scene, TrainConfig(), FieldConfig())
+    volume = choose_recipe(volume_scene, TrainConfig(), FieldConfig())
+    assert faint_fraction(surface_scene, 2) < 0.01 < faint_fraction(volume_scene, 2)
+    assert surface.field.density_scale > 50.0
+    assert volume.field == FieldConfig()
+    # The fog a fresh field starts from is the same either way (softplus(shift) * scale).
+    fog = torch.nn.functional.softplus(torch.tensor(FieldConfig().density_shift)).item()
+    got = torch.nn.functional.softplus(torch.tensor(surface.field.density_shift)).item() * surface.field.density_scale
+    assert got == pytest.approx(fog, rel=1e-5)
+    assert "opaque" in next(c.reason for c in surface.choices if c.name == "density_scale")
+
+
+def test_surface_density_scale_is_one_over_the_voxel():
+    scale, shift = surface_density(0.01, 0.127)
+    assert scale == pytest.approx(100.0)
+    assert torch.nn.functional.softplus(torch.tensor(shift, dtype=torch.float64)).item() * scale == pytest.approx(0.127)
+
+
+def test_framed_content_carves_at_three_quarters_and_cut_content_at_zero(volume_scene):
+    framed = choose_recipe(volume_scene, TrainConfig(), FieldConfig())
+    assert frames_cut_by_border(volume_scene, 2) == 0
+    assert framed.train.carve_min_seen_fraction == CARVE_FRAMED_FRACTION
+    images = volume_scene.images.clone()
+    images[::3, :, 0] = 0  # content reaching the left edge of every third image
+    cut_scene = dataclasses.replace(volume_scene, images=images)
+    assert frames_cut_by_border(cut_scene, 2) == len(range(0, volume_scene.n_frames, 3))
+    cut = choose_recipe(cut_scene, TrainConfig(), FieldConfig())
+    assert cut.train.carve_min_seen_fraction == 0.0
+    assert "border" in next(c.reason for c in cut.choices if c.name == "carve_min_seen_fraction")
+
+
+def test_resolution_follows_the_pixel_size(volume_scene):
+    recipe = choose_recipe(volume_scene, TrainConfig(), FieldConfig())
+    # 32 pixels over 30 degrees at a distance of 2.1: a pixel is 0.0352 world units at the origin.
+    assert pixel_footprint(volume_scene, torch.zeros(3)) == pytest.approx(2.1 * 2 * 0.26795 / 32, rel=1e-3)
+    box = content_box(volume_scene, recipe.carved)
+    assert recipe.train.resolution_final == voxels_for(box[1] - box[0], VOXEL_PER_PIXEL * 2.1 * 2 * 0.26795 / 32)
+    assert recipe.train.resolution_final % 8 == 0
+    assert recipe.train.resolution_init <= recipe.train.resolution_final
+
+
+def test_voxels_for_rounds_to_eight_within_the_range():
+    assert voxels_for(torch.tensor([0.388, 0.388, 0.388]), 0.93 * 0.0020934) == 200
+    assert voxels_for(torch.tensor([1.0, 1.0, 1.0]), 1.0) == 48
+    assert voxels_for(torch.tensor([1.0, 1.0, 1.0]), 1e-4) == 256
+
+
+def test_parameter_factors_are_left_out_only_without_parameters(surface_scene, volume_scene):
+    assert choices_of(choose_recipe(surface_scene, TrainConfig(), FieldConfig())).get("parameter_axes") == 0
+    assert "parameter_axes" not in choices_of(choose_recipe(volume_scene, TrainConfig(), FieldConfig()))
+
+
+def test_settings_the_user_gave_are_kept(surface_scene):
+    base = TrainConfig(resolution_final=40, carve_min_seen_fraction=0.1)
+    field = FieldConfig(density_scale=3.0)
+    recipe = choose_recipe(surface_scene, base, field,
+                           frozenset({"resolution_final", "carve_min_seen_fraction", "density_scale"}))
+    assert recipe.train.resolution_final == 40 and recipe.train.carve_min_seen_fraction == 0.1
+    assert recipe.field.density_scale == 3.0
+    assert all(c.reason == "set by the user" for c in recipe.choices if c.name != "parameter_axes")
+
+
+@pytest.mark.skipif(not (NYX / "transforms_train.json").exists(), reason="../shared/data/nyx is not here")
+def test_nyx_gets_the_tuned_recipe():
+    from visnerf.data.parsers.blender import load_dataset
+
+    recipe = choose_recipe(load_dataset(NYX, "train"), TrainConfig(), FieldConfig())
+    assert recipe.train.resolution_final == 200
+    assert recipe.train.carve_min_seen_fraction == 0.75
+    assert recipe.field == FieldConfig()  # translucent: no surface density
+    assert recipe.carved is not None
