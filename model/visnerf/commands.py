@@ -4,7 +4,6 @@ import argparse
 import dataclasses
 import json
 import math
-import os
 import sys
 import time
 from pathlib import Path
@@ -223,9 +222,14 @@ def _train(args: argparse.Namespace) -> int:
     path = trainer.save(out, dataset=str(args.data))
     print(f"saved {path} ({path.stat().st_size / 1e6:.2f} MB) and its log {path.with_suffix('.log.csv')}")
     if args.submit:
-        from visnerf_server.client import submit_checkpoint
+        from visnerf.upload import UploadError, upload_checkpoint
 
-        return submit_checkpoint(path, args.submit, token=os.environ.get("VISNERF_TOKEN"))
+        try:
+            done = upload_checkpoint(path, args.submit, path.name.removesuffix(".safetensors"), None)
+        except UploadError as exc:
+            print(f"error: {exc} (the checkpoint is saved at {path})", file=sys.stderr)
+            return 1
+        print(f"{'created' if done.created else 'replaced'} scene {done.scene_id!r} at {done.url}")
     return 0
 
 

@@ -2,7 +2,6 @@
 
 import argparse
 import logging
-import os
 import signal
 import sys
 from pathlib import Path
@@ -105,24 +104,8 @@ def serve_command(args: argparse.Namespace) -> int:
     return 0
 
 
-def _find_token(explicit: str | None) -> str | None:
-    if explicit:
-        return explicit
-    if os.environ.get("VISNERF_TOKEN"):
-        return os.environ["VISNERF_TOKEN"].strip()
-    candidates = []
-    if os.environ.get("VISNERF_TOKEN_FILE"):
-        candidates.append(Path(os.environ["VISNERF_TOKEN_FILE"]))
-    state_dir = os.environ.get("VISNERF_STATE_DIR")
-    candidates.append((Path(state_dir) if state_dir else Path.home() / ".config" / "visnerf") / "token")
-    for path in candidates:
-        if path.is_file():
-            return path.read_text(encoding="utf-8").strip() or None
-    return None
-
-
 def submit_command(args: argparse.Namespace) -> int:
-    import httpx
+    from visnerf.upload import UploadError, upload_checkpoint
 
     path: Path = args.checkpoint
     if not path.is_file():
@@ -132,35 +115,10 @@ def submit_command(args: argparse.Namespace) -> int:
     if not is_valid_scene_id(scene_id):
         print(f"error: scene id {scene_id!r} must match {SCENE_ID_PATTERN} (use --id)", file=sys.stderr)
         return 2
-    token = _find_token(args.token)
-    if not token:
-        print("error: no token: pass --token or set VISNERF_TOKEN", file=sys.stderr)
-        return 2
-    url = f"{args.url.rstrip('/')}/api/scenes/{scene_id}"
-    size = path.stat().st_size
-
-    def chunks():
-        with path.open("rb") as f:
-            while chunk := f.read(1 << 20):
-                yield chunk
-
-    headers = {
-        "Authorization": f"Bearer {token}",
-        "Content-Type": "application/octet-stream",
-        "Content-Length": str(size),
-    }
     try:
-        response = httpx.put(url, content=chunks(), headers=headers, timeout=args.timeout)
-    except httpx.HTTPError as exc:
-        print(f"error: upload to {url} failed: {exc}", file=sys.stderr)
-        return 1
-    if response.status_code in (200, 201):
-        action = "created" if response.status_code == 201 else "replaced"
-        print(f"{action} scene {scene_id!r} ({size} bytes) at {url}")
-        return 0
-    try:
-        detail = response.json().get("detail")
-    except ValueError:
-        detail = response.text[:500]
-    print(f"error: server answered {response.status_code}: {detail}", file=sys.stderr)
-    return 1
+        done = upload_checkpoint(path, args.url, scene_id, args.token, args.timeout)
+    except UploadError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2 if str(exc).startswith("no token") else 1
+    print(f"{'created' if done.created else 'replaced'} scene {scene_id!r} ({done.size} bytes) at {done.url}")
+    return 0

@@ -133,3 +133,31 @@ def test_serve_http_websocket_submit_and_sigterm(server, templates, tmp_path: Pa
     assert TOKEN not in log
     assert "render queue shut down" in log
     assert not list((tmp_path / "checkpoints").glob(".upload-*"))
+
+
+def test_train_submit_uploads_the_trained_checkpoint_to_a_running_server(server, tmp_path: Path) -> None:  # noqa: ANN001
+    _, url, _ = server
+    data = tmp_path / "tangle"
+    subprocess.run([sys.executable, "-m", "visnerf.cli", "make-scene", "tangle_static", "--out", str(data),
+                    "--res", "16", "--test-views", "2", "--quiet"], check=True, timeout=120)
+    env = {**os.environ, "VISNERF_TOKEN": TOKEN}
+    ckpt = tmp_path / "trained.safetensors"
+    trained = subprocess.run(
+        [sys.executable, "-m", "visnerf.cli", "train", str(data), "--out", str(ckpt), "--iterations", "20", "--quiet",
+         "--submit", url],
+        capture_output=True, text=True, timeout=300, env=env,
+    )
+    assert trained.returncode == 0, trained.stderr
+    assert "created scene 'trained'" in trained.stdout
+    scene = httpx.get(f"{url}/api/scenes/trained").json()
+    assert scene["kind"] == "ir" and scene["params"] == []
+    frame = httpx.get(f"{url}/api/scenes/trained/render", params={**ORBIT, "width": 16, "height": 16})
+    assert frame.status_code == 200 and image_size(frame.content) == ("PNG", 16, 16)
+    # A refused upload says so and keeps the checkpoint it trained.
+    refused = subprocess.run(
+        [sys.executable, "-m", "visnerf.cli", "train", str(data), "--out", str(tmp_path / "again.safetensors"),
+         "--iterations", "5", "--quiet", "--submit", url],
+        capture_output=True, text=True, timeout=300, env={**os.environ, "VISNERF_TOKEN": "wrong"},
+    )
+    assert refused.returncode == 1 and "403" in refused.stderr and "saved at" in refused.stderr
+    assert (tmp_path / "again.safetensors").is_file()

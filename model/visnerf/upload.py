@@ -1,0 +1,72 @@
+"""Upload a checkpoint to a running ``visnerf serve`` (``PUT /api/scenes/{id}`` with a bearer token).
+
+Used by ``visnerf submit`` and ``visnerf train --submit``. The client side of the API lives in the
+model package so that training never imports the server.
+"""
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import httpx
+
+
+class UploadError(Exception):
+    """The upload did not happen: no token, the server unreachable, or its refusal (the message says which)."""
+
+
+@dataclass(frozen=True)
+class Uploaded:
+    scene_id: str
+    url: str
+    size: int
+    created: bool
+    """True when the scene is new on the server, False when it replaced one."""
+
+
+def find_token(explicit: str | None = None) -> str | None:
+    """The upload token: ``explicit``, else ``$VISNERF_TOKEN``, else the file ``$VISNERF_TOKEN_FILE``,
+    else ``token`` in ``$VISNERF_STATE_DIR`` (default ``~/.config/visnerf``), as the server writes it."""
+    if explicit:
+        return explicit
+    if os.environ.get("VISNERF_TOKEN"):
+        return os.environ["VISNERF_TOKEN"].strip()
+    candidates = []
+    if os.environ.get("VISNERF_TOKEN_FILE"):
+        candidates.append(Path(os.environ["VISNERF_TOKEN_FILE"]))
+    state_dir = os.environ.get("VISNERF_STATE_DIR")
+    candidates.append((Path(state_dir) if state_dir else Path.home() / ".config" / "visnerf") / "token")
+    for path in candidates:
+        if path.is_file():
+            return path.read_text(encoding="utf-8").strip() or None
+    return None
+
+
+def upload_checkpoint(path: Path, server: str, scene_id: str, token: str | None, timeout: float = 300.0) -> Uploaded:
+    """Stream ``path`` to ``server`` as scene ``scene_id``; raises ``UploadError`` naming the cause."""
+    if not path.is_file():
+        raise UploadError(f"{path} is not a file")
+    token = find_token(token)
+    if not token:
+        raise UploadError("no token: pass --token or set VISNERF_TOKEN")
+    url = f"{server.rstrip('/')}/api/scenes/{scene_id}"
+    size = path.stat().st_size
+
+    def chunks():
+        with path.open("rb") as f:
+            while chunk := f.read(1 << 20):
+                yield chunk
+
+    headers = {"Authorization": f"Bearer {token}", "Content-Type": "application/octet-stream",
+               "Content-Length": str(size)}
+    try:
+        response = httpx.put(url, content=chunks(), headers=headers, timeout=timeout)
+    except httpx.HTTPError as exc:
+        raise UploadError(f"upload to {url} failed: {exc}") from None
+    if response.status_code in (200, 201):
+        return Uploaded(scene_id, url, size, response.status_code == 201)
+    try:
+        detail = response.json().get("detail")
+    except ValueError:
+        detail = response.text[:500]
+    raise UploadError(f"server answered {response.status_code}: {detail}")
