@@ -116,15 +116,28 @@ def scene_row(spec: SceneSpec, summary: dict, trainer: Trainer, gen_seconds: flo
     }  # fmt: skip
 
 
-def bundle_scene(ckpt: Path, folder: Path, report: Path, bundled_report: Path) -> None:
-    """Copy a trained scene into the bundled checkpoints (each file replaced whole) and its report beside the others."""
+def bundle_scene(ckpt: Path, folder: Path) -> None:
+    """Copy a trained scene and its training log into the bundled checkpoints, each file replaced whole."""
     folder.mkdir(parents=True, exist_ok=True)
-    for src in (ckpt, ckpt.with_suffix(".log.csv")):
+    for src in (ckpt, ckpt.with_suffix(".log.csv"), ckpt.with_suffix(".log.json")):
         tmp = folder / (src.name + ".tmp")
         shutil.copyfile(src, tmp)
         tmp.replace(folder / src.name)
-    shutil.rmtree(bundled_report, ignore_errors=True)
-    shutil.copytree(report, bundled_report)
+
+
+def write_bundled_index(path: Path, record: dict, reports: Path) -> None:
+    """bench/results/bundled_eval/README.md: each bundled scene's test-path figures and its report."""
+    rows = [r for r in record["scenes"] if r["scene"] in BUNDLED]
+    lines = ["# The bundled checkpoints on their test paths", "",
+             f"Trained and evaluated by `{record['command']}` ({record['machine'].get('cpu', '')}, "
+             f"{record['machine']['torch_threads']} threads, {record['date'][:10]}); `scripts/train_bundled.sh` reruns it.",
+             "", "| scene | slider | PSNR (dB) | SSIM | model MB | report |", "| --- | --- | --- | --- | --- | --- |"]
+    for r in rows:
+        report = os.path.relpath(reports / r["scene"] / "report.md", path.parent)
+        lines.append(f"| {r['scene']} | {r['kind']}, K = {r['K']} | {_f(r['psnr'], 2)} | {_f(r['ssim'], 3)} | "
+                     f"{_f(r['model_mb'], 2)} | [{r['scene']}]({report}) |")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text("\n".join(lines) + "\n")
 
 
 def _f(value: object, digits: int) -> str:
@@ -198,8 +211,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--minutes-per-scene", type=float, default=10.0, help="training budget (default 10)")
     parser.add_argument("--res", type=int, default=128, help="image size (default 128)")
     parser.add_argument("--bundle", type=Path, default=None, metavar="DIR",
-                        help=f"copy the checkpoints (and logs) of {', '.join(BUNDLED)} into DIR, their reports "
-                             "into RESULTS/bundled_eval/ (scripts/train_bundled.sh)")
+                        help=f"copy the checkpoints (and logs) of {', '.join(BUNDLED)} into DIR and index their "
+                             "reports in RESULTS/bundled_eval/README.md (scripts/train_bundled.sh)")
     parser.add_argument("--test-views", type=int, default=181, help="views on the test path (default 181)")
     parser.add_argument("--max-eval-frames", type=int, default=None, help="evaluate only N test frames")
     parser.add_argument("--sweep-frames", type=int, default=4, help="frames per render setting (default 4)")
@@ -240,7 +253,7 @@ def main(argv: list[str] | None = None) -> int:
             record["scenes"].append(scene_row(spec, summary, trainer, gen_seconds))
             del trainer
             if args.bundle is not None and name in BUNDLED:
-                bundle_scene(ckpt, args.bundle, reports / name, args.results / "bundled_eval" / name)
+                bundle_scene(ckpt, args.bundle)
             runs.append(read_training_log(ckpt.with_suffix(".log.csv"), name=name))
             print(f"{name}: PSNR {_f(summary['metrics']['psnr'], 2)} dB, SSIM {_f(summary['metrics']['ssim'], 3)}",
                   file=sys.stderr)
@@ -252,6 +265,8 @@ def main(argv: list[str] | None = None) -> int:
     args.results.mkdir(parents=True, exist_ok=True)
     write_json(args.results / f"{stem}.json", record)
     write_markdown(args.results / f"{stem}.md", record)
+    if args.bundle is not None:
+        write_bundled_index(args.results / "bundled_eval" / "README.md", record, reports)
     if full_run:
         update_readme(ROOT / "README.md", record)
     print(f"results -> {args.results / stem}.json and .md", file=sys.stderr)

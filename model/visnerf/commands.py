@@ -172,7 +172,6 @@ def _train(args: argparse.Namespace) -> int:
         occupancy_refine_at=args.occupancy_refine_at, density_grad_keep=args.density_grad_keep,
         occupancy_refine_dilation=args.occupancy_refine_dilation, tv_weight_appearance=args.tv_appearance,
         lr_factors=args.lr_factors, lr_networks=args.lr_networks, lr_decay_ratio=args.lr_decay_ratio,
-        error_sampling_tile=args.error_sampling_tile, error_sampling_uniform=args.error_sampling_uniform,
         weight_average_span=args.weight_average_span, weight_average_from=args.weight_average_from,
     )
     field_cfg = FieldConfig() if args.factor_storage is None else FieldConfig(factor_storage=args.factor_storage)
@@ -346,18 +345,6 @@ def add_learning_rate_args(p: argparse.ArgumentParser, networks_default: float =
                                      "1: constant rates)")
 
 
-def add_error_sampling_args(p: argparse.ArgumentParser, tile_default: int = TrainConfig.error_sampling_tile) -> None:
-    """``--error-sampling-tile`` and ``--error-sampling-uniform``, for ``TrainConfig.error_sampling_tile``
-    and ``error_sampling_uniform`` (``visnerf train`` and bench/nyx_train.py)."""
-    p.add_argument("--error-sampling-tile", type=non_negative_int, default=tile_default, metavar="PIXELS",
-                   help="draw training pixels in proportion to the root of a running estimate of their "
-                        "tile's squared error, each ray weighted by its inverse probability; the tiles' "
-                        f"side in pixels (default {tile_default}; 0: uniform pixels)")
-    p.add_argument("--error-sampling-uniform", type=unit_interval_open_below, default=TrainConfig.error_sampling_uniform,
-                   metavar="F", help="with --error-sampling-tile, the fraction of the draw kept uniform over the "
-                                     f"pixels; bounds a ray's weight by 1/F (default {TrainConfig.error_sampling_uniform:g})")
-
-
 def add_weight_average_args(p: argparse.ArgumentParser, span_default: float = TrainConfig.weight_average_span) -> None:
     """``--weight-average-span`` and ``--weight-average-from``, for ``TrainConfig.weight_average_span``
     and ``weight_average_from`` (``visnerf train`` and bench/nyx_train.py)."""
@@ -410,7 +397,6 @@ def register(sub: argparse._SubParsersAction) -> None:
                    metavar="W", help="total-variation weight of the appearance factors "
                                      f"(default {TrainConfig.tv_weight_appearance:g})")
     add_learning_rate_args(p)
-    add_error_sampling_args(p)
     add_weight_average_args(p)
     p.add_argument("--factor-storage", choices=sorted(FACTOR_STORAGE_DTYPES), default=None,
                    help=f"how the checkpoint stores the VM factors (default {FieldConfig.factor_storage}; "

@@ -262,12 +262,6 @@ class TrainConfig:
     density_grad_floor: float = 1e-4
     """Alpha over one sample's interval below which a sample counts as near-empty (the occupancy
     grid's and the colour pass's threshold)."""
-    error_sampling_tile: int = 0
-    """Draw training pixels where the model errs (``data/error_map.py``): side in pixels of the
-    tiles whose squared error is tracked, each ray weighted by its inverse probability. 0: pixels
-    drawn uniformly."""
-    error_sampling_uniform: float = 0.2
-    """With ``error_sampling_tile``, the fraction of the probability kept uniform over the pixels."""
     weight_average_span: float = 0.03
     """Return the parameters' moving average over the end of the run instead of their last values
     (``training/weight_average.py``): the span of progress over which an old value's weight falls
@@ -297,10 +291,6 @@ class TrainConfig:
             raise ValueError(f"occupancy_refine_dilation must be >= 0 cells, got {self.occupancy_refine_dilation}")
         if not 0.0 < self.density_grad_keep <= 1.0:
             raise ValueError(f"density_grad_keep must be in (0, 1], got {self.density_grad_keep}")
-        if self.error_sampling_tile < 0:
-            raise ValueError(f"error_sampling_tile must be >= 0 pixels (0: off), got {self.error_sampling_tile}")
-        if not 0.0 < self.error_sampling_uniform <= 1.0:
-            raise ValueError(f"error_sampling_uniform must be in (0, 1], got {self.error_sampling_uniform}")
         if not (math.isfinite(self.weight_average_span) and self.weight_average_span >= 0.0):
             raise ValueError(f"weight_average_span must be a progress fraction >= 0 (0: off), got {self.weight_average_span}")
         if not 0.0 <= self.weight_average_from <= 1.0:

@@ -7,7 +7,6 @@ from jaxtyping import Float, Int
 from torch import Tensor
 
 from visnerf.data.cameras import rays_from_pixels
-from visnerf.data.error_map import PixelErrorMap
 from visnerf.data.scene import SceneData
 from visnerf.rendering.aabb import intersect_aabb
 
@@ -19,8 +18,6 @@ class RayBatch:
     rgb: Float[Tensor, "n 3"]
     params: Float[Tensor, "n k"]
     """Normalised parameter values."""
-    weight: Float[Tensor, " n"]
-    """Each ray's weight in the batch mean (mean 1; all 1 for uniformly drawn pixels)."""
     frame: Int[Tensor, " n"]
     px: Int[Tensor, " n"]
     py: Int[Tensor, " n"]
@@ -31,44 +28,25 @@ class RayBatchSampler:
 
     Missing the content box means the pixel can only show the background, which the box already
     guarantees, so such rays are filtered (up to ``max_redraws`` rounds).
-
-    With an ``error_map`` the pixels are drawn where the model errs (``data/error_map.py``) and
-    each ray carries its importance weight, normalised to a batch mean of 1: the batch is drawn
-    among the pixels whose rays hit the box, whose total probability is not known, so the
-    weighted mean is self-normalised (the same as the uniform draw's mean when every weight is
-    equal). A redrawn pixel's error is recorded in the map as its background's: its ray meets
-    nothing, so the map stops preferring it.
     """
 
-    def __init__(self, scene: SceneData, device: torch.device, generator: torch.Generator,
-                 error_map: PixelErrorMap | None = None) -> None:
+    def __init__(self, scene: SceneData, device: torch.device, generator: torch.Generator) -> None:
         self.scene = scene
         self.device = device
         self.generator = generator
         self.params_norm = scene.normalized_params()
         self.aabb: Tensor | None = None
-        self.error_map = error_map
-        self.background = torch.tensor(scene.background, dtype=torch.float32)
 
     def set_aabb(self, aabb: Tensor | None) -> None:
         self.aabb = None if aabb is None else aabb.detach().cpu()
 
-    def _draw(self, n: int) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
+    def _draw(self, n: int) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
         s = self.scene
-        if self.error_map is None:
-            frame = torch.randint(0, s.n_frames, (n,), generator=self.generator)
-            px = torch.randint(0, s.intrinsics.width, (n,), generator=self.generator)
-            py = torch.randint(0, s.intrinsics.height, (n,), generator=self.generator)
-            weight = torch.ones(n)
-        else:
-            frame, px, py, weight = self.error_map.draw(n, self.generator)
+        frame = torch.randint(0, s.n_frames, (n,), generator=self.generator)
+        px = torch.randint(0, s.intrinsics.width, (n,), generator=self.generator)
+        py = torch.randint(0, s.intrinsics.height, (n,), generator=self.generator)
         rays_o, rays_d = rays_from_pixels(s.c2w[frame], s.intrinsics, px.float() + 0.5, py.float() + 0.5)
-        hit = self._hits(rays_o, rays_d)
-        if self.error_map is not None and not bool(hit.all()):
-            miss = ~hit
-            rgb = self.scene.images[frame[miss], py[miss], px[miss]].float() / 255.0  # [m, 3]
-            self.error_map.record(frame[miss], px[miss], py[miss], ((rgb - self.background) ** 2).mean(-1))
-        return frame, px, py, weight, rays_o, rays_d, hit
+        return frame, px, py, rays_o, rays_d, self._hits(rays_o, rays_d)
 
     def _hits(self, rays_o: Tensor, rays_d: Tensor) -> Tensor:
         if self.aabb is None:
@@ -76,26 +54,19 @@ class RayBatchSampler:
         return intersect_aabb(rays_o, rays_d, self.aabb)[2]
 
     def sample(self, n: int, max_redraws: int = 4) -> RayBatch:
-        frame, px, py, weight, rays_o, rays_d, hit = self._draw(n)
+        frame, px, py, rays_o, rays_d, hit = self._draw(n)
         for _ in range(max_redraws):
             miss = (~hit).nonzero()[:, 0]
             if miss.numel() == 0:
                 break
-            f2, x2, y2, w2, o2, d2, h2 = self._draw(miss.numel())
-            frame[miss], px[miss], py[miss], weight[miss] = f2, x2, y2, w2
+            f2, x2, y2, o2, d2, h2 = self._draw(miss.numel())
+            frame[miss], px[miss], py[miss] = f2, x2, y2
             rays_o[miss], rays_d[miss], hit[miss] = o2, d2, h2
         rgb = self.scene.images[frame, py, px].float() / 255.0  # [n, 3]
-        weight = weight / weight.mean()
         return RayBatch(
             rays_o.to(self.device),
             rays_d.to(self.device),
             rgb.to(self.device),
             self.params_norm[frame].to(self.device),
-            weight.to(self.device),
             frame, px, py,
         )
-
-    def record(self, batch: RayBatch, sq_error: Float[Tensor, " n"]) -> None:
-        """Give the error map (if any) the batch's measured per-ray squared errors (mean over RGB)."""
-        if self.error_map is not None:
-            self.error_map.record(batch.frame, batch.px, batch.py, sq_error)

@@ -24,7 +24,6 @@ from tqdm import tqdm
 from visnerf.checkpoint import CheckpointMeta, save_checkpoint
 from visnerf.config import FieldConfig, RenderConfig, TrainConfig
 from visnerf.data.carving import carve_occupancy
-from visnerf.data.error_map import ErrorMapConfig, PixelErrorMap
 from visnerf.data.parsers.blender import estimate_bbox
 from visnerf.data.ray_batches import RayBatchSampler
 from visnerf.data.scene import SceneData
@@ -82,7 +81,7 @@ class TrainState:
 PROVENANCE_RECIPE = ("batch_rays", "resolution_final", "carve_min_seen_fraction", "stop_eps",
                      "occupancy_refine_at", "occupancy_refine_dilation", "lr_factors", "lr_networks", "lr_decay_ratio", "l1_weight_initial",
                      "l1_weight_rest", "param_l1_weight", "tv_weight_density", "tv_weight_appearance",
-                     "tv_weight_params", "density_grad_keep", "error_sampling_tile", "error_sampling_uniform",
+                     "tv_weight_params", "density_grad_keep",
                      "weight_average_span", "weight_average_from")
 """The ``TrainConfig`` fields a checkpoint's provenance records under ``recipe`` (``visnerf info``
 shows them): the step, the rates and the priors a model was fitted with."""
@@ -188,11 +187,7 @@ class Trainer:
         if self.carved is not None:
             self.field.set_occupancy(self._carved_on(self._occupancy_resolution()))
         self.state = start or TrainState(train_seconds=self.setup_seconds)  # carving counts as training
-        error_map = None
-        if cfg.error_sampling_tile > 0:
-            error_map = PixelErrorMap(train_scene.n_frames, train_scene.intrinsics.height, train_scene.intrinsics.width,
-                                      ErrorMapConfig(tile=cfg.error_sampling_tile, uniform=cfg.error_sampling_uniform))
-        self.sampler = RayBatchSampler(train_scene, device, self.generator, error_map)
+        self.sampler = RayBatchSampler(train_scene, device, self.generator)
         self.sampler.set_aabb(self.field.aabb)
         self.optimizer = make_optimizer(self.field, cfg, 1.0)
         self.settings_all = parameter_settings(train_scene.knots(), cfg.occupancy_max_settings, self.generator)
@@ -328,9 +323,7 @@ class Trainer:
         The photometric loss is a mean over the whole batch, so each chunk's squared error is
         divided by the batch size and its gradient accumulated: the step is the same as one pass
         over the batch, with activation memory bounded by ``micro_batch_rays`` rays and
-        ``micro_batch_samples`` evaluated samples per chunk (see ``micro_batches``). With error sampling
-        (``TrainConfig.error_sampling_tile``) each ray's squared error counts with its importance
-        weight (``RayBatch.weight``, mean 1), and the rays' measured errors go back to the error map.
+        ``micro_batch_samples`` evaluated samples per chunk (see ``micro_batches``).
         """
         cfg = self.cfg
         scale = self.lr_scale()
@@ -359,8 +352,6 @@ class Trainer:
         density_grads = None
         if cfg.density_grad_keep < 1.0:
             density_grads = DensityGradientSampling(cfg.density_grad_floor, cfg.density_grad_keep, self.generator)
-        track_errors = self.sampler.error_map is not None
-        errors: list[Tensor] = []
         # The whole batch's positions at once; micro-batches count the samples each ray evaluates.
         samples = place_samples(self.field, batch.rays_o, batch.rays_d, batch.params, step,
                                 self.render_cfg.max_samples, self.field.occupancy, self.generator, importance, windows)
@@ -370,17 +361,13 @@ class Trainer:
             out = shade_rays(self.field, batch.rays_d[sl], batch.params[sl], bg[sl], samples.of_rays(sl),
                              self.render_cfg.weight_threshold, density_grads)
             ray_error = ((out["rgb"] - target[sl]) ** 2).mean(-1)  # [chunk]
-            part = (batch.weight[sl] * ray_error).sum() / n  # this chunk's share of the (weighted) batch mean
-            if track_errors:
-                errors.append(ray_error.detach())
+            part = ray_error.sum() / n  # this chunk's share of the batch mean
             if not torch.isfinite(part):
                 raise FloatingPointError(f"non-finite loss at iteration {self.state.iteration}")
             if part.requires_grad:  # a chunk whose rays meet no occupied cell has nothing to learn
                 with table_gradients_in_place():  # each chunk's factor gradients add into .grad
                     part.backward()
             sq_error += float(part.detach())
-        if track_errors:
-            self.sampler.record(batch, torch.cat(errors))
         reg_value = sum(backward_regularization(self.field, self._weights()).values())
         if not math.isfinite(reg_value):  # before the step: the factors stay as they were
             raise FloatingPointError(f"non-finite regularization at iteration {self.state.iteration}")

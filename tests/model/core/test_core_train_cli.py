@@ -42,8 +42,8 @@ def test_factor_storage_and_sampled_density_gradients(plume, tmp_path) -> None:
     first = tmp_path / "q.safetensors"
     run = _visnerf("train", str(plume), "--out", str(first), "--iterations", "5", "--resolution", "16",
                    "--factor-storage", "int8", "--density-grad-keep", "0.25", "--tv-appearance", "0",
-                   "--lr-factors", "0.03", "--lr-decay-ratio", "0.05", "--lr-networks", "0.002", "--error-sampling-tile", "2",
-                   "--error-sampling-uniform", "0.5", "--weight-average-span", "0.2", "--weight-average-from", "0.4",
+                   "--lr-factors", "0.03", "--lr-decay-ratio", "0.05", "--lr-networks", "0.002",
+                   "--weight-average-span", "0.2", "--weight-average-from", "0.4",
                    "--micro-batch-rays", "64", "--micro-batch-samples", "4096", "--device", "cpu", "--quiet")
     assert run.returncode == 0, run.stderr
     meta, tensors = read_checkpoint(first)
@@ -53,7 +53,6 @@ def test_factor_storage_and_sampled_density_gradients(plume, tmp_path) -> None:
     assert recipe["tv_weight_density"] == TrainConfig.tv_weight_density and recipe["batch_rays"] == TrainConfig.batch_rays
     assert recipe["lr_factors"] == 0.03 and recipe["lr_decay_ratio"] == 0.05
     assert recipe["lr_networks"] == 0.002
-    assert recipe["error_sampling_tile"] == 2 and recipe["error_sampling_uniform"] == 0.5
     assert recipe["weight_average_span"] == 0.2 and recipe["weight_average_from"] == 0.4
     resumed = tmp_path / "h.safetensors"
     run = _visnerf("train", str(plume), "--out", str(resumed), "--iterations", "7", "--resume", str(first),
@@ -77,9 +76,7 @@ def test_factor_storage_and_sampled_density_gradients(plume, tmp_path) -> None:
     ("--lr-decay-ratio", "0", "fraction in (0, 1]"),
     ("--lr-decay-ratio", "1.5", "fraction in (0, 1]"),
     ("--occupancy-refine-dilation", "-1", "whole number >= 0"),
-    ("--error-sampling-tile", "-1", "whole number >= 0"),
-    ("--error-sampling-tile", "2.5", "whole number >= 0"),
-    ("--error-sampling-uniform", "0", "fraction in (0, 1]"),
+    ("--resolution", "0", "whole number above 0"),
     ("--occupancy-refine-dilation", "0.5", "whole number >= 0"),
     ("--factor-storage", "int4", "invalid choice"),
     ("--batch-rays", "0", "whole number above 0"),
