@@ -175,12 +175,6 @@ class TrainConfig:
     betas: tuple[float, float] = (0.9, 0.99)
     lr_decay_ratio: float = 0.1
     """Learning rates decay exponentially to this fraction at the end of the run."""
-    lr_upsample_reset: bool = False
-    """Restart the decay at each ``upsample_at`` milestone (TensoRF's ``lr_upsample_reset``): the
-    rates go back to ``lr_factors`` / ``lr_networks`` there and decay at the same rate per unit of
-    progress from it, so after the last upsample at p the scale is ``lr_decay_ratio ** (progress - p)``
-    and the run ends at ``lr_decay_ratio ** (1 - p)`` instead of ``lr_decay_ratio``. False: one decay
-    from the start."""
     resolution_init: int = 64
     """Voxels per axis (cube root of the voxel count) at the start."""
     resolution_final: int = 120
@@ -249,12 +243,6 @@ class TrainConfig:
     """Samples a ray reaches with transmittance below this are dropped from a training step
     (``renderer.drop_occluded``): behind an opaque surface they cost a full differentiable pass
     and change the render by less than this. 0: every sample is shaded."""
-    importance_from: float = 1.0
-    """Progress fraction after which samples are drawn by importance from a coarse density pass
-    (1.0: never). Off by default: in the 60-minute Nyx run (bench/results/nyx_train.md) switching it
-    on at 0.7 dropped held-out PSNR from 21.5 to 20.1 dB within five minutes."""
-    importance_samples: int = 64
-    """Samples per ray drawn by importance sampling in the late phase."""
     density_grad_keep: float = 0.125
     """Fraction of the near-empty samples (alpha below ``density_grad_floor``) whose density a
     step back-propagates, their gradient scaled by its inverse: an unbiased estimate of the full

@@ -1,7 +1,7 @@
 """Wires sampler, field and compositing: rays in, colours out.
 
-``render_rays`` is the training path (one differentiable pass, stratified samples, optional
-importance sampling). ``render_image`` is the inference path: deterministic samples on a lattice
+``render_rays`` is the training path (stratified samples, the ones behind opaque content dropped,
+one differentiable pass). ``render_image`` is the inference path: deterministic samples on a lattice
 one step apart; each ray walks only the window between its first and last sample in an occupied
 cell (found by jumping over empty blocks, ``rendering.empty_space``), in segments, testing each
 sample's cell, until it leaves the window or its transmittance falls below ``early_stop_eps``.
@@ -25,7 +25,7 @@ from visnerf.rendering.density_gradients import DensityGradientSampling, density
 from visnerf.rendering.empty_space import EmptySpace
 from visnerf.rendering.occupancy import query_occupancy
 from visnerf.rendering.parallel import chunk_workers, map_chunks
-from visnerf.rendering.sampling import deltas_from_samples, sample_pdf, uniform_noise, uniform_samples
+from visnerf.rendering.sampling import uniform_noise, uniform_samples
 from visnerf.rendering.volume import render_alpha_from_density
 from visnerf.representation.field import VisNerfField
 from visnerf.representation.frame_field import FrameField
@@ -228,12 +228,10 @@ def place_samples(
     field: VisNerfField,
     rays_o: Float[Tensor, "n 3"],
     rays_d: Float[Tensor, "n 3"],
-    params: Float[Tensor, "n k"],
     step: float,
     max_samples: int,
     occupancy: Bool[Tensor, "x y z"] | None,
     generator: torch.Generator | None = None,
-    importance_samples: int = 0,
     windows: tuple[Int[Tensor, " n"], Int[Tensor, " n"]] | None = None,
 ) -> RaySamples:
     """The training path's sample positions (no gradient flows through them).
@@ -241,34 +239,26 @@ def place_samples(
     Stratified when ``generator`` is given: sample ``i`` of a ray at ``t_near + step * (i + u)``,
     one ``u`` per ray. ``windows`` (first, last), from ``EmptySpace.sample_window(..., near=1)``,
     restricts each ray to samples ``first .. last``: the samples left out lie in empty cells,
-    which the occupancy test would drop anyway. With ``importance_samples > 0`` a coarse pass at
-    twice the step places that many samples per ray by importance (``windows`` is ignored).
+    which the occupancy test would drop anyway.
     """
     t_near, t_far, hit = intersect_aabb(rays_o, rays_d, field.aabb)
     span = float((t_far - t_near).max()) if hit.any() else 0.0
-    if importance_samples > 0 and span > 0:
-        q_d, _ = field.param_features(params)
-        t, deltas, valid = _importance_positions(
-            field, rays_o, rays_d, t_near, t_far, hit, q_d, 2.0 * step, max_samples,
-            occupancy, importance_samples, generator,
-        )
+    n_samples = max(1, min(max_samples, math.ceil(span / step)))
+    jitter = None
+    if generator is not None:
+        jitter = uniform_noise((rays_o.shape[0],), generator, rays_o.device)
+    if windows is None:
+        t = uniform_samples(t_near, n_samples, step, jitter)  # [n, s]
+        valid = (t < t_far[:, None]) & hit[:, None]
     else:
-        n_samples = max(1, min(max_samples, math.ceil(span / step)))
-        jitter = None
-        if generator is not None:
-            jitter = uniform_noise((rays_o.shape[0],), generator, rays_o.device)
-        if windows is None:
-            t = uniform_samples(t_near, n_samples, step, jitter)  # [n, s]
-            valid = (t < t_far[:, None]) & hit[:, None]
-        else:
-            start = windows[0].clamp_min(0)
-            stop = windows[1].clamp_max(n_samples - 1)
-            longest = max(1, int((stop - start + 1).max()))
-            index = start[:, None] + torch.arange(longest, device=rays_o.device)[None]  # [n, s]
-            u = torch.full_like(t_near, 0.5) if jitter is None else jitter
-            t = t_near[:, None] + step * (index.to(t_near.dtype) + u[:, None])
-            valid = (index <= stop[:, None]) & (t < t_far[:, None]) & hit[:, None]
-        deltas = torch.full_like(t, step)
+        start = windows[0].clamp_min(0)
+        stop = windows[1].clamp_max(n_samples - 1)
+        longest = max(1, int((stop - start + 1).max()))
+        index = start[:, None] + torch.arange(longest, device=rays_o.device)[None]  # [n, s]
+        u = torch.full_like(t_near, 0.5) if jitter is None else jitter
+        t = t_near[:, None] + step * (index.to(t_near.dtype) + u[:, None])
+        valid = (index <= stop[:, None]) & (t < t_far[:, None]) & hit[:, None]
+    deltas = torch.full_like(t, step)
     points = rays_o[:, None, :] + rays_d[:, None, :] * t[..., None]  # [n, s, 3]
     if occupancy is not None:
         valid = valid.masked_scatter(valid, query_occupancy(occupancy, field.aabb, points[valid]))
@@ -367,55 +357,13 @@ def render_rays(
     occupancy: Bool[Tensor, "x y z"] | None,
     weight_threshold: float = 1e-4,
     generator: torch.Generator | None = None,
-    importance_samples: int = 0,
     windows: tuple[Int[Tensor, " n"], Int[Tensor, " n"]] | None = None,
     density_grads: DensityGradientSampling | None = None,
 ) -> dict[str, Tensor]:
     """Differentiable render of a batch of rays (training and tests): ``place_samples`` then
     ``shade_rays``."""
-    samples = place_samples(field, rays_o, rays_d, params, step, max_samples, occupancy, generator,
-                            importance_samples, windows)
+    samples = place_samples(field, rays_o, rays_d, step, max_samples, occupancy, generator, windows)
     return shade_rays(field, rays_d, params, background, samples, weight_threshold, density_grads)
-
-
-@torch.no_grad()
-def _importance_positions(
-    field: VisNerfField,
-    rays_o: Tensor,
-    rays_d: Tensor,
-    t_near: Tensor,
-    t_far: Tensor,
-    hit: Tensor,
-    q_d: Tensor,
-    coarse_step: float,
-    max_samples: int,
-    occupancy: Tensor | None,
-    n_fine: int,
-    generator: torch.Generator | None,
-) -> tuple[Tensor, Tensor, Tensor]:
-    """Positions, interval lengths and validity of importance samples from a coarse density pass."""
-    span = float((t_far - t_near).max())
-    n_coarse = max(1, min(max_samples, math.ceil(span / coarse_step)))
-    edges = t_near[:, None] + coarse_step * torch.arange(n_coarse + 1, device=t_near.device)[None]  # [n, c+1]
-    edges = torch.minimum(edges, t_far[:, None])
-    mids = 0.5 * (edges[:, 1:] + edges[:, :-1])
-    lengths = edges[:, 1:] - edges[:, :-1]
-    valid = (lengths > 0) & hit[:, None]
-    points = rays_o[:, None, :] + rays_d[:, None, :] * mids[..., None]
-    if occupancy is not None:
-        valid = valid.masked_scatter(valid, query_occupancy(occupancy, field.aabb, points[valid]))
-    sigmas = torch.zeros_like(mids)
-    ray_idx = valid.nonzero()[:, 0]
-    if ray_idx.numel() > 0:
-        sigmas[valid] = field.density(points[valid], q_d[ray_idx])
-    tau = sigmas * lengths
-    weights = torch.exp(-(torch.cumsum(tau, -1) - tau)) * -torch.expm1(-tau)
-    # Keep a floor of uniform mass inside occupied space so thin, faint structure is still sampled.
-    weights = weights + 1e-3 * valid.to(weights.dtype) * weights.sum(-1, keepdim=True).clamp_min(1e-6)
-    t = sample_pdf(edges, weights, n_fine, generator)
-    deltas = deltas_from_samples(t, t_far)
-    valid_t = hit[:, None] & (t < t_far[:, None]) & (weights.sum(-1, keepdim=True) > 0)
-    return t, deltas, valid_t
 
 
 _EMPTY_SPACE: "weakref.WeakKeyDictionary[VisNerfField, tuple[Tensor, EmptySpace]]" = weakref.WeakKeyDictionary()

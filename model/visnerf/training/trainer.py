@@ -2,8 +2,8 @@
 
 Progress is ``max(iteration / iterations, train_seconds / time_budget)``. Learning rates decay
 exponentially with progress; grid upsampling, occupancy updates (the first also shrinks the box to
-the content), occupancy refinements and importance sampling switch on at progress fractions of the
-config. Milestones count as training time (a wall-clock budget includes them); validation does not.
+the content) and occupancy refinements switch on at progress fractions of the config. Milestones
+count as training time (a wall-clock budget includes them); validation does not.
 """
 
 import csv
@@ -200,14 +200,8 @@ class Trainer:
         return p
 
     def lr_scale(self) -> float:
-        """Factor on the base learning rates now: ``lr_decay_ratio`` to the progress made since the
-        decay last started (the run's start, or with ``lr_upsample_reset`` the nominal progress of
-        the last upsample done, which a resumed run recovers from its state)."""
-        p = min(1.0, self.progress())
-        start = 0.0
-        if self.cfg.lr_upsample_reset and self.state.upsamples_done > 0:
-            start = self.cfg.upsample_at[self.state.upsamples_done - 1]
-        return self.cfg.lr_decay_ratio ** max(0.0, p - start)
+        """Factor on the base learning rates now: ``lr_decay_ratio`` to the progress made."""
+        return self.cfg.lr_decay_ratio ** min(1.0, self.progress())
 
     def _rebuild_optimizer(self) -> None:
         self.optimizer = make_optimizer(self.field, self.cfg, self.lr_scale())
@@ -340,12 +334,11 @@ class Trainer:
             # Target pixels of background colour stand for empty space: re-composite them on bg.
             is_bg = (batch.rgb - torch.tensor(self.scene.background, device=self.device)).abs().amax(-1) < 1e-3
             target = torch.where(is_bg[:, None], bg, batch.rgb)
-        importance = cfg.importance_samples if self.progress() >= cfg.importance_from else 0
         self.optimizer.zero_grad(set_to_none=True)
         sq_error = 0.0
         step = self.step_size()
-        # Each ray samples only its occupied span; with importance sampling, anywhere along its box span.
-        empty = empty_space_of(self.field) if importance == 0 else None
+        # Each ray samples only its occupied span.
+        empty = empty_space_of(self.field)
         if empty is not None and step > empty.min_cell_size():
             empty = None  # a grid finer than the step: the windows would not hold every jittered sample
         windows = None if empty is None else occupied_windows(self.field, batch.rays_o, batch.rays_d, step, empty)
@@ -353,8 +346,8 @@ class Trainer:
         if cfg.density_grad_keep < 1.0:
             density_grads = DensityGradientSampling(cfg.density_grad_floor, cfg.density_grad_keep, self.generator)
         # The whole batch's positions at once; micro-batches count the samples each ray evaluates.
-        samples = place_samples(self.field, batch.rays_o, batch.rays_d, batch.params, step,
-                                self.render_cfg.max_samples, self.field.occupancy, self.generator, importance, windows)
+        samples = place_samples(self.field, batch.rays_o, batch.rays_d, step,
+                                self.render_cfg.max_samples, self.field.occupancy, self.generator, windows)
         samples = drop_occluded(self.field, samples, batch.params, cfg.stop_eps)
         per_ray = samples.per_ray()
         for sl in micro_batches(per_ray, cfg.micro_batch_rays, cfg.micro_batch_samples):

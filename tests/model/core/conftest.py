@@ -30,6 +30,6 @@ def tiny_plume_run(tmp_path) -> TinyRun:
     train, val = split_holdout(load_dataset(data), HoldoutConfig(views=(3, 11, 25)))
     assert val is not None
     cfg = TrainConfig(iterations=300, batch_rays=1024, resolution_init=24, resolution_final=40,
-                      upsample_at=(0.3, 0.5), occupancy_at=(0.25, 0.6), occupancy_min_iterations=50, importance_from=2.0,
+                      upsample_at=(0.3, 0.5), occupancy_at=(0.25, 0.6), occupancy_min_iterations=50,
                       l1_switch_iteration=150, validate_every_s=1e9, validate_max_images=6)
     return TinyRun(train, val, cfg, min_held_out_psnr=17.0)

@@ -1,5 +1,4 @@
-"""The learning-rate schedule against its closed form: one exponential decay over the run, or with
-``lr_upsample_reset`` one that restarts at each upsample milestone."""
+"""The learning-rate schedule against its closed form: one exponential decay over the run."""
 
 import math
 
@@ -13,44 +12,39 @@ from visnerf.training.trainer import Trainer
 UPSAMPLE_AT = (0.2, 0.5)
 
 
-def _trainer(reset: bool, iterations: int = 100) -> Trainer:
+def _trainer(iterations: int = 100) -> Trainer:
     field, _ = make_tiny_field([("t", [0.0, 1.0])], seed=1, resolution=8)
     cfg = TrainConfig(iterations=iterations, resolution_init=8, resolution_final=12, upsample_at=UPSAMPLE_AT,
-                      occupancy_at=(), carve=False, lr_decay_ratio=0.1, lr_upsample_reset=reset)
+                      occupancy_at=(), carve=False, lr_decay_ratio=0.1)
     return Trainer(make_noise_scene(), None, cfg, torch.device("cpu"), init_field=field)
 
 
-@pytest.mark.parametrize(("iteration", "upsamples_done", "one_decay", "restarted"), [
-    (0, 0, 1.0, 1.0),
-    (10, 0, 0.1 ** 0.1, 0.1 ** 0.1),
-    (30, 1, 0.1 ** 0.3, 0.1 ** (0.3 - 0.2)),
-    (50, 2, 0.1 ** 0.5, 1.0),
-    (100, 2, 0.1, 0.1 ** 0.5),
-    (150, 2, 0.1, 0.1 ** 0.5),  # past the end: held at the end's value
+@pytest.mark.parametrize(("iteration", "upsamples_done", "expected"), [
+    (0, 0, 1.0),
+    (10, 0, 0.1 ** 0.1),
+    (30, 1, 0.1 ** 0.3),
+    (50, 2, 0.1 ** 0.5),
+    (100, 2, 0.1),
+    (150, 2, 0.1),  # past the end: held at the end's value
 ])
-def test_scale_is_the_closed_form(iteration: int, upsamples_done: int, one_decay: float, restarted: float) -> None:
-    for reset, expected in ((False, one_decay), (True, restarted)):
-        trainer = _trainer(reset)
-        trainer.state.iteration, trainer.state.upsamples_done = iteration, upsamples_done
-        assert math.isclose(trainer.lr_scale(), expected, rel_tol=1e-12), (reset, iteration)
+def test_scale_is_the_closed_form(iteration: int, upsamples_done: int, expected: float) -> None:
+    trainer = _trainer()
+    trainer.state.iteration, trainer.state.upsamples_done = iteration, upsamples_done
+    assert math.isclose(trainer.lr_scale(), expected, rel_tol=1e-12), iteration
 
 
-def test_a_step_sets_both_groups_and_an_upsample_restarts_them() -> None:
-    trainer = _trainer(reset=True)
+def test_a_step_sets_both_groups() -> None:
+    trainer = _trainer()
     trainer.state.iteration = 19
     trainer.train_step()
     factors, networks = trainer.optimizer.param_groups
     scale = 0.1 ** 0.19
     assert math.isclose(factors["lr"], trainer.cfg.lr_factors * scale, rel_tol=1e-12)
     assert math.isclose(networks["lr"], trainer.cfg.lr_networks * scale, rel_tol=1e-12)
-    trainer.state.iteration = 20
-    trainer._milestones()  # the first upsample: a fresh optimizer at the restarted rate
-    assert trainer.state.upsamples_done == 1
-    assert math.isclose(trainer.optimizer.param_groups[0]["lr"], trainer.cfg.lr_factors, rel_tol=1e-12)
 
 
-def test_without_reset_an_upsample_keeps_the_decayed_rate() -> None:
-    trainer = _trainer(reset=False)
+def test_an_upsample_keeps_the_decayed_rate() -> None:
+    trainer = _trainer()
     trainer.state.iteration = 20
     trainer._milestones()
     assert trainer.state.upsamples_done == 1

@@ -68,10 +68,9 @@ def test_micro_batches_hold_the_samples_each_ray_evaluates_within_both_budgets()
     g = torch.Generator().manual_seed(3)
     origins = torch.randn(600, 3, generator=g) * 0.2 + torch.tensor([0.0, 0.0, 2.0])
     dirs = torch.nn.functional.normalize(-origins + 0.4 * torch.randn(600, 3, generator=g), dim=-1)
-    params = torch.zeros(600, 1)
     step, budget = 0.02, 800
-    placed = place_samples(field, origins, dirs, params, step, 1024, field.occupancy, torch.Generator().manual_seed(0))
-    in_box = place_samples(field, origins, dirs, params, step, 1024, None, torch.Generator().manual_seed(0))
+    placed = place_samples(field, origins, dirs, step, 1024, field.occupancy, torch.Generator().manual_seed(0))
+    in_box = place_samples(field, origins, dirs, step, 1024, None, torch.Generator().manual_seed(0))
     per_ray = placed.per_ray()
     assert int(per_ray.sum()) < 0.5 * int(in_box.per_ray().sum())
     for max_rays in (10_000, 64):

@@ -57,7 +57,7 @@ def test_dropped_samples_are_those_behind_transmittance_eps():
     rays_o, rays_d = some_rays()
     params = torch.zeros(rays_o.shape[0], 0)
     step = field.voxel_size() * 0.5
-    samples = place_samples(field, rays_o, rays_d, params, step, 256, None)
+    samples = place_samples(field, rays_o, rays_d, step, 256, None)
     eps = 1e-4
     kept = drop_occluded(field, samples, params, eps)
     with torch.no_grad():
@@ -78,7 +78,7 @@ def test_dropping_changes_colour_and_gradient_by_less_than_eps():
     params = torch.zeros(rays_o.shape[0], 0)
     background = torch.ones(rays_o.shape[0], 3)
     step = field.voxel_size() * 0.5
-    samples = place_samples(field, rays_o, rays_d, params, step, 256, None)
+    samples = place_samples(field, rays_o, rays_d, step, 256, None)
     outputs, grads = [], []
     for case in (samples, drop_occluded(field, samples, params, 1e-4)):
         field.zero_grad()
@@ -98,7 +98,7 @@ def test_zero_eps_keeps_every_sample_and_its_density():
     field = opaque_field()
     rays_o, rays_d = some_rays(16)
     params = torch.zeros(16, 0)
-    samples = place_samples(field, rays_o, rays_d, params, field.voxel_size(), 256, None)
+    samples = place_samples(field, rays_o, rays_d, field.voxel_size(), 256, None)
     kept = drop_occluded(field, samples, params, 0.0)
     assert bool((kept.valid == samples.valid).all())
     assert kept.sigma is not None and bool((kept.sigma[samples.valid] > 0).all())
