@@ -29,7 +29,6 @@ import torch
 from bench_common import cpu_description, write_json
 
 from visnerf import runtime
-from visnerf.commands import pick_device
 from visnerf.config import FieldConfig, HoldoutConfig, TrainConfig
 from visnerf.data.holdout import split_holdout
 from visnerf.data.parsers.blender import load_dataset
@@ -38,6 +37,7 @@ from visnerf.evaluation.plots import plot_training_curves
 from visnerf.evaluation.report import write_report
 from visnerf.evaluation.sweeps import SweepConfig
 from visnerf.evaluation.training_curves import read_training_log
+from visnerf.runtime import pick_device
 from visnerf.scenes.catalog import SceneSpec, scene_catalog
 from visnerf.scenes.writer import DatasetOptions, write_scene
 from visnerf.training.recipe import choose_recipe

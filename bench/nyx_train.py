@@ -34,7 +34,7 @@ from bench_common import (
     write_json,
 )
 
-from visnerf.commands import pick_device, positive_float, positive_int
+from visnerf.commands import positive_float, positive_int
 from visnerf.config import FieldConfig, TrainConfig
 from visnerf.data.holdout import split_holdout
 from visnerf.data.parsers.blender import load_dataset
@@ -43,6 +43,7 @@ from visnerf.evaluation.evaluate import EvalConfig
 from visnerf.evaluation.metrics import psnr, ssim
 from visnerf.evaluation.plots import plot_difference
 from visnerf.inference import load_scene
+from visnerf.runtime import pick_device
 from visnerf.training.recipe import choose_recipe
 from visnerf.training.trainer import PROVENANCE_RECIPE, Trainer
 

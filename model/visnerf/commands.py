@@ -14,22 +14,10 @@ import torch
 from visnerf.checkpoint import CheckpointError, read_checkpoint
 from visnerf.config import FACTOR_STORAGE_DTYPES, FieldConfig, HoldoutConfig, RenderConfig, TrainConfig
 from visnerf.data.cameras import orbit_c2w
-from visnerf.runtime import configure
+from visnerf.runtime import pick_device
 
 if TYPE_CHECKING:
     from visnerf.data.scene import SceneData
-
-
-def pick_device(name: str) -> torch.device:
-    """``auto`` takes CUDA when present; thread count is set once, to the machine's cores."""
-    if name == "auto":
-        name = "cuda" if torch.cuda.is_available() else "cpu"
-    device = torch.device(name)
-    if device.type == "cuda" and not torch.cuda.is_available():
-        raise SystemExit("error: --device cuda asked for, but no CUDA device is available")
-    if device.type == "cpu":
-        configure()
-    return device
 
 
 def parse_settings(text: str) -> tuple[tuple[float, ...], ...]:
@@ -287,7 +275,7 @@ def _calibrate(args: argparse.Namespace) -> int:
     from visnerf.checkpoint import load_checkpoint, save_checkpoint
     from visnerf.data.holdout import split_holdout
     from visnerf.data.parsers.blender import DatasetError, load_dataset
-    from visnerf.rendering.spacing import choose_full_spacing
+    from visnerf.evaluation.spacing import choose_full_spacing
 
     device = pick_device(args.device)
     try:
@@ -451,4 +439,4 @@ def register(sub: argparse._SubParsersAction) -> None:
     i.set_defaults(func=_info)
 
 
-__all__ = ["register", "pick_device", "math"]
+__all__ = ["register"]

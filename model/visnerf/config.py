@@ -108,7 +108,7 @@ class RenderConfig:
     full_step_ratio: float = 0.75
     """Sample spacing of full-quality inference frames (stored with each checkpoint), chosen per
     checkpoint from measured frames at the end of training or by ``visnerf calibrate``
-    (``rendering.spacing``); this default is for checkpoints that stored none. One voxel was within
+    (``evaluation.spacing``); this default is for checkpoints that stored none. One voxel was within
     0.03 dB PSNR of half a voxel on the bundled scenes (bench/results/bundled_eval); on a Nyx
     model trained without density total variation (sharper filaments) it lost 0.32 dB against
     ground truth, three quarters of a voxel 0.07 dB (5 held-out frames, 24.03 / 24.27 / 24.35 dB
@@ -264,7 +264,7 @@ class TrainConfig:
     validate_max_images: int = 8
     choose_full_spacing: bool = True
     """At the end of training, choose the checkpoint's full-quality sample spacing on the
-    validation frames (``rendering.spacing``; needs held-out frames)."""
+    validation frames (``evaluation.spacing``; needs held-out frames)."""
     seed: int = 0
     random_background: bool = False
     """Composite on a random colour per ray in training (useful when content touches the background)."""

@@ -102,3 +102,15 @@ def bf16_native(device: torch.device) -> bool:
     if device.type == "cpu":
         return bool(torch.backends.mkldnn.is_available() and torch.ops.mkldnn._is_mkldnn_bf16_supported())
     return False
+
+
+def pick_device(name: str) -> torch.device:
+    """``auto`` takes CUDA when present; thread count is set once, to the machine's cores."""
+    if name == "auto":
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    device = torch.device(name)
+    if device.type == "cuda" and not torch.cuda.is_available():
+        raise SystemExit("error: --device cuda asked for, but no CUDA device is available")
+    if device.type == "cpu":
+        configure()
+    return device

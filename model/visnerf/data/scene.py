@@ -1,5 +1,6 @@
 """The in-memory dataset: uint8 pixels, cameras and parameter values, whatever the source format."""
 
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -95,3 +96,14 @@ def view_ids_from_poses(c2w: np.ndarray, decimals: int = 3) -> np.ndarray:
     keys = np.round(c2w[:, :3, 3], decimals)
     ids: dict[tuple[float, ...], int] = {}
     return np.array([ids.setdefault(tuple(k.tolist()), len(ids)) for k in keys], dtype=np.int64)
+
+
+def estimate_bbox(scene: SceneData, margin: float = 1.2) -> torch.Tensor:
+    """A cube around the origin that every camera sees whole: the dataset's bbox if it has one."""
+    if scene.bbox is not None:
+        return scene.bbox.clone()
+    dist = float(torch.linalg.norm(scene.c2w[:, :3, 3], dim=-1).min())
+    half_fov = math.atan(0.5 * min(scene.intrinsics.width / scene.intrinsics.fx,
+                                   scene.intrinsics.height / scene.intrinsics.fy))
+    r = margin * dist * math.sin(half_fov)
+    return torch.tensor([[-r, -r, -r], [r, r, r]], dtype=torch.float32)

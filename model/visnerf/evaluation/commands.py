@@ -54,9 +54,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def eval_command(args: argparse.Namespace) -> int:
     """Exit code 0, or 2 with ``error: ...`` on stderr for bad input."""
-    from visnerf.commands import pick_device
     from visnerf.evaluation.evaluate import EvalConfig, evaluate_checkpoint
     from visnerf.evaluation.report import write_report
+    from visnerf.runtime import pick_device
 
     if args.max_frames is not None and args.max_frames < 1:
         print(f"error: --max-frames must be at least 1, got {args.max_frames}", file=sys.stderr)

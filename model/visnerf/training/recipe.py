@@ -33,8 +33,7 @@ import torch.nn.functional as F
 
 from visnerf.config import FieldConfig, TrainConfig
 from visnerf.data.carving import carve_occupancy, foreground_masks
-from visnerf.data.parsers.blender import estimate_bbox
-from visnerf.data.scene import SceneData
+from visnerf.data.scene import SceneData, estimate_bbox
 from visnerf.rendering.occupancy import occupied_bounds
 
 VOXEL_PER_PIXEL = 0.93

@@ -24,10 +24,9 @@ from tqdm import tqdm
 from visnerf.checkpoint import CheckpointMeta, save_checkpoint
 from visnerf.config import FieldConfig, RenderConfig, TrainConfig
 from visnerf.data.carving import carve_occupancy
-from visnerf.data.parsers.blender import estimate_bbox
-from visnerf.data.ray_batches import RayBatchSampler
-from visnerf.data.scene import SceneData
+from visnerf.data.scene import SceneData, estimate_bbox
 from visnerf.evaluation.metrics import mse_to_psnr, psnr, ssim
+from visnerf.evaluation.spacing import choose_full_spacing
 from visnerf.rendering.density_gradients import DensityGradientSampling
 from visnerf.rendering.empty_space import EmptySpace
 from visnerf.rendering.occupancy import (
@@ -46,10 +45,10 @@ from visnerf.rendering.renderer import (
     render_image,
     shade_rays,
 )
-from visnerf.rendering.spacing import choose_full_spacing
 from visnerf.representation.field import VisNerfField
 from visnerf.representation.vm_taps import table_gradients_in_place
 from visnerf.runtime import bf16_native, keep_freed_blocks, release_free_memory
+from visnerf.training.ray_batches import RayBatchSampler
 from visnerf.training.regularizers import RegularizerWeights, backward_regularization
 from visnerf.training.weight_average import WeightAverage
 

@@ -7,7 +7,6 @@ optional ``param_names``, ``white_background`` (default true), ``bbox``, ``scene
 """
 
 import json
-import math
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
@@ -151,14 +150,3 @@ def load_dataset(folder: str | Path, split: str = "train") -> SceneData:
     if not folder.is_dir():
         raise DatasetError(f"dataset folder {folder} does not exist")
     return load_transforms(folder / f"transforms_{split}.json")
-
-
-def estimate_bbox(scene: SceneData, margin: float = 1.2) -> torch.Tensor:
-    """A cube around the origin that every camera sees whole: the dataset's bbox if it has one."""
-    if scene.bbox is not None:
-        return scene.bbox.clone()
-    dist = float(torch.linalg.norm(scene.c2w[:, :3, 3], dim=-1).min())
-    half_fov = math.atan(0.5 * min(scene.intrinsics.width / scene.intrinsics.fx,
-                                   scene.intrinsics.height / scene.intrinsics.fy))
-    r = margin * dist * math.sin(half_fov)
-    return torch.tensor([[-r, -r, -r], [r, r, r]], dtype=torch.float32)

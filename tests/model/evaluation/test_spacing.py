@@ -1,4 +1,4 @@
-"""Choosing the full-quality sample spacing (``rendering.spacing``) and ``visnerf calibrate``."""
+"""Choosing the full-quality sample spacing (``evaluation.spacing``) and ``visnerf calibrate``."""
 
 import math
 import subprocess
@@ -12,7 +12,7 @@ from visnerf.config import RenderConfig
 from visnerf.data.cameras import Intrinsics, orbit_c2w
 from visnerf.data.parsers.blender import load_dataset
 from visnerf.data.scene import SceneData
-from visnerf.rendering import spacing
+from visnerf.evaluation import spacing
 from visnerf.testing import make_tiny_checkpoint, make_tiny_field
 
 # Frame error per spacing of the stub renderer below: PSNR 40 dB at the exhaustive half voxel,

@@ -4,7 +4,7 @@ import pytest
 import torch
 
 from visnerf import runtime
-from visnerf.commands import pick_device
+from visnerf.runtime import pick_device
 
 
 @pytest.fixture

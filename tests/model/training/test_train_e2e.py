@@ -3,8 +3,8 @@
 import numpy as np
 import torch
 
+from visnerf.evaluation.spacing import CANDIDATES
 from visnerf.inference import load_scene
-from visnerf.rendering.spacing import CANDIDATES
 from visnerf.training.trainer import Trainer
 
 
@@ -17,7 +17,7 @@ def test_tiny_scene_trains_and_generalises_to_unseen_views(tmp_path, tiny_plume_
     assert log[-1]["val_psnr"] > tiny_plume_run.min_held_out_psnr, log
     assert (tmp_path / "plume.log.csv").exists()
     loaded = load_scene(ckpt)
-    # The full-quality spacing was chosen on the held-out frames (rendering.spacing).
+    # The full-quality spacing was chosen on the held-out frames (evaluation.spacing).
     assert "full_spacing" in loaded.meta.provenance and "exhaustive" in loaded.meta.provenance["full_spacing"]
     assert trainer.render_cfg.full_step_ratio in (*CANDIDATES, 0.5)
     assert loaded.meta.render.full_step_ratio == trainer.render_cfg.full_step_ratio
