@@ -2,7 +2,7 @@
 frames on both, a tiny scene trains on CUDA, and a checkpoint written from a CUDA field loads and
 renders on the CPU. Skipped where no CUDA device is present (CI has none); on a GPU machine:
 
-    pytest tests/model/core/test_core_cuda.py
+    pytest tests/model/test_cuda.py
 """
 
 
