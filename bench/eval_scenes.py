@@ -46,6 +46,7 @@ from visnerf.training.trainer import Trainer
 ROOT = Path(__file__).resolve().parents[1]
 HOLDOUT_VIEWS = (3, 11, 25)
 README_BEGIN, README_END = "<!-- eval_scenes:begin -->", "<!-- eval_scenes:end -->"
+BUNDLED_BEGIN, BUNDLED_END = "<!-- bundled:begin -->", "<!-- bundled:end -->"
 
 # The paper's figures for the real datasets these scenes stand in for (181 test views each).
 PAPER_PSNR = {
@@ -125,17 +126,32 @@ def bundle_scene(ckpt: Path, folder: Path) -> None:
         tmp.replace(folder / src.name)
 
 
+def bundled_rows(record: dict, link_root: Path, reports: Path) -> list[str]:
+    """The bundled scenes' table: slider, test-path PSNR/SSIM, size, a link to each report."""
+    lines = ["| scene | slider | test-path PSNR (dB) | SSIM | model MB | report |", "| --- | --- | --- | --- | --- | --- |"]
+    for r in record["scenes"]:
+        if r["scene"] in BUNDLED:
+            report = os.path.relpath(reports / r["scene"] / "report.md", link_root)
+            sliders = {"plume_time": "timestep", "tangle_iso": "isovalue", "vortex_tf1": "transfer function",
+                       "cosmo_sim": "3 simulation parameters"}
+            lines.append(f"| `{r['scene']}` | {sliders.get(r['scene'], r['kind'])} ({r['kind']}) | {_f(r['psnr'], 2)} | "
+                         f"{_f(r['ssim'], 3)} | {_f(r['model_mb'], 2)} | [report]({report}) |")
+    return lines
+
+
+def replace_section(text: str, begin: str, end: str, body: list[str]) -> str:
+    """``text`` with the lines between the markers ``begin`` and ``end`` replaced by ``body``."""
+    pattern = re.compile(re.escape(begin) + ".*?" + re.escape(end), re.S)
+    return pattern.sub(lambda _: "\n".join([begin, *body, end]), text)
+
+
 def write_bundled_index(path: Path, record: dict, reports: Path) -> None:
     """bench/results/bundled_eval/README.md: each bundled scene's test-path figures and its report."""
     rows = [r for r in record["scenes"] if r["scene"] in BUNDLED]
     lines = ["# The bundled checkpoints on their test paths", "",
              f"Trained and evaluated by `{record['command']}` ({record['machine'].get('cpu', '')}, "
              f"{record['machine']['torch_threads']} threads, {record['date'][:10]}); `scripts/train_bundled.sh` reruns it.",
-             "", "| scene | slider | PSNR (dB) | SSIM | model MB | report |", "| --- | --- | --- | --- | --- | --- |"]
-    for r in rows:
-        report = os.path.relpath(reports / r["scene"] / "report.md", path.parent)
-        lines.append(f"| {r['scene']} | {r['kind']}, K = {r['K']} | {_f(r['psnr'], 2)} | {_f(r['ssim'], 3)} | "
-                     f"{_f(r['model_mb'], 2)} | [{r['scene']}]({report}) |")
+             "", *bundled_rows({"scenes": rows}, path.parent, reports)]
     path.parent.mkdir(parents=True, exist_ok=True)
     path.write_text("\n".join(lines) + "\n")
 
@@ -188,10 +204,12 @@ def update_readme(readme: Path, record: dict) -> None:
     """Replace (or add, before "## Layout") the README's evaluation section."""
     section = "\n".join([
         README_BEGIN, "## Evaluation of the synthetic scenes", "",
-        f"`python bench/eval_scenes.py` ({record['minutes_per_scene']:g} min of training per scene, "
-        f"{record['resolution']}x{record['resolution']}, {record['machine']['device']} with "
-        f"{record['machine']['torch_threads']} thread(s), {record['date'][:10]}; "
-        "details in bench/results/eval_scenes.md):", "", *table_lines(record), README_END,
+        f"`python bench/eval_scenes.py`: {record['minutes_per_scene']:g} minutes of training per scene with "
+        "no flags, one scene at a time, "
+        f"{record['resolution']}x{record['resolution']}, {record['machine'].get('cpu', record['machine']['device'])} with "
+        f"{record['machine']['torch_threads']} threads, {record['date'][:10]}; PSNR and SSIM over each scene's "
+        "181-frame test path, beside the paper's PSNR on the real dataset the scene stands in for "
+        "(details in bench/results/eval_scenes.md):", "", *table_lines(record), README_END,
     ])  # fmt: skip
     text = readme.read_text()
     pattern = re.compile(re.escape(README_BEGIN) + ".*?" + re.escape(README_END), re.S)
@@ -267,6 +285,9 @@ def main(argv: list[str] | None = None) -> int:
     write_markdown(args.results / f"{stem}.md", record)
     if args.bundle is not None:
         write_bundled_index(args.results / "bundled_eval" / "README.md", record, reports)
+        readme = ROOT / "README.md"
+        readme.write_text(replace_section(readme.read_text(), BUNDLED_BEGIN, BUNDLED_END,
+                                          bundled_rows(record, ROOT, reports)))
     if full_run:
         update_readme(ROOT / "README.md", record)
     print(f"results -> {args.results / stem}.json and .md", file=sys.stderr)

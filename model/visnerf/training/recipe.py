@@ -20,8 +20,8 @@ the images and cameras alone, each choice with the reason ``visnerf info`` shows
 - the parameter factors: none for K = 0 (the field has no parameter axes then).
 
 On Nyx (256x256, a pixel 0.0021 world units at the content, framed) this gives the tuned recipe's
-200 voxels over the carved +-0.19 cube and the 0.75 carving; on the 128x128 synthetic scenes, 96
-voxels (a pixel 0.0088 at the origin).
+200 voxels over the carved +-0.19 cube and the 0.75 carving; on the 128x128 synthetic scenes, 88
+to 104 voxels (a pixel 0.0088 at the origin).
 """
 
 import dataclasses
