@@ -45,7 +45,7 @@ from visnerf.evaluation.plots import plot_difference
 from visnerf.inference import load_scene
 from visnerf.runtime import pick_device
 from visnerf.training.recipe import choose_recipe
-from visnerf.training.trainer import PROVENANCE_RECIPE, Trainer
+from visnerf.training.trainer import Trainer
 
 NYX_VALIDATION_FRAMES = 6
 """Held-out frames of each periodic validation (the final evaluation renders ``--eval-frames``)."""
@@ -242,7 +242,7 @@ def main() -> int:
         "peak_rss_mb": peak_rss_mb(),
         "checkpoint_mb": ckpt.stat().st_size / 1e6,
         "final_resolution": trainer.field.resolution,
-        "recipe": {**{name: getattr(cfg, name) for name in PROVENANCE_RECIPE},
+        "recipe": {**cfg.to_dict(),
                    "step_ratio": trainer.render_cfg.step_ratio, "full_step_ratio": trainer.render_cfg.full_step_ratio,
                    "factor_storage": trainer.field.cfg.factor_storage, "upsample_at": list(cfg.upsample_at),
                    "micro_batch_rays": cfg.micro_batch_rays, "micro_batch_samples": cfg.micro_batch_samples},

@@ -291,6 +291,17 @@ class TrainConfig:
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
 
+    @classmethod
+    def from_dict(cls, data: dict[str, Any]) -> "TrainConfig":
+        """The configuration a checkpoint's ``provenance.recipe`` records (JSON lists back to
+        tuples); fields it does not name (older checkpoints recorded a subset) take their defaults."""
+        fields = {f.name: f for f in dataclasses.fields(cls)}
+        unknown = set(data) - set(fields)
+        if unknown:
+            raise ValueError(f"unknown training configuration keys {sorted(unknown)}")
+        values = {k: tuple(v) if isinstance(v, list) else v for k, v in data.items()}
+        return cls(**values)
+
 
 @dataclass(frozen=True)
 class HoldoutConfig:

@@ -26,3 +26,28 @@ def test_unusable_sizes_and_budgets_are_refused(field: str, value: float) -> Non
 def test_the_smallest_usable_values_are_accepted() -> None:
     cfg = TrainConfig(iterations=1, batch_rays=1, micro_batch_rays=1, micro_batch_samples=1, time_budget_s=0.5)
     assert (cfg.batch_rays, cfg.time_budget_s) == (1, 0.5)
+
+
+def test_a_checkpoint_keeps_the_whole_training_configuration(tmp_path) -> None:
+    import dataclasses
+
+    import torch
+
+    from visnerf.checkpoint import read_checkpoint
+    from visnerf.testing import make_noise_scene
+    from visnerf.training.trainer import Trainer
+
+    cfg = TrainConfig(iterations=1, batch_rays=64, resolution_init=12, resolution_final=12, carve=False,
+                      upsample_at=(0.5,), occupancy_refine_at=(0.3, 0.6), lr_factors=0.03, stop_eps=1e-3, seed=7)
+    trainer = Trainer(make_noise_scene(), None, cfg, torch.device("cpu"))
+    meta, _ = read_checkpoint(trainer.save(tmp_path / "m.safetensors"))
+    recorded = meta.provenance["recipe"]
+    assert set(recorded) == {f.name for f in dataclasses.fields(TrainConfig)}
+    assert TrainConfig.from_dict(recorded) == cfg
+
+
+def test_an_older_checkpoints_partial_recipe_reads_with_defaults() -> None:
+    assert TrainConfig.from_dict({"batch_rays": 4096, "occupancy_refine_at": [0.25]}) == TrainConfig(
+        batch_rays=4096, occupancy_refine_at=(0.25,))
+    with pytest.raises(ValueError, match="unknown training configuration keys"):
+        TrainConfig.from_dict({"error_sampling_tile": 4})

@@ -77,15 +77,6 @@ class TrainState:
     log: list[dict] = field(default_factory=list)
 
 
-PROVENANCE_RECIPE = ("batch_rays", "resolution_final", "carve_min_seen_fraction", "stop_eps",
-                     "occupancy_refine_at", "occupancy_refine_dilation", "lr_factors", "lr_networks", "lr_decay_ratio", "l1_weight_initial",
-                     "l1_weight_rest", "param_l1_weight", "tv_weight_density", "tv_weight_appearance",
-                     "tv_weight_params", "density_grad_keep",
-                     "weight_average_span", "weight_average_from")
-"""The ``TrainConfig`` fields a checkpoint's provenance records under ``recipe`` (``visnerf info``
-shows them): the step, the rates and the priors a model was fitted with."""
-
-
 FUSED_ADAM_DEVICES = ("cpu", "cuda")
 """Devices whose parameters get torch's fused Adam: one pass over each tensor instead of about ten
 elementwise kernels, the same update. On the 200^3 Nyx record (7.7 M parameters) on the 2-core
@@ -481,7 +472,7 @@ class Trainer:
                         "seed": self.cfg.seed, "upsamples_done": self.state.upsamples_done,
                         "occupancy_done": self.state.occupancy_done,
                         "refines_done": self.state.refines_done, "full_spacing": self.spacing_note,
-                        "recipe": {name: getattr(self.cfg, name) for name in PROVENANCE_RECIPE},
+                        "recipe": self.cfg.to_dict(),  # the whole TrainConfig (visnerf info shows it)
                         "choices": self.recipe_choices},
         )
         save_checkpoint(self.field, meta, path)
