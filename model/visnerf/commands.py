@@ -13,6 +13,7 @@ import torch
 
 from visnerf.checkpoint import CheckpointError, read_checkpoint
 from visnerf.config import FACTOR_STORAGE_DTYPES, FieldConfig, HoldoutConfig, RenderConfig, TrainConfig
+from visnerf.config_options import add_config_options, given_options
 from visnerf.data.cameras import orbit_c2w
 from visnerf.runtime import pick_device
 
@@ -186,6 +187,18 @@ def _train(args: argparse.Namespace) -> int:
           f"K={train.n_params}, {train.intrinsics.width}x{train.intrinsics.height}, device {device}", file=sys.stderr)
     if args.step_ratio is not None:
         render_cfg = dataclasses.replace(render_cfg, step_ratio=args.step_ratio)
+    field_given = given_options(args, FieldConfig)
+    if init_field is not None and field_given:
+        print(f"error: {', '.join('--' + k.replace('_', '-') for k in field_given)} would change the field of "
+              f"{args.resume}; a resumed run keeps it", file=sys.stderr)
+        return 2
+    try:  # the configurations' own checks judge the generated options
+        cfg = dataclasses.replace(cfg, **given_options(args, TrainConfig))
+        field_cfg = dataclasses.replace(field_cfg, **field_given)
+        render_cfg = dataclasses.replace(render_cfg, **given_options(args, RenderConfig))
+    except (ValueError, TypeError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     setup_seconds = 0.0
     if init_field is None:
         from visnerf.training.recipe import choose_recipe
@@ -193,6 +206,8 @@ def _train(args: argparse.Namespace) -> int:
         t0 = time.perf_counter()
         fixed = {name for name, given in (("resolution_final", args.resolution),
                                           ("carve_min_seen_fraction", args.carve_min_seen_fraction)) if given is not None}
+        if {"density_scale", "density_shift"} & set(field_given):
+            fixed.add("density_scale")
         recipe = choose_recipe(train, cfg, field_cfg, frozenset(fixed))
         cfg, field_cfg, carved, choices = recipe.train, recipe.field, recipe.carved, recipe.describe()
         setup_seconds = time.perf_counter() - t0
@@ -405,6 +420,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--submit", default=None, metavar="URL", help="upload the checkpoint to a server when done")
     p.add_argument("--force", action="store_true", help="overwrite --out")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    add_config_options(p)
     p.set_defaults(func=_train)
 
     r = sub.add_parser("render", help="render one frame from a checkpoint")

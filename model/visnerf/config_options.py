@@ -1,0 +1,153 @@
+"""Command-line options generated from the typed configuration (``config.py``).
+
+Every field of ``TrainConfig``, ``FieldConfig`` and ``RenderConfig`` is an option of ``visnerf
+train``: the few that the command declares itself, with their own units or checks (``--time-budget``
+in minutes, ``--resolution``, the learning rates...), are named in ``HAND_WRITTEN``; a handful that
+the data or the end of training decide are named, with the reason, in ``NOT_OPTIONS``; every other
+field becomes ``--field-name`` with the field's docstring as its help, so that a new setting needs
+no command-line code. A generated option that is not given leaves the configuration's value (the
+recipe's); the configuration's own checks judge a given one, and the command refuses it with their
+message.
+"""
+
+import argparse
+import ast
+import dataclasses
+import inspect
+import math
+import textwrap
+import types
+import typing
+from typing import Any
+
+from visnerf.config import FieldConfig, RenderConfig, TrainConfig
+
+CONFIG_CLASSES: tuple[type, ...] = (TrainConfig, FieldConfig, RenderConfig)
+
+HAND_WRITTEN: dict[tuple[str, str], str] = {
+    ("TrainConfig", "iterations"): "--iterations",
+    ("TrainConfig", "time_budget_s"): "--time-budget",
+    ("TrainConfig", "batch_rays"): "--batch-rays",
+    ("TrainConfig", "micro_batch_rays"): "--micro-batch-rays",
+    ("TrainConfig", "micro_batch_samples"): "--micro-batch-samples",
+    ("TrainConfig", "lr_factors"): "--lr-factors",
+    ("TrainConfig", "lr_networks"): "--lr-networks",
+    ("TrainConfig", "lr_decay_ratio"): "--lr-decay-ratio",
+    ("TrainConfig", "resolution_final"): "--resolution",
+    ("TrainConfig", "occupancy_refine_at"): "--occupancy-refine-at",
+    ("TrainConfig", "occupancy_refine_dilation"): "--occupancy-refine-dilation",
+    ("TrainConfig", "carve_min_seen_fraction"): "--carve-min-seen-fraction",
+    ("TrainConfig", "tv_weight_appearance"): "--tv-appearance",
+    ("TrainConfig", "density_grad_keep"): "--density-grad-keep",
+    ("TrainConfig", "weight_average_span"): "--weight-average-span",
+    ("TrainConfig", "weight_average_from"): "--weight-average-from",
+    ("TrainConfig", "validate_every_s"): "--validate-every",
+    ("TrainConfig", "seed"): "--seed",
+    ("FieldConfig", "factor_storage"): "--factor-storage",
+    ("RenderConfig", "step_ratio"): "--step-ratio",
+}
+"""Fields ``visnerf train`` declares itself (``commands.register``), and the option of each."""
+
+NOT_OPTIONS: dict[tuple[str, str], str] = {
+    ("FieldConfig", "resolution"): "follows from the content box and --resolution",
+    ("FieldConfig", "param_lengths"): "the number of training values of each parameter, from the data",
+    ("RenderConfig", "full_step_ratio"): "chosen at the end of training from held-out frames (visnerf calibrate)",
+}
+"""Fields that are not options, and why."""
+
+
+def field_docs(cls: type) -> dict[str, str]:
+    """Each field's docstring (the string literal after its annotation), whitespace folded."""
+    tree = ast.parse(textwrap.dedent(inspect.getsource(cls)))
+    body = tree.body[0].body  # type: ignore[attr-defined]
+    docs: dict[str, str] = {}
+    for node, nxt in zip(body, body[1:], strict=False):
+        if (isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name) and isinstance(nxt, ast.Expr)
+                and isinstance(nxt.value, ast.Constant) and isinstance(nxt.value.value, str)):
+            docs[node.target.id] = " ".join(nxt.value.value.split())
+    return docs
+
+
+def option_of(cls: type, name: str) -> str | None:
+    """The option that sets field ``name`` of ``cls`` (None: not an option, see ``NOT_OPTIONS``)."""
+    key = (cls.__name__, name)
+    if key in NOT_OPTIONS:
+        return None
+    return HAND_WRITTEN.get(key, "--" + name.replace("_", "-"))
+
+
+def _dest(cls: type, name: str) -> str:
+    return f"config__{cls.__name__}__{name}"
+
+
+def _finite(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = math.nan
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+    return value
+
+
+def _whole(text: str) -> int:
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+
+
+def _parser_for(annotation: Any) -> tuple[Any, str]:
+    """(argparse ``type``, metavar) for a field annotation."""
+    if annotation is int:
+        return _whole, "N"
+    if annotation is float:
+        return _finite, "X"
+    if annotation is str:
+        return str, "TEXT"
+    origin, args = typing.get_origin(annotation), typing.get_args(annotation)
+    if origin in (types.UnionType, typing.Union) and type(None) in args:
+        inner, metavar = _parser_for(next(a for a in args if a is not type(None)))
+        return (lambda text: None if text.lower() == "none" else inner(text)), f"{metavar}|none"
+    if origin is tuple:
+        item = _finite if float in args else _whole
+        fixed = None if (len(args) == 2 and args[1] is Ellipsis) else len(args)
+
+        def parse(text: str) -> tuple:
+            values = tuple(item(part) for part in text.split(",") if part.strip())
+            if fixed is not None and len(values) != fixed:
+                raise argparse.ArgumentTypeError(f"expected {fixed} comma-separated values, got {text!r}")
+            return values
+
+        return parse, "A,B,.."
+    raise TypeError(f"no command-line form for a field of type {annotation!r}")
+
+
+def add_config_options(parser: argparse.ArgumentParser) -> None:
+    """One option for every configuration field that is neither hand-written nor left out, in a
+    group per configuration, each defaulting to "not given"."""
+    titles = {"TrainConfig": "training (TrainConfig)", "FieldConfig": "field (FieldConfig)",
+              "RenderConfig": "renderer (RenderConfig)"}
+    for cls in CONFIG_CLASSES:
+        docs, hints = field_docs(cls), typing.get_type_hints(cls)
+        group = parser.add_argument_group(titles[cls.__name__], "the recipe's values unless given; see config.py")
+        for f in dataclasses.fields(cls):
+            key = (cls.__name__, f.name)
+            if key in HAND_WRITTEN or key in NOT_OPTIONS:
+                continue
+            default = f.default if f.default is not dataclasses.MISSING else f.default_factory()  # type: ignore[misc]
+            help_text = docs.get(f.name, "").split(". ")[0].rstrip(".")
+            help_text = (help_text + f" (default {default!r})").strip().replace("%", "%%")
+            if hints[f.name] is bool:
+                group.add_argument(option_of(cls, f.name), dest=_dest(cls, f.name), default=None,
+                                   action=argparse.BooleanOptionalAction, help=help_text)
+            else:
+                kind, metavar = _parser_for(hints[f.name])
+                group.add_argument(option_of(cls, f.name), dest=_dest(cls, f.name), default=None, type=kind,
+                                   metavar=metavar, help=help_text)
+
+
+def given_options(args: argparse.Namespace, cls: type) -> dict[str, Any]:
+    """The generated options of ``cls`` given on the command line, by field name."""
+    return {f.name: getattr(args, _dest(cls, f.name)) for f in dataclasses.fields(cls)
+            if getattr(args, _dest(cls, f.name), None) is not None}

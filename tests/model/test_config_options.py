@@ -1,0 +1,100 @@
+"""Every configuration field is reachable from `visnerf train`, and what is given lands in the checkpoint."""
+
+import argparse
+import dataclasses
+import json
+import subprocess
+import sys
+
+import pytest
+
+from visnerf.checkpoint import read_checkpoint
+from visnerf.cli import build_parser
+from visnerf.config import FieldConfig, RenderConfig, TrainConfig
+from visnerf.config_options import CONFIG_CLASSES, NOT_OPTIONS, field_docs, option_of
+
+
+def train_parser() -> argparse.ArgumentParser:
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    return sub.choices["train"]
+
+
+def test_every_field_is_an_option_or_left_out_with_a_reason() -> None:
+    options = {s for action in train_parser()._actions for s in action.option_strings}
+    for cls in CONFIG_CLASSES:
+        for f in dataclasses.fields(cls):
+            option = option_of(cls, f.name)
+            if option is None:
+                assert NOT_OPTIONS[(cls.__name__, f.name)]
+            else:
+                assert option in options, f"{cls.__name__}.{f.name} has no option ({option})"
+
+
+def test_generated_help_is_the_fields_docstring() -> None:
+    text = train_parser().format_help()
+    assert field_docs(FieldConfig)["hidden_width"] == "Hidden layer width of both decoders."
+    assert "Hidden layer width of both decoders (default 128)" in " ".join(text.split())
+    assert "--stop-eps" in text and "--no-mixed-precision" in text
+
+
+@pytest.fixture(scope="module")
+def tangle(tmp_path_factory):
+    data = tmp_path_factory.mktemp("options") / "tangle"
+    subprocess.run([sys.executable, "-m", "visnerf.cli", "make-scene", "tangle_static", "--out", str(data),
+                    "--res", "16", "--test-views", "2", "--quiet"], check=True)
+    return data
+
+
+def train(data, out, *options):
+    return subprocess.run([sys.executable, "-m", "visnerf.cli", "train", str(data), "--out", str(out),
+                           "--iterations", "3", "--quiet", *options], capture_output=True, text=True)
+
+
+def test_given_options_round_trip_through_the_checkpoint(tangle, tmp_path) -> None:
+    out = tmp_path / "m.safetensors"
+    run = train(tangle, out, "--hidden-width", "32", "--sh-degree", "1", "--density-scale", "40",
+                "--l1-weight-rest", "2e-5", "--no-mixed-precision", "--upsample-at", "0.1,0.2", "--betas", "0.8,0.95",
+                "--max-samples", "512", "--full-weight-threshold", "0.001", "--stop-eps", "1e-3")
+    assert run.returncode == 0, run.stderr
+    meta, _ = read_checkpoint(out)
+    assert (meta.field.hidden_width, meta.field.sh_degree, meta.field.density_scale) == (32, 1, 40.0)
+    assert (meta.render.max_samples, meta.render.full_weight_threshold) == (512, 0.001)
+    recipe = TrainConfig.from_dict(meta.provenance["recipe"])
+    assert recipe.l1_weight_rest == 2e-5 and recipe.mixed_precision is False and recipe.stop_eps == 1e-3
+    assert recipe.upsample_at == (0.1, 0.2) and recipe.betas == (0.8, 0.95)
+    chosen = {c["name"]: c["reason"] for c in meta.provenance["choices"]}
+    assert chosen["density_scale"] == "set by the user"  # the recipe keeps a given density scale
+
+
+def test_options_not_given_keep_the_recipe(tangle, tmp_path) -> None:
+    out = tmp_path / "d.safetensors"
+    assert train(tangle, out).returncode == 0
+    meta, _ = read_checkpoint(out)
+    recipe = TrainConfig.from_dict(meta.provenance["recipe"])
+    assert recipe.stop_eps == TrainConfig.stop_eps and recipe.betas == TrainConfig.betas
+    assert meta.field.hidden_width == FieldConfig.hidden_width and meta.render.max_samples == RenderConfig.max_samples
+    assert meta.field.density_scale > 1.0  # tangle_static is opaque: the recipe's surface density
+
+
+@pytest.mark.parametrize(("options", "message"), [
+    (["--hidden-width", "wide"], "expected a whole number"),
+    (["--init-scale", "nan"], "expected a finite number"),
+    (["--betas", "0.9"], "expected 2 comma-separated values"),
+    (["--density-grad-floor", "1.5"], "density_grad_floor must be in [0, 1)"),
+    (["--sh-degree", "5"], "sh_degree must be 0..3"),
+])
+def test_bad_generated_options_are_refused_naming_the_field(tangle, tmp_path, options, message) -> None:
+    out = tmp_path / "bad.safetensors"
+    run = train(tangle, out, *options)
+    assert run.returncode == 2 and message in run.stderr, run.stderr
+    assert not out.exists()
+
+
+def test_a_resumed_run_refuses_to_change_its_field(tangle, tmp_path) -> None:
+    first = tmp_path / "a.safetensors"
+    assert train(tangle, first).returncode == 0
+    run = train(tangle, tmp_path / "b.safetensors", "--resume", str(first), "--hidden-width", "16")
+    assert run.returncode == 2 and "--hidden-width would change the field" in run.stderr
+    info = json.loads(subprocess.run([sys.executable, "-m", "visnerf.cli", "info", str(first)],
+                                     capture_output=True, text=True, check=True).stdout)
+    assert info["provenance"]["recipe"]["batch_rays"] == TrainConfig.batch_rays
