@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING
 import torch
 
 from visnerf.checkpoint import CheckpointError, read_checkpoint
-from visnerf.config import FACTOR_STORAGE_DTYPES, FieldConfig, HoldoutConfig, RenderConfig, TrainConfig
+from visnerf.config import FieldConfig, HoldoutConfig, RenderConfig, TrainConfig
 from visnerf.config_options import add_config_options, given_options
 from visnerf.data.cameras import orbit_c2w
 from visnerf.runtime import pick_device
@@ -70,14 +70,6 @@ def unit_fraction(text: str) -> float:
     return value
 
 
-def unit_interval_open_below(text: str) -> float:
-    """A number in (0, 1]."""
-    value = _number(text)
-    if not 0.0 < value <= 1.0:
-        raise argparse.ArgumentTypeError(f"expected a fraction in (0, 1], got {text!r}")
-    return value
-
-
 def _whole_number(text: str, least: int, words: str) -> int:
     """``text`` as a whole number of at least ``least``; ``words`` names the range in the error."""
     try:
@@ -97,14 +89,6 @@ def positive_int(text: str) -> int:
 def non_negative_int(text: str) -> int:
     """A whole number, 0 or more."""
     return _whole_number(text, 0, ">= 0")
-
-
-def parse_fractions(text: str) -> tuple[float, ...]:
-    """``"0.25,0.5,0.75"`` -> increasing fractions in [0, 1]; ``""`` -> none."""
-    values = tuple(unit_fraction(x) for x in text.split(",") if x.strip())
-    if any(b <= a for a, b in zip(values, values[1:], strict=False)):
-        raise argparse.ArgumentTypeError(f"fractions must increase, got {text!r}")
-    return values
 
 
 def parse_bbox(text: str) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
@@ -140,6 +124,21 @@ def _train(args: argparse.Namespace) -> int:
     if out.exists() and not args.force and not args.resume:
         print(f"error: {out} exists; pass --force to overwrite it", file=sys.stderr)
         return 2
+    train_given, field_given = given_options(args, TrainConfig), given_options(args, FieldConfig)
+    render_given = given_options(args, RenderConfig)
+    try:  # the configurations' own checks judge the options, before anything loads
+        budget = None if args.time_budget is None else args.time_budget * 60
+        cfg = TrainConfig(**{"time_budget_s": budget, **train_given})
+        field_cfg = FieldConfig(**field_given)
+        render_cfg = RenderConfig(**render_given)
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    shape_given = sorted(set(field_given) - {"factor_storage"})
+    if args.resume and shape_given:
+        print(f"error: {', '.join('--' + k.replace('_', '-') for k in shape_given)} would change the field of "
+              f"{args.resume}; a resumed run keeps it", file=sys.stderr)
+        return 2
     device = pick_device(args.device)
     try:
         scene = load_dataset(args.data, "train")
@@ -150,21 +149,6 @@ def _train(args: argparse.Namespace) -> int:
         return 2
     if val is None and (Path(args.data) / "transforms_val.json").exists():
         val = load_dataset(args.data, "val")
-    cfg = TrainConfig(
-        iterations=args.iterations, time_budget_s=args.time_budget * 60 if args.time_budget else None,
-        batch_rays=args.batch_rays, micro_batch_rays=args.micro_batch_rays,
-        micro_batch_samples=args.micro_batch_samples, seed=args.seed,
-        resolution_final=TrainConfig.resolution_final if args.resolution is None else args.resolution,
-        validate_every_s=args.validate_every,
-        carve_min_seen_fraction=(TrainConfig.carve_min_seen_fraction if args.carve_min_seen_fraction is None
-                                 else args.carve_min_seen_fraction),
-        occupancy_refine_at=args.occupancy_refine_at, density_grad_keep=args.density_grad_keep,
-        occupancy_refine_dilation=args.occupancy_refine_dilation, tv_weight_appearance=args.tv_appearance,
-        lr_factors=args.lr_factors, lr_networks=args.lr_networks, lr_decay_ratio=args.lr_decay_ratio,
-        weight_average_span=args.weight_average_span, weight_average_from=args.weight_average_from,
-    )
-    field_cfg = FieldConfig() if args.factor_storage is None else FieldConfig(factor_storage=args.factor_storage)
-    render_cfg = RenderConfig()
     init_field, start, carved, choices = None, None, None, []
     if args.resume:
         from visnerf.checkpoint import load_checkpoint
@@ -176,36 +160,21 @@ def _train(args: argparse.Namespace) -> int:
             print(f"error: {exc}", file=sys.stderr)
             return 2
         prov = meta.provenance
-        render_cfg = meta.render  # the resumed model's sample spacing, unless --step-ratio says otherwise
+        render_cfg = dataclasses.replace(meta.render, **render_given)  # the resumed model's, unless given
+        if "factor_storage" in field_given:  # storage, not shape: a resumed field may change it
+            init_field.cfg = dataclasses.replace(init_field.cfg, factor_storage=field_given["factor_storage"])
         start = TrainState(iteration=int(prov.get("iterations", 0)), train_seconds=float(prov.get("train_seconds", 0.0)),
                            upsamples_done=int(prov.get("upsamples_done", 0)),
                            occupancy_done=int(prov.get("occupancy_done", 0)),
                            refines_done=int(prov.get("refines_done", 0)))
-        if args.factor_storage is not None:
-            init_field.cfg = dataclasses.replace(init_field.cfg, factor_storage=args.factor_storage)
     print(f"training on {train.n_frames} frames ({val.n_frames if val else 0} held out), "
           f"K={train.n_params}, {train.intrinsics.width}x{train.intrinsics.height}, device {device}", file=sys.stderr)
-    if args.step_ratio is not None:
-        render_cfg = dataclasses.replace(render_cfg, step_ratio=args.step_ratio)
-    field_given = given_options(args, FieldConfig)
-    if init_field is not None and field_given:
-        print(f"error: {', '.join('--' + k.replace('_', '-') for k in field_given)} would change the field of "
-              f"{args.resume}; a resumed run keeps it", file=sys.stderr)
-        return 2
-    try:  # the configurations' own checks judge the generated options
-        cfg = dataclasses.replace(cfg, **given_options(args, TrainConfig))
-        field_cfg = dataclasses.replace(field_cfg, **field_given)
-        render_cfg = dataclasses.replace(render_cfg, **given_options(args, RenderConfig))
-    except (ValueError, TypeError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
     setup_seconds = 0.0
     if init_field is None:
         from visnerf.training.recipe import choose_recipe
 
         t0 = time.perf_counter()
-        fixed = {name for name, given in (("resolution_final", args.resolution),
-                                          ("carve_min_seen_fraction", args.carve_min_seen_fraction)) if given is not None}
+        fixed = set(train_given)
         if {"density_scale", "density_shift"} & set(field_given):
             fixed.add("density_scale")
         recipe = choose_recipe(train, cfg, field_cfg, frozenset(fixed))
@@ -333,78 +302,12 @@ def _info(args: argparse.Namespace) -> int:
     return 0
 
 
-def add_learning_rate_args(p: argparse.ArgumentParser, networks_default: float = TrainConfig.lr_networks) -> None:
-    """``--lr-factors``, ``--lr-networks`` and ``--lr-decay-ratio``, for ``TrainConfig.lr_factors``,
-    ``lr_networks`` and ``lr_decay_ratio`` (``visnerf train`` and bench/nyx_train.py)."""
-    p.add_argument("--lr-factors", type=positive_float, default=TrainConfig.lr_factors, metavar="LR",
-                   help="Adam learning rate of the VM factors and parameter vectors at the start "
-                        f"(default {TrainConfig.lr_factors:g}, the paper's; the decoders keep {networks_default:g})")
-    paper = ", the paper's" if networks_default == TrainConfig.lr_networks else f"; the paper's {TrainConfig.lr_networks:g}"
-    p.add_argument("--lr-networks", type=positive_float, default=networks_default, metavar="LR",
-                   help=f"Adam learning rate of the decoders at the start (default {networks_default:g}{paper})")
-    p.add_argument("--lr-decay-ratio", type=unit_interval_open_below, default=TrainConfig.lr_decay_ratio,
-                   metavar="F", help="fraction of the starting learning rates left at the end of the run, "
-                                     f"reached by exponential decay (default {TrainConfig.lr_decay_ratio:g}; "
-                                     "1: constant rates)")
-
-
-def add_weight_average_args(p: argparse.ArgumentParser, span_default: float = TrainConfig.weight_average_span) -> None:
-    """``--weight-average-span`` and ``--weight-average-from``, for ``TrainConfig.weight_average_span``
-    and ``weight_average_from`` (``visnerf train`` and bench/nyx_train.py)."""
-    p.add_argument("--weight-average-span", type=non_negative_float, default=span_default,
-                   metavar="F", help="save the parameters' moving average over the end of the run instead of "
-                                     "their last values; the fraction of the run over which an old value's weight "
-                                     f"falls by e (default {span_default:g}; 0: off)")
-    p.add_argument("--weight-average-from", type=unit_fraction, default=TrainConfig.weight_average_from, metavar="F",
-                   help="with --weight-average-span, the fraction of the run from which the average is kept "
-                        f"(default {TrainConfig.weight_average_from:g})")
-
-
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("train", help="train a ViSNeRF model on a dataset folder")
     p.add_argument("data", help="dataset folder with transforms_train.json")
     p.add_argument("--out", required=True, help="checkpoint to write (.safetensors)")
-    p.add_argument("--iterations", type=positive_int, default=30000, help="maximum iterations (default 30000)")
-    p.add_argument("--time-budget", type=positive_float, default=None, metavar="MINUTES", help="wall-clock training budget")
-    p.add_argument("--batch-rays", type=positive_int, default=TrainConfig.batch_rays,
-                   help=f"rays per step (default {TrainConfig.batch_rays}; the paper's 4096)")
-    p.add_argument("--micro-batch-rays", type=positive_int, default=TrainConfig.micro_batch_rays,
-                   help="most rays rendered and back-propagated together; the step is the same for any value, "
-                        f"fewer micro-batches are faster and need more memory (default {TrainConfig.micro_batch_rays})")
-    p.add_argument("--micro-batch-samples", type=positive_int, default=TrainConfig.micro_batch_samples,
-                   help="most samples evaluated (in occupied cells) per micro-batch, which bounds activation "
-                        f"memory (default {TrainConfig.micro_batch_samples})")
-    p.add_argument("--resolution", type=positive_int, default=None,
-                   help="final voxels per axis (cube root of the grid size; default: chosen from the pixel size "
-                        "at the content, see `visnerf info`)")
-    p.add_argument("--step-ratio", type=positive_float, default=None, metavar="VOXELS",
-                   help=f"training sample spacing in voxels (default {RenderConfig.step_ratio:g}; "
-                        "with --resume, the checkpoint's)")
-    p.add_argument("--carve-min-seen-fraction", type=unit_fraction, default=None,
-                   metavar="F", help="fraction of a setting's views that must have a cell in frame for the image "
-                                     "carving to keep it (default: 0.75 where every image shows its content whole, "
-                                     "else 0)")
-    p.add_argument("--occupancy-refine-at", type=parse_fractions, default=TrainConfig.occupancy_refine_at,
-                   metavar="P1,P2,..", help="fractions of the run at which the occupancy grid is rebuilt "
-                                            "within itself, so later steps sample fewer empty cells (default "
-                                            f"{','.join(f'{x:g}' for x in TrainConfig.occupancy_refine_at)})")
-    p.add_argument("--occupancy-refine-dilation", type=non_negative_int,
-                   default=TrainConfig.occupancy_refine_dilation, metavar="CELLS",
-                   help="cells by which a refined occupancy grid grows around the cells with content "
-                        f"(default {TrainConfig.occupancy_refine_dilation})")
-    p.add_argument("--density-grad-keep", type=unit_interval_open_below, default=TrainConfig.density_grad_keep,
-                   metavar="F", help="fraction of the near-empty density samples (alpha below "
-                                     f"{TrainConfig.density_grad_floor:g}) each step back-propagates, their gradient "
-                                     f"scaled by 1/F: an unbiased, cheaper step (default {TrainConfig.density_grad_keep:g}; 1: all)")
-    p.add_argument("--tv-appearance", type=non_negative_float, default=TrainConfig.tv_weight_appearance,
-                   metavar="W", help="total-variation weight of the appearance factors "
-                                     f"(default {TrainConfig.tv_weight_appearance:g})")
-    add_learning_rate_args(p)
-    add_weight_average_args(p)
-    p.add_argument("--factor-storage", choices=sorted(FACTOR_STORAGE_DTYPES), default=None,
-                   help=f"how the checkpoint stores the VM factors (default {FieldConfig.factor_storage}; "
-                        "with --resume, the checkpoint's); int8: planes as int8 codes with row scales, about "
-                        "half the float16 file")
+    p.add_argument("--time-budget", type=positive_float, default=None, metavar="MINUTES",
+                   help="wall-clock training budget; the schedule is given as fractions of it")
     p.add_argument("--holdout-views", type=parse_views, default=(), metavar="I,J,..",
                    help="view indices held out for validation at every parameter setting")
     p.add_argument("--holdout-params", type=parse_settings, default=(), metavar="A,B;C,D",
@@ -412,9 +315,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--bbox", type=parse_bbox, default=None, metavar="X0,Y0,Z0,X1,Y1,Z1",
                    help="world box that holds the content (write --bbox=-1,... for negative numbers); "
                         "default: the dataset's bbox, else a box every camera sees, carved from the images")
-    p.add_argument("--validate-every", type=positive_float, default=TrainConfig.validate_every_s, metavar="SECONDS",
-                   help=f"training seconds between validations on the held-out frames (default {TrainConfig.validate_every_s:g})")
-    p.add_argument("--seed", type=int, default=0)
     p.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N")
     p.add_argument("--resume", default=None, metavar="CKPT", help="continue from this checkpoint's weights")
     p.add_argument("--submit", default=None, metavar="URL", help="upload the checkpoint to a server when done")

@@ -12,6 +12,44 @@ FACTOR_STORAGE_DTYPES = {"float32": torch.float32, "float16": torch.float16, "in
 row-wise codes with float32 scales (``factor_codec``), and their lines are stored as float16."""
 
 
+def _require(ok: bool, message: str) -> None:
+    if not ok:
+        raise ValueError(message)
+
+
+def _check_positive(config: object, *names: str) -> None:
+    for name in names:
+        value = getattr(config, name)
+        _require(math.isfinite(value) and value > 0, f"{name} must be a finite number above 0, got {value!r}")
+
+
+def _check_non_negative(config: object, *names: str) -> None:
+    for name in names:
+        value = getattr(config, name)
+        _require(math.isfinite(value) and value >= 0, f"{name} must be a finite number of at least 0, got {value!r}")
+
+
+def _check_at_least(config: object, least: int, *names: str) -> None:
+    for name in names:
+        value = getattr(config, name)
+        _require(value >= least, f"{name} must be a whole number of at least {least}, got {value!r}")
+
+
+def _check_below_one(config: object, *names: str) -> None:
+    for name in names:
+        value = getattr(config, name)
+        _require(0.0 <= value < 1.0, f"{name} must be in [0, 1), got {value!r}")
+
+
+def _check_fractions(config: object, *names: str) -> None:
+    """Increasing progress fractions in [0, 1]."""
+    for name in names:
+        values = getattr(config, name)
+        _require(all(0.0 <= v <= 1.0 for v in values), f"{name} must hold fractions in [0, 1], got {values!r}")
+        _require(all(b > a for a, b in zip(values, values[1:], strict=False)),
+                 f"{name} must increase, got {values!r}")
+
+
 @dataclass(frozen=True)
 class FieldConfig:
     """Shape of a ViSNeRF field. Everything that fixes a tensor shape lives here."""
@@ -63,6 +101,7 @@ class FieldConfig:
             raise ValueError(f"resolution must be three sizes >= 2, got {self.resolution}")
         if any(n < 1 for n in self.param_lengths):
             raise ValueError(f"every parameter axis needs at least one value, got {self.param_lengths}")
+        _check_at_least(self, 1, "n_param_components")
         if self.n_density_components % self.n_param_components or (
             self.n_appearance_components % self.n_param_components
         ):
@@ -71,6 +110,10 @@ class FieldConfig:
             raise ValueError(f"sh_degree must be 0..3, got {self.sh_degree}")
         if self.factor_storage not in FACTOR_STORAGE_DTYPES:
             raise ValueError(f"factor_storage must be one of {sorted(FACTOR_STORAGE_DTYPES)}, got {self.factor_storage!r}")
+        _check_at_least(self, 1, "n_density_components", "n_appearance_components", "n_param_components", "hidden_width")
+        _check_at_least(self, 0, "pos_encoding_freqs")
+        _check_positive(self, "density_scale", "init_scale")
+        _require(math.isfinite(self.density_shift), f"density_shift must be a finite number, got {self.density_shift!r}")
 
     @property
     def n_params(self) -> int:
@@ -135,6 +178,12 @@ class RenderConfig:
     """Resolution scale of the preview quality."""
     preview_step_factor: float = 2.0
     """Step multiplier of the preview quality."""
+
+    def __post_init__(self) -> None:
+        _check_positive(self, "step_ratio", "full_step_ratio", "preview_step_factor")
+        _check_at_least(self, 1, "max_samples")
+        _check_below_one(self, "occupancy_threshold", "weight_threshold", "full_weight_threshold", "early_stop_eps")
+        _require(0.0 < self.preview_scale <= 1.0, f"preview_scale must be in (0, 1], got {self.preview_scale!r}")
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -287,6 +336,20 @@ class TrainConfig:
             raise ValueError(f"weight_average_every must be at least 1 step, got {self.weight_average_every}")
         if not 0.0 <= self.density_grad_floor < 1.0:
             raise ValueError(f"density_grad_floor must be in [0, 1), got {self.density_grad_floor}")
+        _check_at_least(self, 1, "trim_every", "occupancy_max_settings", "validate_max_images")
+        _check_at_least(self, 2, "resolution_init", "resolution_final", "occupancy_resolution", "carve_resolution")
+        _check_at_least(self, 0, "occupancy_min_iterations", "l1_switch_iteration")
+        _check_positive(self, "lr_factors", "lr_networks", "validate_every_s")
+        _require(0.0 < self.lr_decay_ratio <= 1.0, f"lr_decay_ratio must be in (0, 1], got {self.lr_decay_ratio!r}")
+        _require(len(self.betas) == 2 and all(0.0 <= b < 1.0 for b in self.betas),
+                 f"betas must be two numbers in [0, 1), got {self.betas!r}")
+        _check_non_negative(self, "l1_weight_initial", "l1_weight_rest", "param_l1_weight", "tv_weight_density",
+                            "tv_weight_appearance", "tv_weight_params")
+        _check_below_one(self, "stop_eps")
+        _require(0.0 <= self.carve_min_seen_fraction <= 1.0,
+                 f"carve_min_seen_fraction must be in [0, 1], got {self.carve_min_seen_fraction!r}")
+        _require(0 <= self.carve_tolerance <= 255, f"carve_tolerance must be in 0..255, got {self.carve_tolerance!r}")
+        _check_fractions(self, "upsample_at", "occupancy_at", "occupancy_refine_at")
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)

@@ -1,13 +1,13 @@
 """Command-line options generated from the typed configuration (``config.py``).
 
 Every field of ``TrainConfig``, ``FieldConfig`` and ``RenderConfig`` is an option of ``visnerf
-train``: the few that the command declares itself, with their own units or checks (``--time-budget``
-in minutes, ``--resolution``, the learning rates...), are named in ``HAND_WRITTEN``; a handful that
-the data or the end of training decide are named, with the reason, in ``NOT_OPTIONS``; every other
-field becomes ``--field-name`` with the field's docstring as its help, so that a new setting needs
-no command-line code. A generated option that is not given leaves the configuration's value (the
-recipe's); the configuration's own checks judge a given one, and the command refuses it with their
-message.
+train``: ``--field-name``, typed by the field's annotation, its help the field's docstring, so that
+a new setting needs no command-line code. The exceptions are named: ``--time-budget`` (minutes) is
+declared by the command itself (``HAND_WRITTEN``), a few options answer to a shorter name too
+(``ALIASES``), and the fields the data or the end of training decide are no options
+(``NOT_OPTIONS``, with the reason). An option that is not given leaves the configuration's value
+(the recipe's); the configuration's own checks judge a given one, and the command refuses it with
+their message, naming the field.
 """
 
 import argparse
@@ -25,28 +25,17 @@ from visnerf.config import FieldConfig, RenderConfig, TrainConfig
 CONFIG_CLASSES: tuple[type, ...] = (TrainConfig, FieldConfig, RenderConfig)
 
 HAND_WRITTEN: dict[tuple[str, str], str] = {
-    ("TrainConfig", "iterations"): "--iterations",
     ("TrainConfig", "time_budget_s"): "--time-budget",
-    ("TrainConfig", "batch_rays"): "--batch-rays",
-    ("TrainConfig", "micro_batch_rays"): "--micro-batch-rays",
-    ("TrainConfig", "micro_batch_samples"): "--micro-batch-samples",
-    ("TrainConfig", "lr_factors"): "--lr-factors",
-    ("TrainConfig", "lr_networks"): "--lr-networks",
-    ("TrainConfig", "lr_decay_ratio"): "--lr-decay-ratio",
-    ("TrainConfig", "resolution_final"): "--resolution",
-    ("TrainConfig", "occupancy_refine_at"): "--occupancy-refine-at",
-    ("TrainConfig", "occupancy_refine_dilation"): "--occupancy-refine-dilation",
-    ("TrainConfig", "carve_min_seen_fraction"): "--carve-min-seen-fraction",
-    ("TrainConfig", "tv_weight_appearance"): "--tv-appearance",
-    ("TrainConfig", "density_grad_keep"): "--density-grad-keep",
-    ("TrainConfig", "weight_average_span"): "--weight-average-span",
-    ("TrainConfig", "weight_average_from"): "--weight-average-from",
-    ("TrainConfig", "validate_every_s"): "--validate-every",
-    ("TrainConfig", "seed"): "--seed",
-    ("FieldConfig", "factor_storage"): "--factor-storage",
-    ("RenderConfig", "step_ratio"): "--step-ratio",
 }
-"""Fields ``visnerf train`` declares itself (``commands.register``), and the option of each."""
+"""Fields ``visnerf train`` declares itself (``commands.register``), and the option of each:
+the budget is given in minutes."""
+
+ALIASES: dict[tuple[str, str], str] = {
+    ("TrainConfig", "resolution_final"): "--resolution",
+    ("TrainConfig", "tv_weight_appearance"): "--tv-appearance",
+    ("TrainConfig", "validate_every_s"): "--validate-every",
+}
+"""Shorter names some generated options answer to as well."""
 
 NOT_OPTIONS: dict[tuple[str, str], str] = {
     ("FieldConfig", "resolution"): "follows from the content box and --resolution",
@@ -73,7 +62,7 @@ def option_of(cls: type, name: str) -> str | None:
     key = (cls.__name__, name)
     if key in NOT_OPTIONS:
         return None
-    return HAND_WRITTEN.get(key, "--" + name.replace("_", "-"))
+    return HAND_WRITTEN.get(key) or ALIASES.get(key) or "--" + name.replace("_", "-")
 
 
 def _dest(cls: type, name: str) -> str:
@@ -138,13 +127,16 @@ def add_config_options(parser: argparse.ArgumentParser) -> None:
             default = f.default if f.default is not dataclasses.MISSING else f.default_factory()  # type: ignore[misc]
             help_text = docs.get(f.name, "").split(". ")[0].rstrip(".")
             help_text = (help_text + f" (default {default!r})").strip().replace("%", "%%")
+            names = [option_of(cls, f.name)]
+            if key in ALIASES:
+                names.append("--" + f.name.replace("_", "-"))
             if hints[f.name] is bool:
-                group.add_argument(option_of(cls, f.name), dest=_dest(cls, f.name), default=None,
+                group.add_argument(*names, dest=_dest(cls, f.name), default=None,
                                    action=argparse.BooleanOptionalAction, help=help_text)
             else:
                 kind, metavar = _parser_for(hints[f.name])
-                group.add_argument(option_of(cls, f.name), dest=_dest(cls, f.name), default=None, type=kind,
-                                   metavar=metavar, help=help_text)
+                group.add_argument(*names, dest=_dest(cls, f.name), default=None, type=kind, metavar=metavar,
+                                   help=help_text)
 
 
 def given_options(args: argparse.Namespace, cls: type) -> dict[str, Any]:
