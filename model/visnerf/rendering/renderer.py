@@ -26,7 +26,7 @@ from visnerf.rendering.empty_space import EmptySpace
 from visnerf.rendering.occupancy import query_occupancy
 from visnerf.rendering.parallel import chunk_workers, map_chunks
 from visnerf.rendering.sampling import uniform_noise, uniform_samples
-from visnerf.rendering.volume import render_alpha_from_density
+from visnerf.rendering.volume import exclusive_optical_depth, optical_depths, weights_from_optical_depth
 from visnerf.representation.field import VisNerfField
 from visnerf.representation.frame_field import FrameField
 from visnerf.runtime import bf16_native
@@ -150,9 +150,8 @@ def _shade_samples(
                 field.density, sel_points, sel_q, deltas.reshape(-1).index_select(0, flat), density_grads, known)
         sigmas = sigmas.index_copy(0, flat, dens)
     sigmas = sigmas.view(n, s)
-    tau = sigmas * deltas.clamp_min(0.0)  # [n, s]
-    exclusive = torch.cumsum(tau, dim=-1) - tau + tau_before[:, None]
-    weights = torch.exp(-exclusive) * render_alpha_from_density(sigmas, deltas)  # [n, s]
+    tau = optical_depths(sigmas, deltas)  # [n, s]
+    weights = weights_from_optical_depth(tau, tau_before)  # [n, s]
     shade = (valid & (weights > weight_threshold)).reshape(-1).nonzero()[:, 0]  # [k], into the n * s samples
     rgb = torch.zeros(n, 3, dtype=points.dtype, device=points.device)
     if shade.numel() > 0:
@@ -189,8 +188,7 @@ def _shade_frame_samples(
     sigmas = torch.zeros(a * s, dtype=points.dtype, device=points.device)
     sigmas = sigmas.index_copy_(0, flat, frame.density_at(samples)).view(a, s)
     tau = sigmas * step  # [a, s]
-    exclusive = torch.cumsum(tau, dim=-1) - tau + tau_before[:, None]
-    weights = torch.exp(-exclusive) * -torch.expm1(-tau)  # [a, s]
+    weights = weights_from_optical_depth(tau, tau_before)  # [a, s]
     valid_weights = weights.view(-1).index_select(0, flat)  # [m]
     shade = (valid_weights > weight_threshold).nonzero()[:, 0]  # into the valid samples
     if shade.numel() > 0:
@@ -263,13 +261,6 @@ def place_samples(
     if occupancy is not None:
         valid = valid.masked_scatter(valid, query_occupancy(occupancy, field.aabb, points[valid]))
     return RaySamples(points, deltas, valid)
-
-
-def exclusive_optical_depth(tau: Float[Tensor, "n s"]) -> Float[Tensor, "n s"]:
-    """Optical depth before each sample, ``sum(tau[:, :i])``, as a shifted cumulative sum: a zero,
-    then the running sum without the last term. ``cumsum(tau) - tau`` cancels in float32 where a
-    large term follows small ones; this never subtracts, so it is exact to rounding and monotone."""
-    return torch.cat([torch.zeros_like(tau[:, :1]), torch.cumsum(tau[:, :-1], dim=-1)], dim=-1)
 
 
 @torch.no_grad()

@@ -25,13 +25,30 @@ def render_alpha_from_density(
     return -torch.expm1(-optical_depths(sigmas, deltas))
 
 
+def exclusive_optical_depth(tau: Float[Tensor, "n s"]) -> Float[Tensor, "n s"]:
+    """Optical depth before each sample, ``sum(tau[:, :i])``, as a shifted cumulative sum: a zero,
+    then the running sum without the last term. ``cumsum(tau) - tau`` cancels in float32 where a
+    large term follows small ones (tau = [0.3, 1e7, 0.5] gave weights summing to 1.26); this never
+    subtracts, so it is exact to rounding, and monotone."""
+    return torch.cat([torch.zeros_like(tau[:, :1]), torch.cumsum(tau[:, :-1], dim=-1)], dim=-1)
+
+
+def weights_from_optical_depth(
+    tau: Float[Tensor, "n s"], tau_before: Float[Tensor, " n"] | None = None
+) -> Float[Tensor, "n s"]:
+    """Compositing weights ``T_i * alpha_i`` of a segment of samples with optical depths ``tau``,
+    after ``tau_before`` accumulated by the ray's earlier segments (the renderers march in segments)."""
+    before = exclusive_optical_depth(tau)
+    if tau_before is not None:
+        before = before + tau_before[:, None]
+    return torch.exp(-before) * -torch.expm1(-tau)
+
+
 def render_transmittance_from_density(
     sigmas: Float[Tensor, "n s"], deltas: Float[Tensor, "n s"]
 ) -> Float[Tensor, "n s"]:
     """Transmittance before each sample: ``exp(-exclusive_cumsum(sigma delta))``."""
-    tau = optical_depths(sigmas, deltas)
-    exclusive = torch.cumsum(tau, dim=-1) - tau
-    return torch.exp(-exclusive)
+    return torch.exp(-exclusive_optical_depth(optical_depths(sigmas, deltas)))
 
 
 def render_weight_from_density(

@@ -51,3 +51,24 @@ def test_transmittance_non_increasing():
     sig = torch.rand(16, 64) * 5
     t = render_transmittance_from_density(sig, torch.full((16, 64), 0.05))
     assert (t[:, 1:] <= t[:, :-1] + 1e-7).all()
+
+
+def test_weights_of_segments_equal_the_whole_ray_and_never_exceed_one():
+    """The renderers composite a ray segment by segment, carrying the optical depth before each:
+    the weights must be the whole ray's, against a float64 reference, for optical depths from
+    1e-8 to 1e8 per sample."""
+    from visnerf.rendering.volume import weights_from_optical_depth
+
+    g = torch.Generator().manual_seed(0)
+    tau = torch.rand(32, 48, generator=g) * 10.0 ** torch.randint(-8, 9, (32, 48), generator=g).float()
+    whole = weights_from_optical_depth(tau)
+    parts, before = [], torch.zeros(32)
+    for start in range(0, 48, 16):
+        seg = tau[:, start:start + 16]
+        parts.append(weights_from_optical_depth(seg, before))
+        before = before + seg.sum(-1)
+    assert torch.allclose(torch.cat(parts, dim=1), whole, atol=1e-6)
+    t64 = tau.double()
+    ref = torch.exp(-(torch.cumsum(t64, -1) - t64)) * -torch.expm1(-t64)
+    assert torch.allclose(whole.double(), ref, atol=1e-6)
+    assert float(whole.sum(-1).max()) <= 1.0 + 1e-6 and bool((whole >= 0).all())
