@@ -71,13 +71,9 @@ class FieldConfig:
     sh_degree: int = 3
     """Spherical-harmonics degree (0..3) of the view-direction encoding."""
     density_shift: float = -2.0
-    """Added to the raw density before softplus, so a fresh field is a faint fog (0.13 per world
-    unit). TensoRF's -10 suits its linear density features; behind this field's density MLP it
-    scales the photometric gradient by sigmoid(-10) = 5e-5, below the L1 prior's pull, and a fresh
-    field stayed empty: over 100 iterations at -10 the training PSNR of plume_time, tangle_iso and
-    vortex_tf1 did not move (12.1, 7.7, 11.8 dB), at -2 it rose to 17.4, 12.9 and 17.2 dB. Steps are
-    slower while the fog lasts (colour is decoded everywhere), yet a 3-minute run on vortex_tf1
-    ended at 19.85 dB held-out against 18.91 dB at -10, ahead at every validation."""
+    """Added to the raw density before softplus, so that a fresh field is a faint fog (0.13 per world
+    unit at a ``density_scale`` of 1): at TensoRF's -10 the photometric gradient behind the density
+    decoder is scaled by sigmoid(-10) = 5e-5 and short runs stayed empty."""
     density_scale: float = 1.0
     """Multiplies the softplus of the density decoder's output (per world unit). Opaque surfaces
     need an optical depth of about 10 within a voxel or two, a density of thousands per world unit,
@@ -86,15 +82,11 @@ class FieldConfig:
     init_scale: float = 0.1
     """Standard deviation of the initial VM factors."""
     factor_storage: str = "int8"
-    """How the checkpoint file stores the VM planes and lines: ``float32``, ``float16`` (half the
-    bytes) or ``int8`` (planes as int8 codes with a float32 scale per row, ``factor_codec``; lines
-    as float16: about a quarter of the float32 bytes). The field computes in float32 either way,
-    from the stored values. On 24 held-out Nyx frames of a 160^3 model the float16-rounded factors
-    rendered 71.4 dB from the float32 ones, 25.4712 dB from the ground truth either way
-    (bench/results/factor_storage.md); int8 codes of the 170^3 26.85 dB model rendered 63.4 dB
-    from its float16 frames, 26.8479 against 26.8486 dB, in 6.76 MB instead of 12.17 MB
-    (bench/results/factor_storage_int8.md). Checkpoints that do not say (written before the option
-    existed) hold float32."""
+    """How the checkpoint file stores the VM planes and lines: ``float32``, ``float16`` or ``int8``
+    (planes as int8 codes with a float32 scale per row, ``factor_codec``, lines as float16: about
+    a quarter of the float32 bytes). The field computes in float32 either way. int8 planes of a Nyx
+    model rendered its 24 held-out frames 26.8479 against 26.8486 dB from float16, in 6.76
+    instead of 12.17 MB. Checkpoints that do not say hold float32."""
 
     def __post_init__(self) -> None:
         if len(self.resolution) != 3 or min(self.resolution) < 2:
@@ -149,13 +141,10 @@ class RenderConfig:
     the recipe's voxels (``training.recipe``, 0.93 of a pixel at the content) samples land about
     1.5 pixels apart, the spacing the Nyx record trained at (bench/results/nyx_history.md)."""
     full_step_ratio: float = 0.75
-    """Sample spacing of full-quality inference frames (stored with each checkpoint), chosen per
-    checkpoint from measured frames at the end of training or by ``visnerf calibrate``
-    (``evaluation.spacing``); this default is for checkpoints that stored none. One voxel was within
-    0.03 dB PSNR of half a voxel on the bundled scenes (bench/results/bundled_eval); on a Nyx
-    model trained without density total variation (sharper filaments) it lost 0.32 dB against
-    ground truth, three quarters of a voxel 0.07 dB (5 held-out frames, 24.03 / 24.27 / 24.35 dB
-    at 1 / 0.75 / 0.5 voxel) for 1.2 times the time of one voxel."""
+    """Sample spacing of full-quality inference frames in voxels (stored with each checkpoint):
+    training ends by choosing the coarsest spacing whose held-out frames are within 0.05 dB of
+    exhaustive ones (``evaluation.spacing``, ``visnerf calibrate``); this default is for
+    checkpoints that stored none."""
     max_samples: int = 1024
     """Upper bound on samples per ray."""
     bf16: bool = True
@@ -168,10 +157,7 @@ class RenderConfig:
     full_weight_threshold: float = 3e-3
     """Full-quality and preview frames decode colour only for samples whose compositing weight
     exceeds this; the weight of the others takes the mean colour of the ray's decoded samples
-    (``renderer._unshaded_gain``). Against 1e-4, on the 20 held-out frames of
-    bench/render_speed.py: frames 12 to 17 % faster on the bundled scenes, 2 % on Nyx, and
-    PSNR against ground truth within 0.005 dB (tangle_iso 20.646 against 20.645 dB, vortex_tf1
-    29.822 against 29.843, Nyx 24.051 against 24.051); at 1e-2 vortex_tf1 lost 0.18 dB."""
+    (``renderer._unshaded_gain``): against 1e-4, frames 2 to 17 % faster, within 0.005 dB."""
     early_stop_eps: float = 1e-4
     """Rays stop once transmittance falls below this (inference)."""
     preview_scale: float = 0.5
@@ -207,9 +193,7 @@ class TrainConfig:
     minutes side by side: 25.61 against 25.10 dB; bench/results/nyx_history.md)."""
     micro_batch_rays: int = 4096
     """Most rays rendered and back-propagated together within an iteration; the step is the same
-    for any value. Activation memory follows the samples evaluated, which ``micro_batch_samples``
-    bounds, so by default this does not split a batch of its own (see bench/results/
-    micro_batch_speed.md and train_step_memory.md)."""
+    for any value (``micro_batch_samples`` bounds the memory)."""
     micro_batch_samples: int = 131072
     """Most samples evaluated (in the box, in occupied cells, in front of opaque content) per
     micro-batch: bounds activation memory (one 4096-ray step of a fresh Nyx-sized fog: +996 MB at
@@ -222,15 +206,14 @@ class TrainConfig:
     """Adam learning rate of the decoders: twice the paper's 0.001 (Nyx, 30 minutes side by side:
     26.62 against 26.37 dB)."""
     betas: tuple[float, float] = (0.9, 0.99)
+    """Adam's decay rates of the first and second moment estimates."""
     lr_decay_ratio: float = 0.1
     """Learning rates decay exponentially to this fraction at the end of the run."""
     resolution_init: int = 64
     """Voxels per axis (cube root of the voxel count) at the start."""
     resolution_final: int = 120
-    """Voxels per axis at the end: at 120^3 the planes are 5.5 MB as float16
-    (``FieldConfig.factor_storage``). A finer grid holds finer detail and, with samples a fixed
-    number of voxels apart (``RenderConfig.step_ratio``), takes more samples per ray;
-    bench/nyx_train.py uses 170 with samples 1.4 voxels apart."""
+    """Voxels per axis (cube root of the voxel count) at the end. ``visnerf train`` chooses it
+    from the pixel size at the content (``training.recipe``); 120 is for callers that do not."""
     upsample_at: tuple[float, ...] = (0.067, 0.1, 0.133, 0.183, 0.233)
     """Progress fractions at which planes and lines are upsampled (log-spaced resolutions)."""
     occupancy_at: tuple[float, ...] = (0.067, 0.133)
@@ -242,9 +225,8 @@ class TrainConfig:
     occupancy_refine_dilation: int = 0
     """Cells by which a refined grid (``occupancy_refine_at`` and the end of training) is grown
     around the cells that hold content. The ``occupancy_at`` grids keep one cell, room for content
-    that is still forming to grow into; once it has formed, 0 leaves out a ring of near-empty
-    cells that training would otherwise keep sampling (on Nyx: 2.6 times fewer samples per step,
-    see bench/results/refine_dilation.md)."""
+    still forming; once formed, 0 leaves out a ring of near-empty cells that training would keep
+    sampling (Nyx: 2.6 times fewer density samples a step, 1.20 times faster)."""
     occupancy_min_iterations: int = 300
     """Occupancy milestones wait for at least this many iterations (a time budget on a busy machine
     would otherwise reach them before the density has formed)."""
@@ -260,34 +242,30 @@ class TrainConfig:
     carve_tolerance: int = 2
     """Largest channel difference (0-255) from the background that still counts as background."""
     carve_min_seen_fraction: float = 0.0
-    """A carved cell must be in the image of at least this fraction of its setting's views (0: of
-    one view). The few views that see a far corner of the camera box all look through it at the
-    content behind, so at 0 such corners survive carving: on Nyx they stretch the box from +-0.19
-    to +-0.31 on two axes (see data/carving.py), and 0.75 gives the content's +-0.19 cube. Where
-    every view sees all of the content, as on Nyx, the tight box is better: at the same voxel
-    count (finer voxels) 60 minutes on one thread reached 25.17 against 24.35 dB held-out, ahead at
-    every validation (bench/results/nyx_train_box/). The default stays 0 because a fraction above
-    0 carves away content that only a few views see (close-ups, partial views); ``visnerf train
-    --carve-min-seen-fraction`` and bench/nyx_train.py set it."""
+    """A carved cell must be in the frame of at least this fraction of its setting's views (0: of
+    one view). ``visnerf train`` chooses 0.75 where every image frames its content whole and 0
+    where content touches an image border (``training.recipe``): a few views that see a far corner
+    of the camera box all look through it at the content, so at 0 such corners survive carving
+    (on Nyx they stretch the box from +-0.19 to +-0.31 on two axes; ``data/carving.py``)."""
     mixed_precision: bool = True
     """Decoder matrix products in bfloat16 where the device supports it (weights stay float32)."""
     l1_weight_initial: float = 1e-4
+    """L1 weight on the density factors (sparsity) until ``l1_switch_iteration``."""
     l1_weight_rest: float = 1e-5
+    """L1 weight on the density factors after ``l1_switch_iteration``."""
     l1_switch_iteration: int = 2000
     """Iteration after which the L1 weight drops to ``l1_weight_rest``."""
     param_l1_weight: float = 1e-4
     """L1 pull of the parameter vectors toward 1."""
     tv_weight_density: float = 0.0
-    """Total variation on the density factors. 0, as the paper's Nyx configuration: it smooths the
-    density, and thin filaments need it sharp. Two 60-minute Nyx runs side by side, one thread
-    each (bench/results/nyx_train_tv_density): 23.87 dB held-out at 0 against 22.62 dB at 0.1,
-    ahead at every validation, with 10554 against 7973 iterations in the same time; 3-minute runs
-    side by side (bench/results/tv_density): vortex_tf1 31.19 against 29.46 dB, tangle_iso 16.06
-    against 15.75 dB."""
+    """Total variation on the density factors: none, as in the paper's Nyx configuration; it smooths
+    the density, and thin filaments need it sharp (Nyx, 60 minutes side by side: 23.87 against
+    22.62 dB at 0.1)."""
     tv_weight_appearance: float = 0.0
     """Total variation on the appearance factors: none, the fit is limited by capacity, not noise
     (Nyx, 35 minutes side by side: 26.46 against 26.36 dB with 0.01)."""
     tv_weight_params: float = 0.01
+    """Total variation on the parameter vectors (smoothness along each parameter axis)."""
     stop_eps: float = 1e-4
     """Samples a ray reaches with transmittance below this are dropped from a training step
     (``renderer.drop_occluded``): behind an opaque surface they cost a full differentiable pass
@@ -311,10 +289,12 @@ class TrainConfig:
     validate_every_s: float = 120.0
     """Seconds of training between validations."""
     validate_max_images: int = 8
+    """Held-out frames rendered at each validation (evenly chosen)."""
     choose_full_spacing: bool = True
     """At the end of training, choose the checkpoint's full-quality sample spacing on the
     validation frames (``evaluation.spacing``; needs held-out frames)."""
     seed: int = 0
+    """Seed of the ray draws, the sample jitter and the field's initial factors."""
     random_background: bool = False
     """Composite on a random colour per ray in training (useful when content touches the background)."""
 

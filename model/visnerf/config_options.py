@@ -21,6 +21,7 @@ import typing
 from typing import Any
 
 from visnerf.config import FieldConfig, RenderConfig, TrainConfig
+from visnerf.training.recipe import CHOSEN_FIELDS
 
 CONFIG_CLASSES: tuple[type, ...] = (TrainConfig, FieldConfig, RenderConfig)
 
@@ -126,7 +127,8 @@ def add_config_options(parser: argparse.ArgumentParser) -> None:
                 continue
             default = f.default if f.default is not dataclasses.MISSING else f.default_factory()  # type: ignore[misc]
             help_text = docs.get(f.name, "").split(". ")[0].rstrip(".")
-            help_text = (help_text + f" (default {default!r})").strip().replace("%", "%%")
+            shown = "chosen from the data, see visnerf info" if key in CHOSEN_FIELDS else repr(default)
+            help_text = (help_text + f" (default: {shown})").strip().replace("%", "%%")
             names = [option_of(cls, f.name)]
             if key in ALIASES:
                 names.append("--" + f.name.replace("_", "-"))

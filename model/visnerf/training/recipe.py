@@ -52,6 +52,9 @@ SURFACE_MAX_FAINT = 0.01
 """Most faint foreground pixels (a fraction) for a scene to count as opaque surfaces: 0.000 on
 tangle_iso and tangle_static (128x128, 32x32), 0.04 to 0.21 on vortex_tf1, vortex_static, plume_time and
 Nyx (32x32 to 256x256 renders)."""
+CHOSEN_FIELDS = frozenset({("TrainConfig", "resolution_final"), ("TrainConfig", "carve_min_seen_fraction"),
+                           ("FieldConfig", "density_scale"), ("FieldConfig", "density_shift")})
+"""The configuration fields ``choose_recipe`` sets from the data unless the user gives them."""
 BORDER_PIXELS = 1
 """Width of the image border in which a foreground pixel means content cut by the frame."""
 
