@@ -39,11 +39,8 @@ def test_generated_help_is_the_fields_docstring() -> None:
 
 
 @pytest.fixture(scope="module")
-def tangle(tmp_path_factory):
-    data = tmp_path_factory.mktemp("options") / "tangle"
-    subprocess.run([sys.executable, "-m", "visnerf.cli", "make-scene", "tangle_static", "--out", str(data),
-                    "--res", "16", "--test-views", "2", "--quiet"], check=True)
-    return data
+def tangle(synthetic_scene):
+    return synthetic_scene("tangle_static", 16)
 
 
 def train(data, out, *options):

@@ -135,11 +135,9 @@ def test_serve_http_websocket_submit_and_sigterm(server, templates, tmp_path: Pa
     assert not list((tmp_path / "checkpoints").glob(".upload-*"))
 
 
-def test_train_submit_uploads_the_trained_checkpoint_to_a_running_server(server, tmp_path: Path) -> None:  # noqa: ANN001
+def test_train_submit_uploads_the_trained_checkpoint_to_a_running_server(server, synthetic_scene, tmp_path: Path) -> None:  # noqa: ANN001
     _, url, _ = server
-    data = tmp_path / "tangle"
-    subprocess.run([sys.executable, "-m", "visnerf.cli", "make-scene", "tangle_static", "--out", str(data),
-                    "--res", "16", "--test-views", "2", "--quiet"], check=True, timeout=120)
+    data = synthetic_scene("tangle_static", 16)
     env = {**os.environ, "VISNERF_TOKEN": TOKEN}
     ckpt = tmp_path / "trained.safetensors"
     trained = subprocess.run(
