@@ -40,7 +40,7 @@ from visnerf.evaluation.training_curves import read_training_log
 from visnerf.runtime import pick_device
 from visnerf.scenes.catalog import SceneSpec, scene_catalog
 from visnerf.scenes.writer import DatasetOptions, write_scene
-from visnerf.training.recipe import choose_recipe
+from visnerf.training.recipe import recipe_trainer
 from visnerf.training.trainer import Trainer
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -93,11 +93,8 @@ def train_scene(data: Path, ckpt: Path, minutes: float, device: torch.device) ->
     does (the recipe's look at the data counts as training time, validation does not)."""
     train, val = split_holdout(load_dataset(data, "train"), HoldoutConfig(views=HOLDOUT_VIEWS))
     budget = 60.0 * minutes
-    t0 = time.perf_counter()
-    recipe = choose_recipe(train, TrainConfig(time_budget_s=budget, validate_every_s=max(budget / 6.0, 5.0)), FieldConfig())
-    trainer = Trainer(train, val, recipe.train, device, field_cfg=recipe.field, carved=recipe.carved,
-                      setup_seconds=time.perf_counter() - t0)
-    trainer.recipe_choices = recipe.describe()
+    base = TrainConfig(time_budget_s=budget, validate_every_s=max(budget / 6.0, 5.0))
+    trainer = recipe_trainer(train, val, base, FieldConfig(), device)
     trainer.run(progress_bar=False)
     trainer.save(ckpt, dataset=str(data))
     return trainer

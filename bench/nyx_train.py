@@ -44,8 +44,7 @@ from visnerf.evaluation.metrics import psnr, ssim
 from visnerf.evaluation.plots import plot_difference
 from visnerf.inference import load_scene
 from visnerf.runtime import pick_device
-from visnerf.training.recipe import choose_recipe
-from visnerf.training.trainer import Trainer
+from visnerf.training.recipe import recipe_trainer
 
 NYX_VALIDATION_FRAMES = 6
 """Held-out frames of each periodic validation (the final evaluation renders ``--eval-frames``)."""
@@ -198,12 +197,8 @@ def main() -> int:
     base = TrainConfig(iterations=args.iterations if by_iterations else 10**9,
                        time_budget_s=None if by_iterations else args.minutes * 60,
                        validate_every_s=args.validate_every, validate_max_images=NYX_VALIDATION_FRAMES)
-    t0 = time.perf_counter()
-    recipe = choose_recipe(train, base, FieldConfig())
-    cfg = recipe.train
-    trainer = Trainer(train, val, cfg, device, field_cfg=recipe.field, carved=recipe.carved,
-                      setup_seconds=time.perf_counter() - t0)
-    trainer.recipe_choices = recipe.describe()
+    trainer = recipe_trainer(train, val, base, FieldConfig(), device)
+    cfg = trainer.cfg
     trainer.run(progress_bar=sys.stderr.isatty(), on_validate=lambda row: print(json.dumps(row), flush=True))
     ckpt = trainer.save(args.out, dataset="shared/data/nyx")
     out_dir = Path(args.results)
@@ -246,7 +241,7 @@ def main() -> int:
                    "step_ratio": trainer.render_cfg.step_ratio, "full_step_ratio": trainer.render_cfg.full_step_ratio,
                    "factor_storage": trainer.field.cfg.factor_storage, "upsample_at": list(cfg.upsample_at),
                    "micro_batch_rays": cfg.micro_batch_rays, "micro_batch_samples": cfg.micro_batch_samples},
-        "choices": recipe.describe(),
+        "choices": trainer.recipe_choices,
         "full_spacing": trainer.spacing_note,
         "final_grid": grids,
         "box": [[round(float(x), 4) for x in row] for row in trainer.field.aabb.cpu()],

@@ -149,7 +149,7 @@ def _train(args: argparse.Namespace) -> int:
         return 2
     if val is None and (Path(args.data) / "transforms_val.json").exists():
         val = load_dataset(args.data, "val")
-    init_field, start, carved, choices = None, None, None, []
+    init_field, start = None, None
     if args.resume:
         from visnerf.checkpoint import load_checkpoint
         from visnerf.training.trainer import TrainState
@@ -169,22 +169,17 @@ def _train(args: argparse.Namespace) -> int:
                            refines_done=int(prov.get("refines_done", 0)))
     print(f"training on {train.n_frames} frames ({val.n_frames if val else 0} held out), "
           f"K={train.n_params}, {train.intrinsics.width}x{train.intrinsics.height}, device {device}", file=sys.stderr)
-    setup_seconds = 0.0
     if init_field is None:
-        from visnerf.training.recipe import choose_recipe
+        from visnerf.training.recipe import recipe_trainer
 
-        t0 = time.perf_counter()
         fixed = set(train_given)
         if {"density_scale", "density_shift"} & set(field_given):
             fixed.add("density_scale")
-        recipe = choose_recipe(train, cfg, field_cfg, frozenset(fixed))
-        cfg, field_cfg, carved, choices = recipe.train, recipe.field, recipe.carved, recipe.describe()
-        setup_seconds = time.perf_counter() - t0
-        for choice in choices:
+        trainer = recipe_trainer(train, val, cfg, field_cfg, device, render_cfg, frozenset(fixed))
+        for choice in trainer.recipe_choices:
             print(f"  {choice['name']} = {choice['value']}: {choice['reason']}", file=sys.stderr)
-    trainer = Trainer(train, val, cfg, device, field_cfg=field_cfg, render_cfg=render_cfg, init_field=init_field,
-                      start=start, carved=carved, setup_seconds=setup_seconds)
-    trainer.recipe_choices = choices
+    else:
+        trainer = Trainer(train, val, cfg, device, render_cfg=render_cfg, init_field=init_field, start=start)
 
     def report(row: dict) -> None:
         print("  " + json.dumps(row), file=sys.stderr)

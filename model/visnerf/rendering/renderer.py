@@ -301,7 +301,7 @@ def drop_occluded(
             points = samples.points[:, start:stop].index_select(0, active).reshape(-1, 3).index_select(0, flat)
             seg_sigma.index_copy_(0, flat, field.density(points, q_d.index_select(0, ray)).to(dtype))
         seg_sigma = seg_sigma.view(-1, g)
-        tau = seg_sigma * samples.deltas[:, start:stop].index_select(0, active).clamp_min(0.0)  # [a, g]
+        tau = optical_depths(seg_sigma, samples.deltas[:, start:stop].index_select(0, active))  # [a, g]
         before = tau_before.index_select(0, active)[:, None] + exclusive_optical_depth(tau)
         seen = valid & (before < tau_stop)
         sigma[active, start:stop] = seg_sigma * seen

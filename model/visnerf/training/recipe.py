@@ -26,15 +26,20 @@ to 104 voxels (a pixel 0.0088 at the origin).
 
 import dataclasses
 import math
+import time
 from dataclasses import dataclass
+from typing import TYPE_CHECKING
 
 import torch
 import torch.nn.functional as F
 
-from visnerf.config import FieldConfig, TrainConfig
+from visnerf.config import FieldConfig, RenderConfig, TrainConfig
 from visnerf.data.carving import carve_occupancy, foreground_masks
 from visnerf.data.scene import SceneData, estimate_bbox
 from visnerf.rendering.occupancy import occupied_bounds
+
+if TYPE_CHECKING:
+    from visnerf.training.trainer import Trainer
 
 VOXEL_PER_PIXEL = 0.93
 """Final voxel size over the pixel footprint at the content: Nyx's detail sits at the pixel
@@ -239,3 +244,17 @@ def content_box(scene: SceneData, carved: tuple[torch.Tensor, torch.Tensor] | No
     bounds = occupied_bounds(*carved)
     return carved[1].clone() if bounds is None else bounds
 
+
+def recipe_trainer(train: SceneData, val: SceneData | None, base: TrainConfig, base_field: FieldConfig,
+                   device: torch.device, render: RenderConfig | None = None,
+                   fixed: frozenset[str] = frozenset()) -> "Trainer":
+    """A trainer for ``train`` with the recipe chosen from it (``choose_recipe``): the time spent
+    looking at the data counts as training time, and the choices go into the checkpoint."""
+    from visnerf.training.trainer import Trainer
+
+    t0 = time.perf_counter()
+    recipe = choose_recipe(train, base, base_field, fixed)
+    trainer = Trainer(train, val, recipe.train, device, field_cfg=recipe.field, render_cfg=render,
+                      carved=recipe.carved, setup_seconds=time.perf_counter() - t0)
+    trainer.recipe_choices = recipe.describe()
+    return trainer
