@@ -8,7 +8,9 @@ iterations per second, peak RSS, checkpoint size and seconds per 256x256 frame.
 
 It trains with the product's recipe, as `visnerf train ../shared/data/nyx --time-budget 60` does
 (``training.recipe`` chooses the grid and the carving from the data); what is its own is the
-hold-out, the validation frames and the report. Writes the checkpoint to runs/nyx.safetensors (``--out``) and nyx_train.json, .md and .png to
+hold-out, the validation frames and the report. Like `visnerf train` it keeps its run state
+beside the checkpoint every ``TrainConfig.checkpoint_every_s`` (the report gives their count and
+cost) and deletes it at the end. Writes the checkpoint to runs/nyx.safetensors (``--out``) and nyx_train.json, .md and .png to
 bench/results/nyx_train_nyx/ (``--results``; by default named after the checkpoint). It refuses,
 before training, to write over a checkpoint or a report that exists (``--force`` does).
 """
@@ -45,6 +47,7 @@ from visnerf.evaluation.plots import plot_difference
 from visnerf.inference import load_scene
 from visnerf.runtime import pick_device
 from visnerf.training.recipe import recipe_trainer
+from visnerf.training.run_state import run_state_path
 
 NYX_VALIDATION_FRAMES = 6
 """Held-out frames of each periodic validation (the final evaluation renders ``--eval-frames``)."""
@@ -106,6 +109,8 @@ def write_report(result: dict, out_dir: Path) -> None:
         f"| PSNR at held-out views | {f['psnr_held_out_views']:.2f} dB |",
         f"| peak RSS | {result['peak_rss_mb']:.0f} MB |",
         f"| checkpoint size | {result['checkpoint_mb']:.2f} MB |",
+        f"| run states | {result['run_states']['written']} written (every {result['run_states']['every_s']:g} s, "
+        f"{result['run_states']['file_mb']:.0f} MB each), {result['run_states']['seconds']:.1f} s in all |",
         f"| model box (after carving) | {result['box'][0]} to {result['box'][1]}, grid {result['final_resolution']} |",
         f"| recipe | {', '.join(f'{k} {v}' for k, v in result.get('recipe', {}).items())} |",
         f"| full-quality spacing chosen at the end | {result.get('full_spacing')} |",
@@ -199,8 +204,12 @@ def main() -> int:
                        validate_every_s=args.validate_every, validate_max_images=NYX_VALIDATION_FRAMES)
     trainer = recipe_trainer(train, val, base, FieldConfig(), device)
     cfg = trainer.cfg
-    trainer.run(progress_bar=sys.stderr.isatty(), on_validate=lambda row: print(json.dumps(row), flush=True))
+    state_path = run_state_path(args.out)  # written every checkpoint_every_s, as `visnerf train` does
+    trainer.run(progress_bar=sys.stderr.isatty(), on_validate=lambda row: print(json.dumps(row), flush=True),
+                state_path=state_path)
     ckpt = trainer.save(args.out, dataset="shared/data/nyx")
+    state_mb = state_path.stat().st_size / 1e6
+    state_path.unlink()
     out_dir = Path(args.results)
     out_dir.mkdir(parents=True, exist_ok=True)
     final = final_eval(ckpt, val, args.eval_frames, out_dir / "nyx_heldout.png", device)
@@ -236,6 +245,8 @@ def main() -> int:
         "train_seconds": trainer.state.train_seconds,
         "peak_rss_mb": peak_rss_mb(),
         "checkpoint_mb": ckpt.stat().st_size / 1e6,
+        "run_states": {"every_s": cfg.checkpoint_every_s, "written": trainer.state.states_written,
+                       "seconds": round(trainer.state.state_seconds, 2), "file_mb": round(state_mb, 1)},
         "final_resolution": trainer.field.resolution,
         "recipe": {**cfg.to_dict(),
                    "step_ratio": trainer.render_cfg.step_ratio, "full_step_ratio": trainer.render_cfg.full_step_ratio,

@@ -180,11 +180,19 @@ def decoded_tensors(tensors: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]
 
 
 def save_checkpoint(model: VisNerfField, meta: CheckpointMeta, path: str | Path) -> Path:
-    """Write atomically: a temporary file in the same folder, fsynced, then renamed."""
+    """Write atomically (``write_atomically``)."""
     path = Path(path)
     occ = None if model.occupancy is None else tuple(model.occupancy.shape)
     meta_json = CheckpointMeta(**{**meta.__dict__, "field": model.current_config(), "occupancy_resolution": occ})
     blob = save_safetensors_bytes(field_tensors(model), metadata={METADATA_KEY: meta_json.to_json()})
+    return write_atomically(path, blob)
+
+
+def write_atomically(path: str | Path, blob: bytes) -> Path:
+    """Write ``blob`` to ``path`` so that a reader (or a process killed at any instant) sees the
+    old file or the whole new one, never a part: a temporary file in the same folder, fsynced,
+    then renamed over ``path``."""
+    path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:

@@ -19,6 +19,7 @@ from visnerf.runtime import pick_device
 
 if TYPE_CHECKING:
     from visnerf.data.scene import SceneData
+    from visnerf.training.trainer import Trainer
 
 
 def parse_settings(text: str) -> tuple[tuple[float, ...], ...]:
@@ -115,14 +116,26 @@ def with_bbox(scene: "SceneData", box: tuple[tuple[float, ...], tuple[float, ...
 def _train(args: argparse.Namespace) -> int:
     from visnerf.data.holdout import split_holdout
     from visnerf.data.parsers.blender import DatasetError, load_dataset
-    from visnerf.training.trainer import Trainer
+    from visnerf.training.run_state import RUN_STATE_SUFFIX, RunStateError, run_state_path
+    from visnerf.training.stop_signals import StopRequested, StopSignals
+    from visnerf.training.trainer import Trainer, write_log
 
     out = Path(args.out)
     if out.suffix != ".safetensors":
         print(f"error: --out must end in .safetensors, got {out}", file=sys.stderr)
         return 2
-    if out.exists() and not args.force and not args.resume:
+    if out.exists() and not args.force and args.resume is None:
         print(f"error: {out} exists; pass --force to overwrite it", file=sys.stderr)
+        return 2
+    state_path = run_state_path(out)
+    resume = None if args.resume is None else Path(args.resume) if args.resume else state_path
+    if resume is None and state_path.exists() and not args.force:
+        print(f"error: {state_path} holds the state of an earlier run of {out} that was stopped; pass --resume to "
+              "go on with it, or --force to start afresh (the state is then replaced)", file=sys.stderr)
+        return 2
+    if resume is not None and not resume.is_file():
+        print(f"error: no run state or checkpoint at {resume} to resume (a run keeps its state in {state_path} "
+              "while it trains and deletes it when it has written its checkpoint)", file=sys.stderr)
         return 2
     train_given, field_given = given_options(args, TrainConfig), given_options(args, FieldConfig)
     render_given = given_options(args, RenderConfig)
@@ -134,58 +147,66 @@ def _train(args: argparse.Namespace) -> int:
     except ValueError as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    if budget is not None:
+        train_given["time_budget_s"] = budget
     shape_given = sorted(set(field_given) - {"factor_storage"})
-    if args.resume and shape_given:
+    if resume is not None and shape_given:
         print(f"error: {', '.join('--' + k.replace('_', '-') for k in shape_given)} would change the field of "
-              f"{args.resume}; a resumed run keeps it", file=sys.stderr)
+              f"{resume}; a resumed run keeps it", file=sys.stderr)
         return 2
     device = pick_device(args.device)
     try:
         scene = load_dataset(args.data, "train")
         scene = with_bbox(scene, args.bbox)
         train, val = split_holdout(scene, HoldoutConfig(views=args.holdout_views, settings=args.holdout_params))
+        if val is None and (Path(args.data) / "transforms_val.json").exists():
+            val = load_dataset(args.data, "val")
     except (DatasetError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    if val is None and (Path(args.data) / "transforms_val.json").exists():
-        val = load_dataset(args.data, "val")
-    init_field, start = None, None
-    if args.resume:
-        from visnerf.checkpoint import load_checkpoint
-        from visnerf.training.trainer import TrainState
-
-        try:
-            init_field, meta = load_checkpoint(args.resume, device)
-        except CheckpointError as exc:
-            print(f"error: {exc}", file=sys.stderr)
-            return 2
-        prov = meta.provenance
-        render_cfg = dataclasses.replace(meta.render, **render_given)  # the resumed model's, unless given
-        if "factor_storage" in field_given:  # storage, not shape: a resumed field may change it
-            init_field.cfg = dataclasses.replace(init_field.cfg, factor_storage=field_given["factor_storage"])
-        start = TrainState(iteration=int(prov.get("iterations", 0)), train_seconds=float(prov.get("train_seconds", 0.0)),
-                           upsamples_done=int(prov.get("upsamples_done", 0)),
-                           occupancy_done=int(prov.get("occupancy_done", 0)),
-                           refines_done=int(prov.get("refines_done", 0)))
     print(f"training on {train.n_frames} frames ({val.n_frames if val else 0} held out), "
           f"K={train.n_params}, {train.intrinsics.width}x{train.intrinsics.height}, device {device}", file=sys.stderr)
-    if init_field is None:
-        from visnerf.training.recipe import recipe_trainer
+    try:
+        if resume is None:
+            from visnerf.training.recipe import recipe_trainer
 
-        fixed = set(train_given)
-        if {"density_scale", "density_shift"} & set(field_given):
-            fixed.add("density_scale")
-        trainer = recipe_trainer(train, val, cfg, field_cfg, device, render_cfg, frozenset(fixed))
-        for choice in trainer.recipe_choices:
-            print(f"  {choice['name']} = {choice['value']}: {choice['reason']}", file=sys.stderr)
-    else:
-        trainer = Trainer(train, val, cfg, device, render_cfg=render_cfg, init_field=init_field, start=start)
+            fixed = set(train_given)
+            if {"density_scale", "density_shift"} & set(field_given):
+                fixed.add("density_scale")
+            trainer = recipe_trainer(train, val, cfg, field_cfg, device, render_cfg, frozenset(fixed))
+            for choice in trainer.recipe_choices:
+                print(f"  {choice['name']} = {choice['value']}: {choice['reason']}", file=sys.stderr)
+        elif resume.suffix == RUN_STATE_SUFFIX:
+            trainer = Trainer.from_run_state(resume, train, val, device, train_given, render_given)
+            print(f"resuming {resume} at iteration {trainer.state.iteration} "
+                  f"({trainer.state.train_seconds / 60:.1f} min trained)", file=sys.stderr)
+        else:
+            trainer = _trainer_from_checkpoint(resume, train, val, device, train_given, render_given, field_given)
+    except (CheckpointError, RunStateError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    if "factor_storage" in field_given:  # storage, not shape: a resumed field may change it
+        trainer.field.cfg = dataclasses.replace(trainer.field.cfg, factor_storage=field_given["factor_storage"])
 
     def report(row: dict) -> None:
         print("  " + json.dumps(row), file=sys.stderr)
 
-    trainer.run(progress_bar=not args.quiet, on_validate=report)
-    path = trainer.save(out, dataset=str(args.data))
+    with StopSignals() as stop:
+        try:
+            trainer.run(progress_bar=not args.quiet, on_validate=report, state_path=state_path, stop=stop)
+            if not trainer.stopped:
+                path = trainer.save(out, dataset=str(args.data))
+        except StopRequested:  # in the final steps: the state written when the loop ended is whole
+            print(f"stopped by {stop.name} in the final steps; {state_path} holds the run at the end of training: "
+                  "the same command with --resume finishes it", file=sys.stderr)
+            return stop.exit_status
+    if trainer.stopped:
+        write_log(trainer.state.log, out.with_suffix(".log.csv"))
+        print(f"stopped by {stop.name} at iteration {trainer.state.iteration} "
+              f"({trainer.state.train_seconds / 60:.1f} min of training); {state_path} holds the run: "
+              "the same command with --resume goes on from there", file=sys.stderr)
+        return stop.exit_status
+    state_path.unlink(missing_ok=True)  # the checkpoint is written: the run is done
     print(f"saved {path} ({path.stat().st_size / 1e6:.2f} MB) and its log {path.with_suffix('.log.csv')}")
     if args.submit:
         from visnerf.upload import UploadError, upload_checkpoint
@@ -197,6 +218,30 @@ def _train(args: argparse.Namespace) -> int:
             return 1
         print(f"{'created' if done.created else 'replaced'} scene {done.scene_id!r} at {done.url}")
     return 0
+
+
+def _trainer_from_checkpoint(path: Path, train: "SceneData", val: "SceneData | None", device: torch.device,
+                             train_given: dict, render_given: dict, field_given: dict) -> "Trainer":
+    """A run that goes on from a finished checkpoint's weights: its recipe (``provenance.recipe``)
+    with the given options on top, its schedule position; the optimizer's moments and the weight
+    average start afresh (a run state keeps them: ``--resume`` without a value)."""
+    from visnerf.checkpoint import load_checkpoint
+    from visnerf.training.trainer import Trainer, TrainState
+
+    init_field, meta = load_checkpoint(path, device)
+    prov = meta.provenance
+    try:
+        cfg = TrainConfig.from_dict({**prov.get("recipe", {}), **train_given})
+    except (TypeError, ValueError) as exc:
+        raise CheckpointError(f"{path}: its recorded training configuration cannot be read back: {exc}") from None
+    render_cfg = dataclasses.replace(meta.render, **render_given)  # the resumed model's, unless given
+    start = TrainState(iteration=int(prov.get("iterations", 0)), train_seconds=float(prov.get("train_seconds", 0.0)),
+                       upsamples_done=int(prov.get("upsamples_done", 0)),
+                       occupancy_done=int(prov.get("occupancy_done", 0)),
+                       refines_done=int(prov.get("refines_done", 0)))
+    trainer = Trainer(train, val, cfg, device, render_cfg=render_cfg, init_field=init_field, start=start)
+    trainer.recipe_choices = list(prov.get("choices", []))
+    return trainer
 
 
 def _render(args: argparse.Namespace) -> int:
@@ -311,7 +356,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="world box that holds the content (write --bbox=-1,... for negative numbers); "
                         "default: the dataset's bbox, else a box every camera sees, carved from the images")
     p.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N")
-    p.add_argument("--resume", default=None, metavar="CKPT", help="continue from this checkpoint's weights")
+    p.add_argument("--resume", nargs="?", const="", default=None, metavar="STATE|CKPT",
+                   help="go on with a run. Alone: from the run state beside --out (M.resume, written every "
+                        "--checkpoint-every-s seconds and when SIGTERM or Ctrl-C stops the run), exactly where it "
+                        "stopped; with a .resume file: from that run state; with a checkpoint: from its weights "
+                        "and schedule position, with fresh optimizer moments")
     p.add_argument("--submit", default=None, metavar="URL", help="upload the checkpoint to a server when done")
     p.add_argument("--force", action="store_true", help="overwrite --out")
     p.add_argument("--quiet", action="store_true", help="no progress bar")

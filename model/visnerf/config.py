@@ -283,11 +283,15 @@ class TrainConfig:
     by a factor of e. 0: off. At 0.03, +0.076 dB on 24 held-out Nyx frames."""
     weight_average_from: float = 0.5
     """Progress fraction from which the average is kept; it restarts if the grid is upsampled
-    later, and on ``--resume`` (it is not in the checkpoint)."""
+    later (a resumed run continues it from its run state)."""
     weight_average_every: int = 4
     """Steps between updates of the average (each is a pass over every parameter)."""
     validate_every_s: float = 120.0
     """Seconds of training between validations."""
+    checkpoint_every_s: float = 300.0
+    """Seconds of training between writes of the run state (``training/run_state.py``), for a run
+    that has a file for it (``visnerf train`` keeps it beside ``--out``): a job killed outright
+    loses at most this much. 0: written only when the run is stopped by SIGTERM or Ctrl-C."""
     validate_max_images: int = 8
     """Held-out frames rendered at each validation (evenly chosen)."""
     choose_full_spacing: bool = True
@@ -323,8 +327,8 @@ class TrainConfig:
         _require(0.0 < self.lr_decay_ratio <= 1.0, f"lr_decay_ratio must be in (0, 1], got {self.lr_decay_ratio!r}")
         _require(len(self.betas) == 2 and all(0.0 <= b < 1.0 for b in self.betas),
                  f"betas must be two numbers in [0, 1), got {self.betas!r}")
-        _check_non_negative(self, "l1_weight_initial", "l1_weight_rest", "param_l1_weight", "tv_weight_density",
-                            "tv_weight_appearance", "tv_weight_params")
+        _check_non_negative(self, "checkpoint_every_s", "l1_weight_initial", "l1_weight_rest", "param_l1_weight",
+                            "tv_weight_density", "tv_weight_appearance", "tv_weight_params")
         _check_below_one(self, "stop_eps")
         _require(0.0 <= self.carve_min_seen_fraction <= 1.0,
                  f"carve_min_seen_fraction must be in [0, 1], got {self.carve_min_seen_fraction!r}")

@@ -12,8 +12,9 @@ import math
 import time
 import warnings
 from collections.abc import Callable
-from dataclasses import dataclass, field, replace
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import torch
@@ -50,6 +51,15 @@ from visnerf.representation.vm_taps import table_gradients_in_place
 from visnerf.runtime import bf16_native, keep_freed_blocks, release_free_memory
 from visnerf.training.ray_batches import RayBatchSampler
 from visnerf.training.regularizers import RegularizerWeights, backward_regularization
+from visnerf.training.run_state import (
+    RunStateError,
+    pack_optimizer,
+    read_run_state,
+    scene_fingerprint,
+    unpack_optimizer,
+    write_run_state,
+)
+from visnerf.training.stop_signals import StopRequest
 from visnerf.training.weight_average import WeightAverage
 
 
@@ -69,12 +79,18 @@ def upsample_resolutions(cfg: TrainConfig) -> list[float]:
 
 @dataclass
 class TrainState:
+    """Where a run stands in its schedule (saved in the run state, partly in the checkpoint)."""
+
     iteration: int = 0
     train_seconds: float = 0.0
     upsamples_done: int = 0
     occupancy_done: int = 0
     refines_done: int = 0
     log: list[dict] = field(default_factory=list)
+    states_written: int = 0
+    """Run states written (``run_state.py``), periodic and on stop."""
+    state_seconds: float = 0.0
+    """Seconds spent writing them (part of ``train_seconds``)."""
 
 
 FUSED_ADAM_DEVICES = ("cpu", "cuda")
@@ -182,6 +198,10 @@ class Trainer:
         self.optimizer = make_optimizer(self.field, cfg, 1.0)
         self.settings_all = parameter_settings(train_scene.knots(), cfg.occupancy_max_settings, self.generator)
         self.weight_average: WeightAverage | None = None
+        self.ema_mse: float | None = None
+        """Moving average of the batches' squared error (the progress bar's PSNR)."""
+        self.stopped = False
+        """Whether the last ``run`` returned early on a stop request (its run state is written)."""
 
     def progress(self) -> float:
         p = self.state.iteration / max(1, self.cfg.iterations)
@@ -361,15 +381,27 @@ class Trainer:
         self,
         progress_bar: bool = True,
         on_validate: Callable[[dict[str, float]], None] | None = None,
+        state_path: Path | None = None,
+        stop: StopRequest | None = None,
     ) -> list[dict]:
-        """Train until the iteration count or the time budget is reached; returns the log."""
+        """Train until the iteration count or the time budget is reached; returns the log.
+
+        With ``state_path`` the run state (``run_state.py``) is written there every
+        ``checkpoint_every_s`` seconds of training and when the loop ends. With ``stop``, a stop
+        request ends the loop before the next step: the state is written (with ``state_path``),
+        ``stopped`` is set and the log returned without the final steps (weight average,
+        occupancy, spacing), which a resumed run does.
+        """
         cfg = self.cfg
         wall0 = time.perf_counter()
-        last_val = self.state.train_seconds
+        last_val = last_state = self.state.train_seconds
+        self.stopped = False
         bar = tqdm(total=cfg.iterations, initial=self.state.iteration, disable=not progress_bar,
                    dynamic_ncols=True, desc="train")
-        ema_mse = None
         while self.progress() < 1.0:
+            if stop is not None and stop.requested():
+                self.stopped = True
+                break
             t0 = time.perf_counter()  # milestones (upsampling, occupancy grids) are training time
             self._milestones()
             stats = self.train_step()
@@ -379,15 +411,25 @@ class Trainer:
             self.state.train_seconds += dt
             if self.state.iteration % self.cfg.trim_every == 0:
                 release_free_memory()
-            ema_mse = stats["mse"] if ema_mse is None else 0.95 * ema_mse + 0.05 * stats["mse"]
+            self.ema_mse = stats["mse"] if self.ema_mse is None else 0.95 * self.ema_mse + 0.05 * stats["mse"]
             bar.update(1)
             if self.state.iteration % 10 == 0:
-                bar.set_postfix(loss=f"{stats['loss']:.4f}", psnr=f"{mse_to_psnr(ema_mse):.2f}",
+                bar.set_postfix(loss=f"{stats['loss']:.4f}", psnr=f"{mse_to_psnr(self.ema_mse):.2f}",
                                 res=str(self.field.resolution[0]), refresh=False)
             if self.val_scene is not None and self.state.train_seconds - last_val >= cfg.validate_every_s:
                 last_val = self.state.train_seconds
-                self._record(mse_to_psnr(ema_mse), wall0, on_validate)
+                self._record(mse_to_psnr(self.ema_mse), wall0, on_validate)
+            if (state_path is not None and cfg.checkpoint_every_s > 0
+                    and self.state.train_seconds - last_state >= cfg.checkpoint_every_s):
+                self.write_run_state(state_path)
+                last_state = self.state.train_seconds
         bar.close()
+        if state_path is not None and (self.stopped or cfg.checkpoint_every_s > 0):
+            self.write_run_state(state_path)  # a stop during the final steps resumes from here
+        if self.stopped:
+            return self.state.log
+        if stop is not None:
+            stop.loop_ended()
         compared = self._use_weight_average()
         self.finish_occupancy()  # final grid, for fast inference
         if self.val_scene is not None and cfg.choose_full_spacing:
@@ -396,8 +438,109 @@ class Trainer:
             self.spacing_note = choice.describe()
             if progress_bar:
                 tqdm.write(self.spacing_note)
-        self._record(mse_to_psnr(ema_mse) if ema_mse else float("nan"), wall0, on_validate, compared)
+        self._record(mse_to_psnr(self.ema_mse) if self.ema_mse else float("nan"), wall0, on_validate, compared)
         return self.state.log
+
+    def write_run_state(self, path: Path) -> Path:
+        """Write everything this run needs to go on (``run_state.py``); the time it takes counts
+        as training time (``TrainState.state_seconds``)."""
+        t0 = time.perf_counter()
+        tensors, document = self.capture_run_state()
+        write_run_state(path, tensors, document)
+        dt = time.perf_counter() - t0
+        self.state.states_written += 1
+        self.state.state_seconds += dt
+        self.state.train_seconds += dt
+        return path
+
+    def capture_run_state(self) -> tuple[dict[str, Tensor], dict[str, Any]]:
+        """(tensors, JSON document) of the run as it stands between two steps."""
+        tensors = {f"field.{name}": value.float() if value.is_floating_point() else value
+                   for name, value in self.field.state_dict().items() if name != "occupancy"}
+        if self.field.occupancy is not None:
+            tensors["occupancy"] = self.field.occupancy.to(torch.uint8)
+        optimizer_tensors, optimizer_doc = pack_optimizer(self.optimizer)
+        tensors.update(optimizer_tensors)
+        average = None
+        if self.weight_average is not None and self.weight_average.follows(self.field):
+            tensors.update({f"average.{i}": a for i, a in enumerate(self.weight_average.average)})
+            average = {"span": self.weight_average.span, "progress": self.weight_average.progress}
+        tensors["rng.torch"] = torch.get_rng_state()
+        tensors["rng.generator"] = self.generator.get_state()
+        if self.device.type == "cuda":
+            tensors["rng.cuda"] = torch.cuda.get_rng_state(self.device)
+        if self.carved is not None:
+            tensors["carved.grid"], tensors["carved.box"] = self.carved[0].to(torch.uint8), self.carved[1]
+        tensors["settings"] = self.settings_all
+        document = {
+            "scene": scene_fingerprint(self.scene),
+            "state": asdict(self.state),
+            "train": self.cfg.to_dict(),
+            "field": self.field.current_config().to_dict(),
+            "render": self.render_cfg.to_dict(),
+            "choices": self.recipe_choices,
+            "setup_seconds": self.setup_seconds,
+            "ema_mse": self.ema_mse,
+            "optimizer": optimizer_doc,
+            "weight_average": average,
+        }
+        return tensors, document
+
+    @classmethod
+    def from_run_state(
+        cls,
+        path: Path,
+        train_scene: SceneData,
+        val_scene: SceneData | None,
+        device: torch.device,
+        train_overrides: dict[str, Any] | None = None,
+        render_overrides: dict[str, Any] | None = None,
+    ) -> "Trainer":
+        """The run saved at ``path``, ready to go on where it stopped: the same field, optimizer
+        moments, weight average, random state, occupancy and schedule position. The training
+        configuration is the run's, with ``train_overrides`` (a longer budget, say) on top.
+        ``RunStateError`` if the file is unusable or was written for other training frames."""
+        document, tensors = read_run_state(path)
+        if document["scene"] != scene_fingerprint(train_scene):
+            raise RunStateError(f"{path} was written for other training frames (another dataset, split or "
+                                "hold-out); resume with the data and hold-out options of the run that wrote it")
+        try:
+            cfg = TrainConfig.from_dict({**document["train"], **(train_overrides or {})})
+            render_cfg = RenderConfig.from_dict({**document["render"], **(render_overrides or {})})
+            field_cfg = FieldConfig.from_dict(document["field"])
+            start = TrainState(**document["state"])
+        except (KeyError, TypeError, ValueError) as exc:
+            raise RunStateError(f"{path}: the run's configuration cannot be read back: {exc}") from None
+        field_ = VisNerfField(field_cfg, tensors["field.aabb"])
+        try:
+            field_.load_state_dict({name[len("field."):]: value for name, value in tensors.items()
+                                    if name.startswith("field.")}, strict=True)
+        except RuntimeError as exc:
+            raise RunStateError(f"{path}: the field's tensors do not match its configuration: {exc}") from None
+        if "occupancy" in tensors:
+            field_.set_occupancy(tensors["occupancy"].bool())
+        trainer = cls(train_scene, val_scene, cfg, device, render_cfg=render_cfg, init_field=field_, start=start)
+        trainer._restore(document, tensors)
+        return trainer
+
+    def _restore(self, document: dict[str, Any], tensors: dict[str, Tensor]) -> None:
+        """Put back what ``capture_run_state`` saved beyond the field and the schedule."""
+        unpack_optimizer(self.optimizer, tensors, document["optimizer"])
+        average = document.get("weight_average")
+        if average is not None:
+            live = list(self.field.parameters())
+            saved = [tensors[f"average.{i}"].to(self.device) for i in range(len(live))]
+            self.weight_average = WeightAverage(float(average["span"]), live, saved, float(average["progress"]))
+        torch.set_rng_state(tensors["rng.torch"])
+        self.generator.set_state(tensors["rng.generator"])
+        if "rng.cuda" in tensors and self.device.type == "cuda":
+            torch.cuda.set_rng_state(tensors["rng.cuda"], self.device)
+        if "carved.grid" in tensors:
+            self.carved = (tensors["carved.grid"].bool(), tensors["carved.box"].float())
+        self.settings_all = tensors["settings"]
+        self.recipe_choices = list(document.get("choices", []))
+        self.setup_seconds = float(document.get("setup_seconds", 0.0))
+        self.ema_mse = document.get("ema_mse")
 
     def _average_weights(self) -> None:
         """Keep the parameters' moving average from ``weight_average_from`` on, every
@@ -472,6 +615,8 @@ class Trainer:
                         "seed": self.cfg.seed, "upsamples_done": self.state.upsamples_done,
                         "occupancy_done": self.state.occupancy_done,
                         "refines_done": self.state.refines_done, "full_spacing": self.spacing_note,
+                        "run_states": {"written": self.state.states_written,
+                                       "seconds": round(self.state.state_seconds, 2)},
                         "recipe": self.cfg.to_dict(),  # the whole TrainConfig (visnerf info shows it)
                         "choices": self.recipe_choices},
         )
