@@ -4,6 +4,12 @@ Accepted: ``camera_angle_x`` or nerfstudio intrinsics (``fl_x``, ``fl_y``, ``cx`
 ``h``); ``frames[].params`` (K numbers) or a D-NeRF ``frames[].time`` (one axis named ``time``);
 optional ``param_names``, ``white_background`` (default true), ``bbox``, ``scene`` ({title, kind});
 ``file_path`` with or without extension; RGBA images composited on the background.
+
+A bad dataset is refused with a :class:`DatasetError` naming the split file, the frame(s) and the
+problem, before any image is decoded where the JSON alone shows it: frames missing or not a list,
+a frame without ``file_path``/``transform_matrix``, a pose that is not a finite rigid 4x4 matrix,
+the same image used by two frames, parameter lists of different lengths or non-finite values,
+missing or undecodable images, images of different sizes, a bad ``bbox``.
 """
 
 import json
@@ -20,12 +26,140 @@ from visnerf.data.scene import SceneData, axes_from_values, view_ids_from_poses
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".webp", ".PNG", ".JPG")
 
+RIGID_TOLERANCE = 1e-3
+"""Largest accepted entry of |R^T R - I| and |last row - (0, 0, 0, 1)| of a pose.
+
+Exported datasets carry float noise around 1e-7; this is the tolerance ``check_rigid_c2w`` applies to
+poses sent to the server, so a model trained on a dataset can be viewed from the dataset's own poses.
+"""
+
+_DECODE_ERRORS = (OSError, SyntaxError, ValueError, EOFError, Image.DecompressionBombError)
+"""What Pillow raises for a file that is not an image, is truncated or is corrupted."""
+
 
 class DatasetError(ValueError):
     """The dataset cannot be read; the message names the file and the problem."""
 
 
-def _resolve_image(root: Path, file_path: str) -> Path:
+def _frame_label(index: int, frame: Any) -> str:
+    """``frame 3 (./train/r_3)``: how messages name a frame (without the path when it has none)."""
+    if isinstance(frame, dict) and "file_path" in frame:
+        return f"frame {index} ({frame['file_path']})"
+    return f"frame {index}"
+
+
+def _read_meta(path: Path) -> dict[str, Any]:
+    """The split file's JSON object; refused when missing, not JSON, or not an object."""
+    try:
+        meta = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise DatasetError(f"transforms file {path} does not exist") from None
+    except json.JSONDecodeError as exc:
+        raise DatasetError(f"{path} is not valid JSON: {exc}") from None
+    if not isinstance(meta, dict):
+        raise DatasetError(f"{path} must hold a JSON object with a 'frames' list, got {type(meta).__name__}")
+    return meta
+
+
+def _frames(meta: dict[str, Any], path: Path) -> list[dict[str, Any]]:
+    """``meta["frames"]``: checked to be a non-empty list of JSON objects."""
+    frames = meta.get("frames")
+    if frames is None:
+        raise DatasetError(f"{path} has no frames (no 'frames' key)")
+    if not isinstance(frames, list):
+        raise DatasetError(f"{path}: 'frames' must be a list of frames, got {type(frames).__name__}")
+    if not frames:
+        raise DatasetError(f"{path} has no frames (the 'frames' list is empty)")
+    for i, frame in enumerate(frames):
+        if not isinstance(frame, dict):
+            raise DatasetError(f"{path}: frame {i} must be a JSON object, got {type(frame).__name__}")
+        for key in ("file_path", "transform_matrix"):
+            if key not in frame:
+                raise DatasetError(f"{path}: {_frame_label(i, frame)} lacks {key!r}")
+    return frames
+
+
+def _pose_matrix(frame: dict[str, Any], label: str) -> np.ndarray:
+    """The frame's ``transform_matrix`` as a float64 array; checked to be a finite 4x4 matrix."""
+    try:
+        matrix = np.asarray(frame["transform_matrix"], dtype=np.float64)
+    except (TypeError, ValueError):
+        raise DatasetError(f"{label}: transform_matrix is not a 4x4 matrix of numbers") from None
+    if matrix.shape != (4, 4):
+        raise DatasetError(f"{label}: transform_matrix is not a 4x4 matrix (shape {list(matrix.shape)})")
+    if not np.all(np.isfinite(matrix)):
+        raise DatasetError(f"{label}: transform_matrix has non-finite entries (NaN or infinity)")
+    return matrix
+
+
+def _check_rigid(c2w: np.ndarray, labels: list[str], tol: float = RIGID_TOLERANCE) -> None:
+    """Every camera-to-world matrix is rigid: last row (0, 0, 0, 1), rotation orthonormal with det +1.
+
+    A uniform scale is refused too. The ray generator (``cameras.rays_from_pixels``) normalises ray
+    directions, so a scale would not bend rays, but ``cameras.project_points`` (used by the carving
+    of empty space) inverts the rotation by transposing it and so scales depths, and the server's
+    ``check_rigid_c2w`` refuses scaled poses. A scaled pose is more likely a units mistake than intent.
+    """
+    row_error = np.abs(c2w[:, 3] - np.array([0.0, 0.0, 0.0, 1.0])).max(axis=-1)
+    rotation = c2w[:, :3, :3]
+    gram = np.einsum("nji,njk->nik", rotation, rotation)
+    ortho_error = np.abs(gram - np.eye(3)).max(axis=(1, 2))
+    det = np.linalg.det(rotation)
+    for i, label in enumerate(labels):
+        if row_error[i] > tol:
+            raise DatasetError(f"{label}: transform_matrix last row is {c2w[i, 3].tolist()}, expected [0, 0, 0, 1]")
+        if ortho_error[i] > tol:
+            lengths = ", ".join(f"{v:.4g}" for v in np.linalg.norm(rotation[i], axis=0))
+            raise DatasetError(
+                f"{label}: transform_matrix rotation is not orthonormal (max |R^T R - I| = {ortho_error[i]:.3g}, "
+                f"column lengths {lengths}); poses must be rigid, without scale or shear"
+            )
+        if det[i] < 0:
+            raise DatasetError(
+                f"{label}: transform_matrix rotation has determinant {det[i]:.3g} (a mirror), expected +1"
+            )
+
+
+def _frame_params(frame: dict[str, Any], label: str) -> list[float]:
+    """The frame's parameter values: ``params`` (a list of numbers), D-NeRF ``time``, or none."""
+    if "params" in frame:
+        values = frame["params"]
+        if not isinstance(values, list):
+            raise DatasetError(f"{label}: params must be a list of numbers")
+    elif "time" in frame:
+        values = [frame["time"]]
+    else:
+        return []
+    try:
+        return [float(v) for v in values]
+    except (TypeError, ValueError):
+        raise DatasetError(f"{label}: params must be numbers, got {values!r}") from None
+
+
+def _check_param_counts(params: list[list[float]], labels: list[str]) -> None:
+    """Every frame has as many parameter values as the first; names the first frame that differs."""
+    k = len(params[0])
+    for i, values in enumerate(params):
+        if len(values) != k:
+            raise DatasetError(
+                f"frames disagree on the number of parameters: {labels[i]} has {len(values)}, "
+                f"{labels[0]} has {k}"
+            )
+
+
+def _check_param_values(values: np.ndarray, labels: list[str]) -> None:
+    """Every parameter value is finite; names the first frame holding NaN or infinity."""
+    bad = np.nonzero(~np.all(np.isfinite(values), axis=1))[0]
+    if bad.size:
+        i = int(bad[0])
+        raise DatasetError(
+            f"{labels[i]}: parameter values must be finite, got {values[i].tolist()} "
+            f"({bad.size} frame(s) hold non-finite values)"
+        )
+
+
+def _resolve_image(root: Path, file_path: str, label: str) -> Path:
+    """The image file of ``file_path`` under ``root``, as given or with one of IMAGE_EXTENSIONS."""
     candidate = (root / file_path).resolve()
     if candidate.is_file():
         return candidate
@@ -33,10 +167,20 @@ def _resolve_image(root: Path, file_path: str) -> Path:
         with_ext = candidate.with_name(candidate.name + ext)
         if with_ext.is_file():
             return with_ext
-    raise DatasetError(f"image {file_path!r} not found under {root} (tried the extensions {IMAGE_EXTENSIONS})")
+    raise DatasetError(f"{label}: image not found under {root} (tried the extensions {IMAGE_EXTENSIONS})")
 
 
-def _load_rgb(path: Path, background: np.ndarray) -> np.ndarray:
+def _check_unique_images(image_paths: list[Path], labels: list[str]) -> None:
+    """No image is used by two frames (the same file, however its file_path is spelled)."""
+    first_use: dict[Path, int] = {}
+    for i, image in enumerate(image_paths):
+        j = first_use.setdefault(image, i)
+        if j != i:
+            raise DatasetError(f"{labels[j]} and {labels[i]} use the same image {image}: a frame appears twice")
+
+
+def _load_rgb(path: Path, background: np.ndarray, label: str) -> np.ndarray:
+    """The image as uint8 RGB, RGBA composited on ``background``; refused when it cannot be decoded."""
     try:
         with Image.open(path) as im:
             im.load()
@@ -45,11 +189,25 @@ def _load_rgb(path: Path, background: np.ndarray) -> np.ndarray:
                 rgb = rgba[..., :3] * rgba[..., 3:] + background * (1.0 - rgba[..., 3:])
                 return np.clip(rgb * 255.0 + 0.5, 0, 255).astype(np.uint8)
             return np.asarray(im.convert("RGB"), dtype=np.uint8)
-    except OSError as exc:
-        raise DatasetError(f"cannot decode image {path}: {exc}") from None
+    except _DECODE_ERRORS as exc:
+        raise DatasetError(f"{label}: cannot decode image {path}: {exc}") from None
+
+
+def _check_same_size(images: list[np.ndarray], labels: list[str]) -> None:
+    """Every image has the first frame's size; names the first frame that differs and both sizes."""
+    height, width = images[0].shape[:2]
+    differ = [i for i, im in enumerate(images) if im.shape[:2] != (height, width)]
+    if differ:
+        i = differ[0]
+        h, w = images[i].shape[:2]
+        raise DatasetError(
+            f"images differ in size: {labels[i]} is {w}x{h}, {labels[0]} is {width}x{height} "
+            f"({len(differ)} frame(s) differ from the first)"
+        )
 
 
 def _intrinsics(meta: dict[str, Any], width: int, height: int) -> Intrinsics:
+    """The camera intrinsics at the images' size (``_check_intrinsics_given`` ran before)."""
     if "fl_x" in meta:
         w, h = int(meta.get("w", width)), int(meta.get("h", height))
         fx = float(meta["fl_x"])
@@ -61,75 +219,97 @@ def _intrinsics(meta: dict[str, Any], width: int, height: int) -> Intrinsics:
     raise DatasetError("transforms file gives neither camera_angle_x nor fl_x")
 
 
-def _frame_params(frame: dict[str, Any], index: int) -> list[float]:
-    if "params" in frame:
-        values = frame["params"]
-        if not isinstance(values, list):
-            raise DatasetError(f"frame {index}: params must be a list of numbers")
-        return [float(v) for v in values]
-    if "time" in frame:
-        return [float(frame["time"])]
-    return []
+def _check_intrinsics_given(meta: dict[str, Any]) -> None:
+    """The split gives a focal length: ``camera_angle_x`` or nerfstudio's ``fl_x``."""
+    if "fl_x" not in meta and "camera_angle_x" not in meta:
+        raise DatasetError("transforms file gives neither camera_angle_x nor fl_x")
+
+
+def _bbox(meta: dict[str, Any]) -> torch.Tensor | None:
+    """The optional ``bbox``: checked to be [[x0, y0, z0], [x1, y1, z1]] with x1 > x0 etc."""
+    if "bbox" not in meta:
+        return None
+    try:
+        box = np.asarray(meta["bbox"], dtype=np.float32)
+    except (TypeError, ValueError):
+        box = np.zeros(0, dtype=np.float32)
+    if box.shape != (2, 3) or not np.all(box[1] > box[0]):
+        raise DatasetError("bbox must be [[x0,y0,z0],[x1,y1,z1]] with x1>x0 etc.")
+    return torch.from_numpy(box)
+
+
+def _in_file(path: Path, exc: DatasetError) -> DatasetError:
+    """``exc`` with its message prefixed by the split file."""
+    return DatasetError(f"{path}: {exc}")
+
+
+def _poses(frames: list[dict[str, Any]], labels: list[str]) -> np.ndarray:
+    """The frames' camera-to-world matrices, [n, 4, 4] float64, checked finite and rigid."""
+    c2w = np.stack([_pose_matrix(frame, label) for frame, label in zip(frames, labels, strict=True)])
+    _check_rigid(c2w, labels)
+    return c2w
+
+
+def _param_table(frames: list[dict[str, Any]], labels: list[str]) -> np.ndarray:
+    """The frames' parameter values, [n, K] float64, checked to have one length and finite values."""
+    params = [_frame_params(frame, label) for frame, label in zip(frames, labels, strict=True)]
+    _check_param_counts(params, labels)
+    values = np.asarray(params, dtype=np.float64).reshape(len(frames), len(params[0]))
+    _check_param_values(values, labels)
+    return values
+
+
+def _param_names(meta: dict[str, Any], frames: list[dict[str, Any]], k: int) -> list[str]:
+    """``param_names``, else ``time`` for D-NeRF frames, else ``p0``, ``p1``...; checked to count K."""
+    names = list(meta.get("param_names") or (["time"] if "time" in frames[0] else [f"p{j}" for j in range(k)]))
+    if len(names) != k:
+        raise DatasetError(f"param_names has {len(names)} names for {k} parameters")
+    return names
+
+
+def _image_paths(root: Path, frames: list[dict[str, Any]], labels: list[str]) -> list[Path]:
+    """The frames' image files, checked to exist and to be used by one frame each."""
+    paths = [_resolve_image(root, str(frame["file_path"]), label) for frame, label in zip(frames, labels, strict=True)]
+    _check_unique_images(paths, labels)
+    return paths
+
+
+def _load_images(paths: list[Path], labels: list[str], background: np.ndarray, max_workers: int) -> torch.Tensor:
+    """The images as one uint8 [n, h, w, 3] tensor, checked decodable and of one size."""
+    with ThreadPoolExecutor(max_workers=max_workers) as pool:
+        images = list(pool.map(lambda p, label: _load_rgb(p, background, label), paths, labels))
+    _check_same_size(images, labels)
+    return torch.from_numpy(np.stack(images))
 
 
 def load_transforms(path: str | Path, max_workers: int = 2) -> SceneData:
-    """Load one split (``transforms_<split>.json``) into a SceneData."""
+    """Load one split (``transforms_<split>.json``) into a SceneData.
+
+    Everything the JSON alone can show is checked before any image is decoded; every refusal is a
+    DatasetError naming the split file, the frame(s) concerned and the problem.
+    """
     path = Path(path)
-    try:
-        meta = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise DatasetError(f"transforms file {path} does not exist") from None
-    except json.JSONDecodeError as exc:
-        raise DatasetError(f"{path} is not valid JSON: {exc}") from None
-    frames = meta.get("frames")
-    if not isinstance(frames, list) or not frames:
-        raise DatasetError(f"{path} has no frames")
+    meta = _read_meta(path)
+    frames = _frames(meta, path)
     root = path.parent
+    labels = [_frame_label(i, frame) for i, frame in enumerate(frames)]
     white = bool(meta.get("white_background", True))
     background = np.array([1.0, 1.0, 1.0] if white else [0.0, 0.0, 0.0], dtype=np.float32)
-
-    c2w = np.zeros((len(frames), 4, 4), dtype=np.float64)
-    params_list = []
-    image_paths = []
-    for i, frame in enumerate(frames):
-        try:
-            matrix = np.asarray(frame["transform_matrix"], dtype=np.float64)
-            image_paths.append(_resolve_image(root, str(frame["file_path"])))
-        except KeyError as exc:
-            raise DatasetError(f"{path}: frame {i} lacks {exc.args[0]!r}") from None
-        if matrix.shape != (4, 4) or not np.all(np.isfinite(matrix)):
-            raise DatasetError(f"{path}: frame {i} transform_matrix is not a finite 4x4 matrix")
-        c2w[i] = matrix
-        params_list.append(_frame_params(frame, i))
-    k = len(params_list[0])
-    if any(len(p) != k for p in params_list):
-        raise DatasetError(f"{path}: frames disagree on the number of parameters")
-    values = np.asarray(params_list, dtype=np.float64).reshape(len(frames), k)
-    if not np.all(np.isfinite(values)):
-        raise DatasetError(f"{path}: parameter values must be finite")
-    names = list(meta.get("param_names") or (["time"] if "time" in frames[0] else [f"p{j}" for j in range(k)]))
-    if len(names) != k:
-        raise DatasetError(f"{path}: param_names has {len(names)} names for {k} parameters")
+    try:
+        c2w = _poses(frames, labels)
+        values = _param_table(frames, labels)
+        names = _param_names(meta, frames, values.shape[1])
+        image_paths = _image_paths(root, frames, labels)
+        _check_intrinsics_given(meta)
+        bbox = _bbox(meta)
+        images = _load_images(image_paths, labels, background, max_workers)
+    except DatasetError as exc:
+        raise _in_file(path, exc) from None
     keep, axes = axes_from_values(names, values)
-
-    with ThreadPoolExecutor(max_workers=max_workers) as pool:
-        images = list(pool.map(lambda p: _load_rgb(p, background), image_paths))
-    shapes = {im.shape for im in images}
-    if len(shapes) != 1:
-        raise DatasetError(f"{path}: images differ in size {sorted(shapes)}")
-    height, width = images[0].shape[:2]
-    stacked = torch.from_numpy(np.stack(images))
-    del images
-
-    bbox = None
-    if "bbox" in meta:
-        box = np.asarray(meta["bbox"], dtype=np.float32)
-        if box.shape != (2, 3) or not np.all(box[1] > box[0]):
-            raise DatasetError(f"{path}: bbox must be [[x0,y0,z0],[x1,y1,z1]] with x1>x0 etc.")
-        bbox = torch.from_numpy(box)
+    height, width = images.shape[1:3]
     scene = meta.get("scene", {}) if isinstance(meta.get("scene"), dict) else {}
     return SceneData(
-        images=stacked,
+        images=images,
         c2w=torch.from_numpy(c2w).float(),
         intrinsics=_intrinsics(meta, width, height),
         params=torch.from_numpy(values[:, keep]).float() if keep else torch.zeros(len(frames), 0),
