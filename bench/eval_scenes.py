@@ -163,12 +163,17 @@ def table_lines(record: dict) -> list[str]:
         "| scene | kind | K | PSNR (dB) | SSIM | iterations | grid | ms per frame | model MB | paper: real counterpart, PSNR |",
         "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
+    reruns = [r for r in record["scenes"] if r.get("rerun")]
     for r in record["scenes"]:
         paper = r["paper"]
         grid = "x".join(map(str, r["resolution"])) if r.get("resolution") else "n/a"
-        lines.append(f"| {r['scene']} | {r['kind']} | {r['K']} | {_f(r['psnr'], 2)} | {_f(r['ssim'], 3)} | "
+        name = r["scene"] + (" *" if r.get("rerun") else "")
+        lines.append(f"| {name} | {r['kind']} | {r['K']} | {_f(r['psnr'], 2)} | {_f(r['ssim'], 3)} | "
                      f"{r.get('iterations', 'n/a')} | {grid} | {_f(r['ms_per_frame'], 0)} | {_f(r['model_mb'], 2)} | "
                      f"{'-' if not paper else paper['dataset'] + ', ' + str(paper['psnr'])} |")
+    for r in reruns:
+        lines.append(f"\n\\* {r['scene']}: rerun {r['rerun']['date'][:10]} on {r['rerun']['cpu']} by "
+                     f"`{r['rerun']['command']}` after a change that concerns it; the other rows are the record's.")
     return lines
 
 
@@ -237,13 +242,25 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--workers", type=int, default=2, help="scene generation processes (default 2)")
     parser.add_argument("--device", default="auto")
     parser.add_argument("--threads", type=int, default=None, help="torch threads (default: all cores)")
+    parser.add_argument("--replace-rows", action="store_true",
+                        help="rerun the named scenes the record's way and replace their rows and reports in "
+                             "RESULTS/eval_scenes.json and .md and the README, each marked with its date and command")
     args = parser.parse_args(argv)
     if args.minutes_per_scene <= 0 or args.res < 8 or args.test_views < 2:
         parser.error("--minutes-per-scene must be positive, --res at least 8, --test-views at least 2")
     runtime.configure(args.threads)
     device = pick_device(args.device)
     full_run = args.res == 128 and args.scenes == list(catalog) and args.test_views == 181 and not args.max_eval_frames
-    stem = "eval_scenes" if full_run else "eval_scenes.partial"  # a partial run never replaces the record
+    if args.replace_rows:
+        record_path = args.results / "eval_scenes.json"
+        if not record_path.exists():
+            parser.error(f"--replace-rows needs the record {record_path}")
+        kept = json.loads(record_path.read_text())
+        if (args.res, args.test_views, args.minutes_per_scene) != (kept["resolution"], kept["test_views"],
+                                                                   kept["minutes_per_scene"]) or args.max_eval_frames:
+            parser.error("--replace-rows reruns scenes the record's way: its --res, --test-views and "
+                         "--minutes-per-scene, every test frame")
+    stem = "eval_scenes" if full_run or args.replace_rows else "eval_scenes.partial"  # a partial run never replaces the record
     temporary = Path(tempfile.mkdtemp(prefix="visnerf_eval_scenes_"))
     data_root, work = args.data_root or temporary / "data", args.work_dir or temporary / "runs"
     reports = args.results / stem
@@ -274,6 +291,20 @@ def main(argv: list[str] | None = None) -> int:
                   file=sys.stderr)
     finally:
         shutil.rmtree(temporary, ignore_errors=True)
+    if args.replace_rows:
+        replaced = {r["scene"]: {**r, "rerun": {"date": record["date"], "command": record["command"],
+                                                "cpu": record["machine"].get("cpu", "")}} for r in record["scenes"]}
+        record = {**kept, "scenes": [replaced.get(r["scene"], r) for r in kept["scenes"]]}
+        write_json(args.results / f"{stem}.json", record)
+        write_markdown(args.results / f"{stem}.md", record)
+        update_readme(ROOT / "README.md", record)
+        if args.bundle is not None:
+            write_bundled_index(args.results / "bundled_eval" / "README.md", record, reports)
+            readme = ROOT / "README.md"
+            readme.write_text(replace_section(readme.read_text(), BUNDLED_BEGIN, BUNDLED_END,
+                                              bundled_rows(record, ROOT, reports)))
+        print(f"rows of {', '.join(replaced)} replaced in {args.results / stem}.json and .md", file=sys.stderr)
+        return 0
     figure = args.results / f"{stem}_training.png"
     plot_training_curves(figure, runs)
     record["training_figure"] = str(figure.relative_to(ROOT)) if figure.is_relative_to(ROOT) else str(figure)

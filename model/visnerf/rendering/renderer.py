@@ -119,7 +119,7 @@ def _shade_samples(
     points: Float[Tensor, "n s 3"],
     deltas: Float[Tensor, "n s"],
     valid: Bool[Tensor, "n s"],
-    q_density: Float[Tensor, "n c"],
+    q_density: Float[Tensor, "n d"],
     q_appearance: Float[Tensor, "n c"],
     tau_before: Float[Tensor, " n"],
     weight_threshold: float,
@@ -280,7 +280,10 @@ def drop_occluded(
     the density both count as content; this keeps the differentiable pass to the samples in front
     of it. The rays are marched in segments (``first_segment`` samples, then doubling, as the
     inference renderer does) and a ray's densities are evaluated only up to the segment in which
-    it turns opaque. ``stop_eps`` 0 keeps (and evaluates) every sample."""
+    it turns opaque. ``stop_eps`` 0 keeps every sample and evaluates none: ``samples`` come back as
+    they are (the shading pass evaluates their densities itself)."""
+    if stop_eps <= 0.0:
+        return samples
     n, s = samples.valid.shape
     dtype, device = samples.points.dtype, samples.points.device
     sigma = torch.zeros(n, s, dtype=dtype, device=device)

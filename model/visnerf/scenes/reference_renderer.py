@@ -189,7 +189,11 @@ def _render_dvr(volume: DvrVolume, rays_o: Tensor, rays_d: Tensor, config: Rende
         tau = sigma.reshape(m, -1) * dt  # [m, s']
         if int(cnt.min()) < start + index.numel():  # some rays end inside this pass
             tau = torch.where(index < cnt, tau, torch.zeros_like(dt))
-        before = acc_tau[:, None] + torch.cumsum(tau, dim=1) - tau  # [m, s'] exclusive optical depth
+        # [m, s'] exclusive optical depth as a shifted cumulative sum (never ``cumsum - tau``, which
+        # cancels in float32 after a large term); written out here, not imported from the model's
+        # rendering/volume.py, so that the ground truth stays independent of the renderer it judges.
+        shifted = torch.cumsum(tau[:, :-1], dim=1)
+        before = acc_tau[:, None] + torch.cat([torch.zeros_like(tau[:, :1]), shifted], dim=1)
         weights = torch.exp(-before) * -torch.expm1(-tau)  # [m, s']
         acc_rgb = acc_rgb + torch.einsum("ms,msc->mc", weights, colour.reshape(m, -1, 3))
         acc_depth = acc_depth + (weights * t_mid).sum(dim=1)

@@ -166,6 +166,28 @@ def test_visnerf_train_stopped_by_a_signal_saves_and_resumes(scene_split, tmp_pa
     assert abs(_psnr_of(out) - _psnr_of(whole)) < 0.1
 
 
+def test_a_job_killed_outright_goes_on_from_its_last_periodic_state(scene_split, tmp_path) -> None:
+    data = scene_split[0]
+    out = tmp_path / "m.safetensors"
+    state = run_state_path(out)
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    job = subprocess.Popen(_train_command(data, out, "--checkpoint-every-s", "0.2"), stderr=subprocess.DEVNULL,
+                           env=env)
+    deadline = time.monotonic() + 240
+    while not _has_validated(state) and time.monotonic() < deadline and job.poll() is None:
+        time.sleep(0.1)
+    time.sleep(1.0)  # a few more periodic states
+    job.kill()
+    job.wait()
+    document = read_run_state(state)[0]  # the last whole state: the kill cannot have torn it
+    kept = document["state"]["iteration"]
+    assert kept > 0 and document["state"]["states_written"] >= 2
+    resumed = subprocess.run(_train_command(data, out, "--resume"), capture_output=True, text=True, env=env)
+    assert resumed.returncode == 0, resumed.stderr
+    assert f"resuming {state} at iteration {kept}" in resumed.stderr
+    assert read_checkpoint(out)[0].provenance["iterations"] == 240 and not state.exists()
+
+
 def test_resume_without_a_state_names_what_is_missing(scene_split, tmp_path) -> None:
     data = scene_split[0]
     run = subprocess.run(_train_command(data, tmp_path / "m.safetensors", "--resume"), capture_output=True, text=True)
