@@ -173,8 +173,6 @@ def _train(args: argparse.Namespace) -> int:
             fixed = set(train_given)
             if {"density_scale", "density_shift"} & set(field_given):
                 fixed.add("density_scale")
-            if "level_axis" in field_given:
-                fixed.add("level_axis")
             trainer = recipe_trainer(train, val, cfg, field_cfg, device, render_cfg, frozenset(fixed))
             for choice in trainer.recipe_choices:
                 print(f"  {choice['name']} = {choice['value']}: {choice['reason']}", file=sys.stderr)

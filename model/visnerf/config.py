@@ -79,12 +79,6 @@ class FieldConfig:
     need an optical depth of about 10 within a voxel or two, a density of thousands per world unit,
     which a decoder reaches only after many steps at 1; the recipe sets one over the voxel size for
     surface scenes (``training.recipe``), with ``density_shift`` lowered to keep the same fog."""
-    level_axis: int = -1
-    """The parameter axis whose value selects a level of the density, as an isovalue does: the
-    density is then one field whose logit is shifted by a learned offset per training value of the
-    axis (``representation/param_axes.py``, ``LevelOffsets``), so that between two training values
-    the surface lies between theirs; the axis does not modulate the density features. -1: none.
-    The recipe chooses it from the data (``training.recipe``)."""
     init_scale: float = 0.1
     """Standard deviation of the initial VM factors."""
     factor_storage: str = "int8"
@@ -112,9 +106,6 @@ class FieldConfig:
         _check_at_least(self, 0, "pos_encoding_freqs")
         _check_positive(self, "density_scale", "init_scale")
         _require(math.isfinite(self.density_shift), f"density_shift must be a finite number, got {self.density_shift!r}")
-        _require(self.level_axis >= -1 and (not self.param_lengths or self.level_axis < len(self.param_lengths)),
-                 f"level_axis must be -1 (none) or one of the {len(self.param_lengths)} parameter axes, "
-                 f"got {self.level_axis!r}")  # a template without param_lengths is checked by the field
 
     @property
     def n_params(self) -> int:

@@ -119,7 +119,7 @@ def _shade_samples(
     points: Float[Tensor, "n s 3"],
     deltas: Float[Tensor, "n s"],
     valid: Bool[Tensor, "n s"],
-    q_density: Float[Tensor, "n d"],
+    q_density: Float[Tensor, "n c"],
     q_appearance: Float[Tensor, "n c"],
     tau_before: Float[Tensor, " n"],
     weight_threshold: float,

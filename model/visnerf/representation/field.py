@@ -5,10 +5,6 @@ parameter axes of each branch. The ``n_param_components`` parameter features sca
 groups of the spatial features (channel ``c`` by component ``c % n_param_components``) and are also
 appended to the decoder input, so parameter vectors of ones leave the spatial features unchanged.
 
-With a level axis (``FieldConfig.level_axis``, isovalue-like parameters) that axis does not
-modulate the density: the density's parameter features carry one more column, the axis's logit
-offset (``LevelOffsets``), subtracted from the density decoder's output.
-
 Coordinates: world points are mapped to grid coordinates in [-1, 1]^3 over ``aabb``.
 """
 
@@ -25,7 +21,7 @@ from visnerf.representation.decoders import (
     positional_encoding_dim,
     sh_dim,
 )
-from visnerf.representation.param_axes import LevelOffsets, ParamAxes
+from visnerf.representation.param_axes import ParamAxes
 from visnerf.representation.vm import VMGrid
 
 
@@ -40,8 +36,6 @@ class VisNerfField(nn.Module):
 
     def __init__(self, cfg: FieldConfig, aabb: Float[Tensor, "2 3"]) -> None:
         super().__init__()
-        if cfg.level_axis >= cfg.n_params:
-            raise ValueError(f"level_axis {cfg.level_axis} names no parameter axis: the field has {cfg.n_params}")
         self.cfg = cfg
         self.register_buffer("aabb", aabb.detach().clone().float())
         self.occupancy: Tensor | None
@@ -50,7 +44,6 @@ class VisNerfField(nn.Module):
         self.appearance_grid = VMGrid(cfg.n_appearance_components, cfg.resolution, cfg.init_scale)
         self.density_params = ParamAxes(cfg.param_lengths, cfg.n_param_components)
         self.appearance_params = ParamAxes(cfg.param_lengths, cfg.n_param_components)
-        self.density_level = LevelOffsets(cfg.param_lengths[cfg.level_axis]) if cfg.level_axis >= 0 else None
         pc = cfg.n_param_components
         self.density_decoder = Decoder(
             3 * cfg.n_density_components + pc + positional_encoding_dim(cfg.pos_encoding_freqs),
@@ -86,33 +79,18 @@ class VisNerfField(nn.Module):
 
     def param_features(
         self, params: Float[Tensor, "n k"]
-    ) -> tuple[Float[Tensor, "n d"], Float[Tensor, "n c"]]:
-        """(density, appearance) parameter features at normalised parameter values; with a level
-        axis the density's carry its logit offset as one more column (``split_density_features``)."""
-        q_density = self.density_params.sample(params, skip=self.cfg.level_axis)
-        if self.density_level is not None:
-            q_density = torch.cat([q_density, self.density_level.sample(params[:, self.cfg.level_axis])], dim=1)
-        return q_density, self.appearance_params.sample(params)
-
-    def split_density_features(
-        self, q_density: Float[Tensor, "n d"]
-    ) -> tuple[Float[Tensor, "n c"], Float[Tensor, " n"] | None]:
-        """(the CP features, the level axis's logit offset or None) of density parameter features."""
-        if self.density_level is None:
-            return q_density, None
-        return q_density[:, :-1], q_density[:, -1]
+    ) -> tuple[Float[Tensor, "n c"], Float[Tensor, "n c"]]:
+        """(density, appearance) parameter features at normalised parameter values."""
+        return self.density_params.sample(params), self.appearance_params.sample(params)
 
     def density_from_features(
-        self, coords: Float[Tensor, "n 3"], spatial: Float[Tensor, "n f"], q: Float[Tensor, "n d"]
+        self, coords: Float[Tensor, "n 3"], spatial: Float[Tensor, "n f"], q: Float[Tensor, "n c"]
     ) -> Float[Tensor, " n"]:
-        q, offset = self.split_density_features(q)
         pe = encode_position(coords, self.cfg.pos_encoding_freqs)
-        raw = self.density_decoder(torch.cat([modulate(spatial, q), q, pe], dim=-1))[:, 0] + self.cfg.density_shift
-        if offset is not None:
-            raw = raw - offset
-        return F.softplus(raw) * self.cfg.density_scale
+        raw = self.density_decoder(torch.cat([modulate(spatial, q), q, pe], dim=-1))[:, 0]
+        return F.softplus(raw + self.cfg.density_shift) * self.cfg.density_scale
 
-    def density(self, points: Float[Tensor, "n 3"], q_density: Float[Tensor, "n d"]) -> Float[Tensor, " n"]:
+    def density(self, points: Float[Tensor, "n 3"], q_density: Float[Tensor, "n c"]) -> Float[Tensor, " n"]:
         """Non-negative density (per world unit) at world points. Differentiable."""
         coords = self.to_grid(points)
         return self.density_from_features(coords, self.density_grid.sample(coords), q_density)
@@ -141,8 +119,6 @@ class VisNerfField(nn.Module):
         for k, kn in enumerate(knots):
             self.density_params.set_knots(k, kn.to(self.device))
             self.appearance_params.set_knots(k, kn.to(self.device))
-            if self.density_level is not None and k == self.cfg.level_axis:
-                self.density_level.set_knots(kn.to(self.device))
 
     @torch.no_grad()
     def resample(self, resolution: tuple[int, int, int], new_aabb: Tensor | None = None) -> None:

@@ -135,16 +135,13 @@ class FrameField:
     def __init__(
         self,
         field: VisNerfField,
-        q_density: Float[Tensor, "1 d"],
+        q_density: Float[Tensor, "1 c"],
         q_appearance: Float[Tensor, "1 c"],
         dtype: torch.dtype = torch.float32,
     ) -> None:
         self.field = field
         self.dtype = dtype
         cfg = field.cfg
-        q_density, offset = field.split_density_features(q_density)
-        self._logit_offset = 0.0 if offset is None else float(offset[0])
-        """The level axis's logit offset (float32, after the products: a bf16 bias would round it)."""
         self.density_layer = fold_first_layer(field.density_decoder, q_density[0], cfg.n_density_components, dtype)
         self.color_layer = fold_first_layer(field.color_decoder, q_appearance[0], cfg.n_appearance_components, dtype)
         self.density_tables = ModeTables.of(field.density_grid, dtype)
@@ -185,7 +182,7 @@ class FrameField:
         encode_position_into(coords, cfg.pos_encoding_freqs, x[:m, n_spatial:])
         hidden = linear_relu(x, self.density_layer.weight, self.density_layer.bias)  # [padded, h]
         raw = F.linear(hidden, *self._density_out)[:m, 0].to(coords.dtype)
-        return F.softplus(raw + (cfg.density_shift - self._logit_offset)) * cfg.density_scale
+        return F.softplus(raw + cfg.density_shift) * cfg.density_scale
 
     def direction_terms(self, directions: Float[Tensor, "a 3"]) -> Float[Tensor, "a e"]:
         """The view direction's spherical harmonics per ray, in the compute dtype: encoded once

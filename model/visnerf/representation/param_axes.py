@@ -54,12 +54,11 @@ class ParamAxes(nn.Module):
             raise ValueError(f"knots of axis {k} must be strictly increasing")
         self.knots(k).copy_(knots)
 
-    def sample(self, params: Float[Tensor, "n k"], skip: int = -1) -> Float[Tensor, "n c"]:
-        """Product over axes (all but ``skip``) of the interpolated vectors at normalised ``params``."""
+    def sample(self, params: Float[Tensor, "n k"]) -> Float[Tensor, "n c"]:
+        """Product over axes of the interpolated vectors at normalised ``params``."""
         out = torch.ones(params.shape[0], self.n_components, device=params.device, dtype=params.dtype)
         for k, table in enumerate(self.tables):
-            if k != skip:
-                out = out * interpolate_knots(table, self.knots(k), params[:, k])
+            out = out * interpolate_knots(table, self.knots(k), params[:, k])
         return out
 
     def l1_to_one(self) -> Tensor:
@@ -74,40 +73,3 @@ class ParamAxes(nn.Module):
         if not terms:
             return torch.zeros(())
         return sum(terms) / len(terms)
-
-
-class LevelOffsets(nn.Module):
-    """One learnable logit offset per training value of a level axis (an isovalue, say), placed at
-    the values' normalised positions and interpolated piecewise-linearly between them.
-
-    A family of isosurfaces of one scalar field is a family of level sets: the surface at value
-    ``v`` bounds ``{x : f(x) > v}``. With the density's logit a single field and the axis only
-    shifting it, ``logit(x, v) = g(x) - offset(v)``, the surface between two training values is a
-    level of ``g`` between theirs, whatever its shape or topology: it moves from one to the other.
-    The offsets start at zero (every value the same surface) and are learned with the factors,
-    in units of ``GAIN`` logits: a surface is a step of the logit of about 10 within a voxel or
-    two, and the surfaces of neighbouring values lie a few voxels apart, so the offsets between
-    them must be of that size too, which an offset moving by the factors' learning rate per step
-    would take thousands of steps to reach.
-    """
-
-    GAIN = 10.0
-    """Logits per unit of the offset table."""
-
-    def __init__(self, n_values: int) -> None:
-        super().__init__()
-        self.table = nn.Parameter(torch.zeros(n_values, 1))
-        self.register_buffer("knots", torch.linspace(-1.0, 1.0, n_values) if n_values > 1 else torch.zeros(1))
-
-    @torch.no_grad()
-    def set_knots(self, knots: Float[Tensor, " m"]) -> None:
-        """Place the offsets at these normalised training values (strictly increasing)."""
-        if knots.shape != self.knots.shape:
-            raise ValueError(f"the level axis has {self.knots.shape[0]} values, got {knots.shape[0]} knots")
-        if knots.numel() > 1 and not bool((knots[1:] > knots[:-1]).all()):
-            raise ValueError("knots of the level axis must be strictly increasing")
-        self.knots.copy_(knots)
-
-    def sample(self, values: Float[Tensor, " n"]) -> Float[Tensor, "n 1"]:
-        """The offset at normalised axis values (clamped to the end values outside), in logits."""
-        return interpolate_knots(self.table, self.knots, values) * self.GAIN

@@ -17,11 +17,6 @@ the images and cameras alone, each choice with the reason ``visnerf info`` shows
   their content), the content is an opaque surface, which needs an optical depth of about 10
   within a voxel or two. The density is then scaled by one over the final voxel size
   (``FieldConfig.density_scale``), the fog it starts from kept as it is;
-- a level axis for opaque scenes: where the silhouettes of every view nest along a parameter
-  (each contains the next, or each the previous: ``nesting_violation`` under
-  ``LEVEL_MAX_VIOLATION``), as the solids inside isosurfaces of one field at rising isovalues do,
-  that parameter selects a level of one density field (``FieldConfig.level_axis``), so that a
-  surface between two training values lies between theirs instead of blending both;
 - dropping occluded samples (``TrainConfig.stop_eps``) only for opaque scenes: a translucent
   scene's rays seldom turn opaque, and the density pass that finds occluded samples cost Nyx 6 %
   of its steps;
@@ -56,9 +51,6 @@ scale (bench/results/nyx_history.md: 200 voxels over its 0.388 box, 0.00194 worl
 to 192 and 208)."""
 RESOLUTION_RANGE = (48, 256)
 """Fewest and most voxels per axis the recipe picks (memory and checkpoint size bound the top)."""
-LEVEL_MAX_VIOLATION = 0.02
-"""Most silhouette pixels, as a share of those compared, that may break the nesting of a level axis
-(anti-aliased edges and the carving tolerance break a few)."""
 CARVE_FRAMED_FRACTION = 0.75
 """``carve_min_seen_fraction`` where every image frames its content whole."""
 FAINT_CONTRAST = 0.25
@@ -70,7 +62,7 @@ tangle_iso and tangle_static (128x128, 32x32), 0.04 to 0.21 on vortex_tf1, vorte
 Nyx (32x32 to 256x256 renders)."""
 CHOSEN_FIELDS = frozenset({("TrainConfig", "resolution_final"), ("TrainConfig", "carve_min_seen_fraction"),
                            ("FieldConfig", "density_scale"), ("FieldConfig", "density_shift"),
-                           ("FieldConfig", "level_axis"), ("TrainConfig", "stop_eps")})
+                           ("TrainConfig", "stop_eps")})
 """The configuration fields ``choose_recipe`` sets from the data unless the user gives them."""
 BORDER_PIXELS = 1
 """Width of the image border in which a foreground pixel means content cut by the frame."""
@@ -138,33 +130,6 @@ def faint_fraction(scene: SceneData, tolerance: int, max_frames: int = 64) -> fl
         return 1.0  # nothing but background: no evidence of a surface
     top = torch.quantile(fg[:: max(1, fg.numel() // 100_000)], 0.99)
     return float((fg < FAINT_CONTRAST * top).float().mean())
-
-
-def nesting_violation(scene: SceneData, axis: int, tolerance: int) -> float | None:
-    """How far the silhouettes fail to nest along parameter ``axis``: frames of one camera (and one
-    setting of the other axes) seen at three or more values of the axis, in value order, each
-    foreground mask compared with the next; the pixels in one mask and not the other, summed over
-    all pairs, for the direction (shrinking or growing) that has fewer, as a share of the pixels in
-    either mask. 0: perfectly nested, as level sets are. None where no camera sees three values."""
-    background = (torch.tensor(scene.background) * 255.0).round().to(torch.int16)
-    others = [k for k in range(scene.n_params) if k != axis]
-    params, views = scene.params.tolist(), scene.view_ids.tolist()
-    groups: dict[tuple, list[int]] = {}
-    for i in range(scene.n_frames):
-        groups.setdefault((views[i], *(params[i][k] for k in others)), []).append(i)
-    gained = lost = compared = 0
-    for frames in groups.values():
-        if len({params[i][axis] for i in frames}) < 3:
-            continue
-        frames = sorted(frames, key=lambda i: params[i][axis])
-        masks = (scene.images[frames].to(torch.int16) - background).abs().amax(dim=-1) > tolerance  # [m, h, w]
-        a, b = masks[:-1], masks[1:]
-        gained += int((b & ~a).sum())
-        lost += int((a & ~b).sum())
-        compared += int((a | b).sum())
-    if compared == 0:
-        return None
-    return min(gained, lost) / compared
 
 
 def scene_traits(scene: SceneData, tolerance: int) -> SceneTraits:
@@ -267,24 +232,6 @@ def choose_recipe(scene: SceneData, base: TrainConfig, base_field: FieldConfig,
         values["stop_eps"] = 0.0
         choices.append(Choice("stop_eps", 0.0, "translucent content seldom turns a ray opaque: training steps keep "
                                                 "every sample instead of marching a density pass to drop occluded ones"))
-
-    if "level_axis" in fixed:
-        choices.append(Choice("level_axis", base_field.level_axis, "set by the user"))
-    elif traits.opaque and traits.n_params > 0:
-        violations = {k: nesting_violation(scene, k, base.carve_tolerance) for k in range(traits.n_params)}
-        measured = {k: v for k, v in violations.items() if v is not None}
-        best = min(measured, key=measured.__getitem__) if measured else None
-        name = scene.param_axes[best].name if best is not None else ""
-        if best is not None and measured[best] <= LEVEL_MAX_VIOLATION:
-            field_values["level_axis"] = best
-            choices.append(Choice("level_axis", best,
-                                  f"the silhouettes nest along {name!r} in every view ({100 * measured[best]:.2f} % of "
-                                  "their pixels break it), as the solids inside isosurfaces of one field do: the "
-                                  f"density is one field and {name!r} selects its level"))
-        else:
-            seen = ", ".join(f"{scene.param_axes[k].name} {100 * v:.1f} %" for k, v in measured.items()) or "none"
-            choices.append(Choice("level_axis", -1, f"opaque, but the silhouettes do not nest along any parameter "
-                                                    f"(pixels breaking it: {seen}): the parameters modulate the density"))
 
     if traits.n_params == 0:
         choices.append(Choice("parameter_axes", 0, "one setting in the data (K = 0): no parameter factors"))

@@ -104,8 +104,6 @@ CPU, 2.9 against 9.4 ms per optimizer step and 50.6 against 56.4 ms per 2048-ray
 def make_optimizer(field_: VisNerfField, cfg: TrainConfig, scale: float) -> torch.optim.Adam:
     factors = [*field_.density_grid.parameters(), *field_.appearance_grid.parameters(),
                *field_.density_params.parameters(), *field_.appearance_params.parameters()]
-    if field_.density_level is not None:
-        factors += list(field_.density_level.parameters())
     networks = [*field_.density_decoder.parameters(), *field_.color_decoder.parameters()]
     return torch.optim.Adam(
         [{"params": factors, "lr": cfg.lr_factors * scale, "base_lr": cfg.lr_factors},

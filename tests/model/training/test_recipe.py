@@ -10,13 +10,11 @@ import torch
 from visnerf.config import FieldConfig, TrainConfig
 from visnerf.training.recipe import (
     CARVE_FRAMED_FRACTION,
-    LEVEL_MAX_VIOLATION,
     VOXEL_PER_PIXEL,
     choose_recipe,
     content_box,
     faint_fraction,
     frames_cut_by_border,
-    nesting_violation,
     pixel_footprint,
     surface_density,
     voxels_for,
@@ -44,33 +42,6 @@ def test_opaque_surfaces_get_a_surface_density_and_volumes_do_not(surface_scene,
     assert surface.train.stop_eps == TrainConfig().stop_eps > 0 and "stop_eps" not in choices_of(surface)
     assert volume.train.stop_eps == 0.0 and "translucent" in next(c.reason for c in volume.choices
                                                                    if c.name == "stop_eps")
-
-
-def test_isosurfaces_at_several_isovalues_get_a_level_axis(moving_surface_scene, surface_scene, volume_scene):
-    recipe = choose_recipe(moving_surface_scene, TrainConfig(), FieldConfig())
-    assert nesting_violation(moving_surface_scene, 0, 2) <= LEVEL_MAX_VIOLATION
-    assert recipe.field.level_axis == 0
-    assert "nest along 'isovalue'" in next(c.reason for c in recipe.choices if c.name == "level_axis")
-    # A static surface has no axis; a translucent volume keeps its parameters as modulation.
-    for scene in (surface_scene, volume_scene):
-        other = choose_recipe(scene, TrainConfig(), FieldConfig())
-        assert other.field.level_axis == -1 and "level_axis" not in choices_of(other)
-    kept = choose_recipe(moving_surface_scene, TrainConfig(), FieldConfig(level_axis=-1), frozenset({"level_axis"}))
-    assert kept.field.level_axis == -1 and choices_of(kept)["level_axis"] == -1
-
-
-def test_surfaces_whose_silhouettes_do_not_nest_keep_modulation(moving_surface_scene):
-    # The same frames with the isovalues of two settings swapped: the shapes no longer shrink in
-    # order along the axis, as a timestep's moving surfaces do not.
-    params = moving_surface_scene.params.clone()
-    values = sorted(set(params[:, 0].tolist()))
-    low, mid = params[:, 0] == values[0], params[:, 0] == values[2]
-    params[low, 0], params[mid, 0] = values[2], values[0]
-    shuffled = dataclasses.replace(moving_surface_scene, params=params)
-    assert nesting_violation(shuffled, 0, 2) > LEVEL_MAX_VIOLATION
-    recipe = choose_recipe(shuffled, TrainConfig(), FieldConfig())
-    assert recipe.field.level_axis == -1
-    assert "do not nest" in next(c.reason for c in recipe.choices if c.name == "level_axis")
 
 
 def test_surface_density_scale_is_one_over_the_voxel():
