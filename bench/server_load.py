@@ -1,22 +1,34 @@
-"""Load test of the render server: N concurrent HTTP clients on loopback for a bounded time.
+"""Load test of the render server: concurrent HTTP clients on loopback, two modes.
 
-Starts ``visnerf serve`` itself (a subprocess on a free loopback port), waits until it is ready,
-then runs ``--clients`` threads, each with its own ``httpx.Client``, requesting frames from random
-viewpoints and parameter values (so the frame cache rarely answers) until ``--duration`` seconds
-have passed. Meanwhile it samples the server's resident memory (VmRSS in /proc/PID/status).
+Each mode starts its own ``visnerf serve`` (a subprocess on a free loopback port, its default
+settings), waits until it is ready, runs, and stops it with SIGTERM. Meanwhile it samples the
+server's resident memory (VmRSS in /proc/PID/status) four times a second. Every client connects from
+its own loopback address (127.0.0.10, .11, ...; the probes from 127.0.0.2 and .3), so that the
+server's per-address rate limit sees separate clients, as it would on a network; a client told 429
+waits for its ``Retry-After``.
 
-Records requests per second, latency percentiles, errors, 503 answers and RSS over time (first
-10 s against last 10 s, to show whether memory stays flat) to bench/results/server_load.json and
-.md, then stops the server with SIGTERM.
+- ``throughput``: ``--clients`` threads, each with its own ``httpx.Client``, request frames
+  (``--width`` x ``--height``, ``--quality``, ``--format``) from random viewpoints and random
+  parameter values (so the frame cache rarely answers) for ``--duration`` seconds: frames per
+  second, latency percentiles, errors, RSS. Targets: 15 frames/s, p95 under 300 ms (128x128 full).
+- ``heavy``: two phases of ``--duration`` seconds on one server. In both, a probe asks for
+  ``/api/health`` every 0.2 s and another for a 128x128 preview (random view) every 0.5 s; in the
+  second, ``--heavy-clients`` anonymous clients also ask, back to back, for the largest full-quality
+  frame the server's defaults allow (``--heavy-size``: the largest square within ``max_image_size``
+  and ``max_full_pixels``). Side by side: health and preview latency,
+  the heavy clients' answers, RSS. Targets: health median under 100 ms, previews p95 under 1 s,
+  RSS flat (the last 10 s of a phase within 10 % of its first 10 s).
 
-    python bench/server_load.py --tiny --clients 4 --duration 20
-    python bench/server_load.py --checkpoints checkpoints/ --clients 8 --duration 30
+Results go to bench/results/server_load.json and .md, with the CPU named.
+
+    python bench/server_load.py --duration 30                      # both modes, bundled checkpoints
+    python bench/server_load.py --mode throughput --clients 8 --duration 30
+    python bench/server_load.py --tiny --mode heavy --duration 10  # tiny random models
 """
 
 import argparse
-import json
+import math
 import os
-import platform
 import random
 import signal
 import socket
@@ -26,23 +38,54 @@ import sys
 import tempfile
 import threading
 import time
-from dataclasses import dataclass
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import httpx
-from bench_common import write_json
+from bench_common import fmt, load_average, machine_record, markdown_header, write_results
+
+from visnerf_server.settings import Settings
 
 ROOT = Path(__file__).resolve().parents[1]
 RSS_WINDOW_S = 10.0
+RSS_FLAT_FRACTION = 0.10
+HEALTH_INTERVAL_S = 0.2
+PREVIEW_INTERVAL_S = 0.5
+PREVIEW_SIZE = 128
+HEALTH_ADDRESS, PREVIEW_ADDRESS = "127.0.0.2", "127.0.0.3"
+FIRST_CLIENT_HOST = 10
+"""Load client i connects from 127.0.0.(10 + i)."""
+TARGETS = {
+    "throughput_frames_per_s": 15.0,
+    "throughput_p95_ms": 300.0,
+    "health_p50_ms": 100.0,
+    "preview_p95_ms": 1000.0,
+}
 
 
 @dataclass
 class Sample:
     started: float
-    """Seconds since the load started."""
+    """Seconds since the phase started."""
     latency_ms: float
     status: int
-    """HTTP status, or 0 for a transport error."""
+    """HTTP status, or 0 for a transport error (a timeout included)."""
+
+
+@dataclass
+class Phase:
+    """What one phase of load recorded, by stream of requests."""
+
+    started: float
+    samples: dict[str, list[Sample]] = field(default_factory=dict)
+    rss_kb: list[tuple[float, int]] = field(default_factory=list)
+    elapsed_s: float = 0.0
+
+
+# --- the server --------------------------------------------------------------------------------
 
 
 def free_port() -> int:
@@ -73,35 +116,19 @@ def make_tiny_checkpoints(folder: Path) -> None:
     )
 
 
-def start_server(checkpoints: Path, port: int, log_path: Path) -> subprocess.Popen:
-    with log_path.open("wb") as log:
-        return subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "visnerf.cli",
-                "serve",
-                "--host",
-                "127.0.0.1",
-                "--port",
-                str(port),
-                "--checkpoints",
-                str(checkpoints),
-                "--no-client",
-                "--log-level",
-                "warning",
-            ],
-            stdout=log,
-            stderr=subprocess.STDOUT,
-            env={**os.environ, "VISNERF_TOKEN": "bench-not-used"},
-        )
+@dataclass
+class Server:
+    process: subprocess.Popen
+    url: str
+    scenes: list[dict]
+    exit_code: int | None = None
 
 
-def wait_ready(proc: subprocess.Popen, url: str, timeout_s: float = 120.0) -> None:
+def wait_ready(process: subprocess.Popen, url: str, timeout_s: float = 120.0) -> None:
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
-        if proc.poll() is not None:
-            raise RuntimeError(f"server exited with status {proc.returncode} before it was ready")
+        if process.poll() is not None:
+            raise RuntimeError(f"server exited with status {process.returncode} before it was ready")
         try:
             if httpx.get(f"{url}/api/ready", timeout=2).status_code == 200:
                 return
@@ -111,37 +138,147 @@ def wait_ready(proc: subprocess.Popen, url: str, timeout_s: float = 120.0) -> No
     raise RuntimeError("server did not become ready in time")
 
 
-def client_loop(
-    url: str,
-    scenes: list[dict],
-    args: argparse.Namespace,
-    t0: float,
-    deadline: float,
-    seed: int,
-    out: list[Sample],
-) -> None:
+def stop(process: subprocess.Popen) -> int:
+    process.send_signal(signal.SIGTERM)
+    try:
+        return process.wait(timeout=60)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        return process.wait()
+
+
+def largest_full_frame() -> int:
+    """The side of the largest square full-quality frame the server's default settings allow."""
+    defaults = {name: f.default for name, f in Settings.model_fields.items()}
+    side = defaults["max_image_size"]
+    return min(side, math.isqrt(defaults.get("max_full_pixels", side * side)))
+
+
+def client_address(index: int) -> str:
+    return f"127.0.0.{FIRST_CLIENT_HOST + index}"
+
+
+@contextmanager
+def running_server(checkpoints: Path, log_path: Path) -> Iterator[Server]:
+    """``visnerf serve`` with its default settings; SIGTERM on the way out."""
+    port = free_port()
+    command = [sys.executable, "-m", "visnerf.cli", "serve", "--host", "127.0.0.1", "--port", str(port),
+               "--checkpoints", str(checkpoints), "--no-client", "--log-level", "warning"]  # fmt: skip
+    inherited = {k: v for k, v in os.environ.items() if not k.startswith("VISNERF_")}
+    env = {**inherited, "VISNERF_TOKEN": "bench-not-used"}
+    with log_path.open("wb") as log:
+        process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, env=env)
+    url = f"http://127.0.0.1:{port}"
+    server = Server(process, url, [])
+    try:
+        wait_ready(process, url)
+        server.scenes = httpx.get(f"{url}/api/scenes").json()
+        yield server
+    finally:
+        server.exit_code = stop(process)
+
+
+# --- the clients -------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class FrameAsk:
+    """What a render client asks for, every request from a new random view and parameter values."""
+
+    width: int
+    height: int
+    quality: str
+    format: str
+    pause_s: float = 0.0
+    """Wait between requests (a probe); 0 asks back to back (load)."""
+    timeout_s: float = 120.0
+    address: str = "127.0.0.1"
+    """The loopback address the client connects from: the server's rate limit is per address."""
+
+
+def random_query(rng: random.Random, scene: dict, ask: FrameAsk) -> dict[str, object]:
+    query: dict[str, object] = {
+        "azimuth": round(rng.uniform(-180, 180), 3),
+        "elevation": round(rng.uniform(-60, 60), 3),
+        "width": ask.width,
+        "height": ask.height,
+        "quality": ask.quality,
+        "format": ask.format,
+    }
+    for axis in scene["params"]:
+        query[axis["name"]] = round(rng.uniform(axis["min"], axis["max"]), 4)
+    return query
+
+
+def timed_get(http: httpx.Client, path: str, params: dict | None, t0: float) -> tuple[Sample, float]:
+    """One request: its sample, and the seconds the server asked to wait (``Retry-After`` of a 429)."""
+    start = time.perf_counter()
+    retry_after = 0.0
+    try:
+        response = http.get(path, params=params)
+        response.read()
+        status = response.status_code
+        if status == 429:
+            retry_after = float(response.headers.get("retry-after", "1"))
+    except httpx.HTTPError:
+        status = 0
+    return Sample(start - t0, (time.perf_counter() - start) * 1e3, status), retry_after
+
+
+def client_from(url: str, address: str, timeout_s: float) -> httpx.Client:
+    return httpx.Client(base_url=url, timeout=timeout_s, transport=httpx.HTTPTransport(local_address=address))
+
+
+def frame_client(server: Server, ask: FrameAsk, seed: int, t0: float, until: float, out: list[Sample]) -> None:
     rng = random.Random(seed)
-    with httpx.Client(base_url=url, timeout=max(60.0, args.duration)) as http:
-        while time.perf_counter() < deadline:
-            scene = rng.choice(scenes)
-            query: dict[str, object] = {
-                "azimuth": round(rng.uniform(-180, 180), 3),
-                "elevation": round(rng.uniform(-60, 60), 3),
-                "width": args.width,
-                "height": args.height,
-                "quality": args.quality,
-                "format": args.format,
-            }
-            for axis in scene["params"]:
-                query[axis["name"]] = round(rng.uniform(axis["min"], axis["max"]), 4)
-            start = time.perf_counter()
-            try:
-                response = http.get(f"/api/scenes/{scene['id']}/render", params=query)
-                response.read()
-                status = response.status_code
-            except httpx.HTTPError:
-                status = 0
-            out.append(Sample(start - t0, (time.perf_counter() - start) * 1e3, status))
+    with client_from(server.url, ask.address, ask.timeout_s) as http:
+        while time.perf_counter() < until:
+            scene = rng.choice(server.scenes)
+            path = f"/api/scenes/{scene['id']}/render"
+            sample, retry_after = timed_get(http, path, random_query(rng, scene, ask), t0)
+            out.append(sample)
+            time.sleep(max(ask.pause_s, min(retry_after, until - time.perf_counter())))
+
+
+def health_probe(server: Server, t0: float, until: float, out: list[Sample]) -> None:
+    with client_from(server.url, HEALTH_ADDRESS, 30.0) as http:
+        while time.perf_counter() < until:
+            out.append(timed_get(http, "/api/health", None, t0)[0])
+            time.sleep(HEALTH_INTERVAL_S)
+
+
+def sample_rss(pid: int, t0: float, done: threading.Event, out: list[tuple[float, int]]) -> None:
+    while not done.is_set():
+        kb = read_rss_kb(pid)
+        if kb is not None:
+            out.append((time.perf_counter() - t0, kb))
+        done.wait(0.25)
+
+
+def run_phase(server: Server, duration_s: float, streams: dict[str, list[Callable[..., None]]]) -> Phase:
+    """Runs every client of every stream (called as ``client(t0, until, samples)``) until the
+    deadline and each has finished its last request, sampling the server's RSS meanwhile."""
+    t0 = time.perf_counter()
+    phase = Phase(started=t0)
+    done = threading.Event()
+    sampler = threading.Thread(target=sample_rss, args=(server.process.pid, t0, done, phase.rss_kb), daemon=True)
+    sampler.start()
+    threads = []
+    for name, clients in streams.items():
+        phase.samples[name] = []
+        for client in clients:
+            threads.append(threading.Thread(target=client, args=(t0, t0 + duration_s, phase.samples[name])))
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join()
+    phase.elapsed_s = time.perf_counter() - t0
+    done.set()
+    sampler.join()
+    return phase
+
+
+# --- summaries ---------------------------------------------------------------------------------
 
 
 def percentile(sorted_values: list[float], q: float) -> float:
@@ -151,200 +288,276 @@ def percentile(sorted_values: list[float], q: float) -> float:
     return sorted_values[index]
 
 
-def summarise(samples: list[Sample], rss: list[tuple[float, int]], duration: float) -> dict:
+def latency_summary(samples: list[Sample], duration_s: float) -> dict[str, Any]:
     ok = sorted(s.latency_ms for s in samples if s.status == 200)
     statuses: dict[str, int] = {}
     for s in samples:
         statuses[str(s.status)] = statuses.get(str(s.status), 0) + 1
-    first = [kb for t, kb in rss if t <= RSS_WINDOW_S]
-    last = [kb for t, kb in rss if t >= duration - RSS_WINDOW_S]
-
-    def mb(values: list[int], fn) -> float | None:  # noqa: ANN001
-        return round(fn(values) / 1024, 1) if values else None
-
     return {
         "requests": len(samples),
         "ok": len(ok),
-        "requests_per_s": round(len(ok) / duration, 2),
+        "ok_per_s": round(len(ok) / duration_s, 2),
         "latency_ms": {
-            "p50": round(percentile(ok, 50), 2),
-            "p95": round(percentile(ok, 95), 2),
-            "p99": round(percentile(ok, 99), 2),
-            "mean": round(statistics.fmean(ok), 2) if ok else None,
-            "max": round(ok[-1], 2) if ok else None,
+            "p50": round(percentile(ok, 50), 1),
+            "p95": round(percentile(ok, 95), 1),
+            "p99": round(percentile(ok, 99), 1),
+            "mean": round(statistics.fmean(ok), 1) if ok else None,
+            "max": round(ok[-1], 1) if ok else None,
         },
-        "errors": sum(1 for s in samples if s.status != 200 and s.status != 503),
+        "errors": sum(1 for s in samples if s.status not in (200, 429, 503)),
+        "status_429": statuses.get("429", 0),
         "status_503": statuses.get("503", 0),
         "status_counts": statuses,
-        "rss_mb": {
-            "peak": mb([kb for _, kb in rss], max),
-            "first_10s_mean": mb(first, statistics.fmean),
-            "first_10s_max": mb(first, max),
-            "last_10s_mean": mb(last, statistics.fmean),
-            "last_10s_max": mb(last, max),
-            "samples": len(rss),
+    }
+
+
+def rss_summary(rss: list[tuple[float, int]], duration_s: float) -> dict[str, Any]:
+    first = [kb for t, kb in rss if t <= RSS_WINDOW_S]
+    last = [kb for t, kb in rss if t >= duration_s - RSS_WINDOW_S]
+
+    def mb(values: list[int], reduce: Callable[[list[int]], float]) -> float | None:
+        return round(reduce(values) / 1024, 1) if values else None
+
+    first_mean, last_mean = mb(first, statistics.fmean), mb(last, statistics.fmean)
+    growth = (last_mean - first_mean) / first_mean if first_mean and last_mean is not None else None
+    return {
+        "peak": mb([kb for _, kb in rss], max),
+        "first_10s_mean": first_mean,
+        "last_10s_mean": last_mean,
+        "growth_fraction": round(growth, 3) if growth is not None else None,
+        "flat": growth is not None and growth <= RSS_FLAT_FRACTION,
+        "samples": len(rss),
+    }
+
+
+def phase_summary(phase: Phase) -> dict[str, Any]:
+    summary: dict[str, Any] = {"elapsed_s": round(phase.elapsed_s, 1)}
+    summary.update({name: latency_summary(samples, phase.elapsed_s) for name, samples in phase.samples.items()})
+    summary["rss_mb"] = rss_summary(phase.rss_kb, phase.elapsed_s)
+    return summary
+
+
+# --- the two modes -----------------------------------------------------------------------------
+
+
+def throughput_mode(args: argparse.Namespace, checkpoints: Path, work: Path) -> dict[str, Any]:
+    asks = [
+        FrameAsk(args.width, args.height, args.quality, args.format, timeout_s=max(60.0, args.duration),
+                 address=client_address(i))
+        for i in range(args.clients)
+    ]
+    with running_server(checkpoints, work / "throughput.log") as server:
+        clients = [
+            lambda t0, until, out, ask=ask, seed=args.seed + i: frame_client(server, ask, seed, t0, until, out)
+            for i, ask in enumerate(asks)
+        ]
+        phase = run_phase(server, args.duration, {"frames": clients})
+    summary = phase_summary(phase)
+    frames = summary["frames"]
+    return {
+        "config": {"clients": args.clients, "duration_s": args.duration, "width": args.width,
+                   "height": args.height, "quality": args.quality, "format": args.format},
+        "scenes": [s["id"] for s in server.scenes],
+        "server_exit_code": server.exit_code,
+        "results": summary,
+        "meets_targets": {
+            "frames_per_s": frames["ok_per_s"] >= TARGETS["throughput_frames_per_s"],
+            "p95": frames["latency_ms"]["p95"] < TARGETS["throughput_p95_ms"],
         },
     }
 
 
-def write_markdown(path: Path, result: dict) -> None:
-    c, r = result["config"], result["results"]
-    lat, rss = r["latency_ms"], r["rss_mb"]
-    lines = [
-        "# Render server load test",
+def probes(server: Server, seed: int) -> dict[str, list[Callable[..., None]]]:
+    preview = FrameAsk(PREVIEW_SIZE, PREVIEW_SIZE, "preview", "jpeg", PREVIEW_INTERVAL_S, address=PREVIEW_ADDRESS)
+    return {
+        "health": [lambda t0, until, out: health_probe(server, t0, until, out)],
+        "preview": [lambda t0, until, out: frame_client(server, preview, seed, t0, until, out)],
+    }
+
+
+def heavy_mode(args: argparse.Namespace, checkpoints: Path, work: Path) -> dict[str, Any]:
+    size = args.heavy_size
+    asks = [FrameAsk(size, size, "full", "jpeg", timeout_s=300.0, address=client_address(i))
+            for i in range(args.heavy_clients)]
+    with running_server(checkpoints, work / "heavy.log") as server:
+        quiet = run_phase(server, args.duration, probes(server, args.seed))
+        clients = [
+            lambda t0, until, out, ask=ask, seed=args.seed + 100 + i: frame_client(server, ask, seed, t0, until, out)
+            for i, ask in enumerate(asks)
+        ]
+        loaded = run_phase(server, args.duration, {**probes(server, args.seed + 1), "heavy": clients})
+    phases = {"quiet": phase_summary(quiet), "loaded": phase_summary(loaded)}
+    return {
+        "config": {"heavy_clients": args.heavy_clients, "heavy_frame": f"{size}x{size} full jpeg",
+                   "duration_s_per_phase": args.duration, "health_every_s": HEALTH_INTERVAL_S,
+                   "preview": f"{PREVIEW_SIZE}x{PREVIEW_SIZE} preview jpeg every {PREVIEW_INTERVAL_S} s"},
+        "scenes": [s["id"] for s in server.scenes],
+        "server_exit_code": server.exit_code,
+        "phases": phases,
+        "meets_targets": {
+            name: {
+                "health_p50": p["health"]["latency_ms"]["p50"] < TARGETS["health_p50_ms"],
+                "preview_p95": p["preview"]["ok"] > 0 and p["preview"]["latency_ms"]["p95"] < TARGETS["preview_p95_ms"],
+                "rss_flat": p["rss_mb"]["flat"],
+            }
+            for name, p in phases.items()
+        },
+    }
+
+
+# --- the report --------------------------------------------------------------------------------
+
+
+def yes_no(value: bool) -> str:
+    return "yes" if value else "**no**"
+
+
+def statuses(summary: dict[str, Any]) -> str:
+    return ", ".join(f"{code}: {n}" for code, n in sorted(summary["status_counts"].items())) or "-"
+
+
+def throughput_lines(mode: dict[str, Any]) -> list[str]:
+    c, r = mode["config"], mode["results"]
+    frames, rss, met = r["frames"], r["rss_mb"], mode["meets_targets"]
+    lat = frames["latency_ms"]
+    return [
+        "## Throughput",
         "",
-        f"`python bench/server_load.py {' '.join(result['argv'])}` on {result['machine']['summary']}, "
-        f"{result['date']}.",
+        f"{c['clients']} clients for {c['duration_s']} s, {c['width']}x{c['height']} {c['quality']} "
+        f"{c['format']}, random view and parameter values; scenes {', '.join(mode['scenes'])}; "
+        f"server exit status after SIGTERM {mode['server_exit_code']}.",
         "",
-        f"- {c['clients']} concurrent HTTP clients (threads, httpx) on loopback for {c['duration_s']} s; "
-        f"`GET /api/scenes/{{id}}/render` at {c['width']}x{c['height']}, quality {c['quality']}, "
-        f"format {c['format']}, random viewpoint and parameter values per request.",
-        f"- Scenes: {', '.join(result['scenes'])} ({result['checkpoints_note']}).",
-        f"- Server: 1 render worker, queue of 8 (defaults); "
-        f"exit status after SIGTERM: {result['server_exit_code']}.",
-        "",
-        "| measure | value |",
-        "| --- | --- |",
-        f"| frames per second | {r['requests_per_s']} |",
-        f"| requests (200) | {r['ok']} of {r['requests']} |",
-        f"| latency p50 / p95 / p99 (ms) | {lat['p50']} / {lat['p95']} / {lat['p99']} |",
-        f"| latency mean / max (ms) | {lat['mean']} / {lat['max']} |",
-        f"| errors (not 200, not 503) | {r['errors']} |",
-        f"| 503 (queue full) | {r['status_503']} |",
-        f"| server RSS peak (MB) | {rss['peak']} |",
-        f"| server RSS first 10 s mean / max (MB) | {rss['first_10s_mean']} / {rss['first_10s_max']} |",
-        f"| server RSS last 10 s mean / max (MB) | {rss['last_10s_mean']} / {rss['last_10s_max']} |",
+        "| measure | value | target |",
+        "| --- | --- | --- |",
+        f"| frames per second | {frames['ok_per_s']} | {TARGETS['throughput_frames_per_s']:g} "
+        f"({yes_no(met['frames_per_s'])}) |",
+        f"| latency p50 / p95 / p99 (ms) | {fmt(lat['p50'])} / {fmt(lat['p95'])} / {fmt(lat['p99'])} | "
+        f"p95 < {TARGETS['throughput_p95_ms']:g} ({yes_no(met['p95'])}) |",
+        f"| latency mean / max (ms) | {fmt(lat['mean'])} / {fmt(lat['max'])} | |",
+        f"| answers | {statuses(frames)} | |",
+        f"| server RSS first 10 s / last 10 s mean, peak (MB) | {fmt(rss['first_10s_mean'])} / "
+        f"{fmt(rss['last_10s_mean'])}, {fmt(rss['peak'])} | flat ({yes_no(rss['flat'])}) |",
         "",
     ]
-    if result.get("notes"):
-        lines += ["Notes:", ""] + [f"- {n}" for n in result["notes"]] + [""]
+
+
+def heavy_lines(mode: dict[str, Any]) -> list[str]:
+    c, quiet, loaded = mode["config"], mode["phases"]["quiet"], mode["phases"]["loaded"]
+    met = mode["meets_targets"]
+
+    def row(label: str, value: Callable[[dict[str, Any]], str], target: str = "") -> str:
+        return f"| {label} | {value(quiet)} | {value(loaded)} | {target} |"
+
+    def lat(stream: str, q: str) -> Callable[[dict[str, Any]], str]:
+        return lambda p: fmt(p[stream]["latency_ms"][q]) if stream in p else "-"
+
+    heavy = loaded["heavy"]
+    return [
+        "## Heavy clients",
+        "",
+        f"Two phases of {c['duration_s_per_phase']} s on one server: probes alone, then probes beside "
+        f"{c['heavy_clients']} anonymous clients, each from its own address, asking back to back for the "
+        f"largest full frame allowed ({c['heavy_frame']}), waiting out each 429's Retry-After. "
+        f"Probes: `/api/health` every {c['health_every_s']} s, a {c['preview']}. "
+        f"Scenes {', '.join(mode['scenes'])}; server exit status after SIGTERM {mode['server_exit_code']}.",
+        "",
+        "| measure | probes alone | with heavy clients | target (met alone / loaded) |",
+        "| --- | --- | --- | --- |",
+        row("health p50 / p95 / max (ms)", lambda p: f"{lat('health', 'p50')(p)} / {lat('health', 'p95')(p)} / "
+            f"{lat('health', 'max')(p)}", f"p50 < {TARGETS['health_p50_ms']:g} ({yes_no(met['quiet']['health_p50'])} / "
+            f"{yes_no(met['loaded']['health_p50'])})"),
+        row("health answers", lambda p: statuses(p["health"])),
+        row("preview p50 / p95 / max (ms)", lambda p: f"{lat('preview', 'p50')(p)} / {lat('preview', 'p95')(p)} / "
+            f"{lat('preview', 'max')(p)}", f"p95 < {TARGETS['preview_p95_ms']:g} "
+            f"({yes_no(met['quiet']['preview_p95'])} / {yes_no(met['loaded']['preview_p95'])})"),
+        row("preview answers", lambda p: statuses(p["preview"])),
+        row("server RSS first 10 s / last 10 s mean (MB)",
+            lambda p: f"{fmt(p['rss_mb']['first_10s_mean'])} / {fmt(p['rss_mb']['last_10s_mean'])}",
+            f"flat, within {RSS_FLAT_FRACTION:.0%} ({yes_no(met['quiet']['rss_flat'])} / "
+            f"{yes_no(met['loaded']['rss_flat'])})"),
+        row("server RSS peak (MB)", lambda p: fmt(p["rss_mb"]["peak"])),
+        "",
+        f"Heavy clients: {heavy['ok']} frames in {loaded['elapsed_s']} s (the phase runs until each client's "
+        f"last request is answered), latency p50 {fmt(heavy['latency_ms']['p50'])} ms, max "
+        f"{fmt(heavy['latency_ms']['max'])} ms; answers {statuses(heavy)}.",
+        "",
+    ]
+
+
+def write_markdown(path: Path, record: dict[str, Any]) -> None:
+    lines = markdown_header("Render server load test", record)
+    lines += ["", "Each mode starts its own `visnerf serve` with its default settings on loopback; the clients "
+              "run on the same machine, each from its own loopback address (the rate limit is per address).",
+              f"Server defaults: {record['server_defaults']}.", ""]
+    if "throughput" in record:
+        lines += throughput_lines(record["throughput"])
+    if "heavy" in record:
+        lines += heavy_lines(record["heavy"])
+    if record.get("notes"):
+        lines += ["Notes:", ""] + [f"- {n}" for n in record["notes"]] + [""]
     path.write_text("\n".join(lines))
 
 
-def main(argv: list[str] | None = None) -> int:
+# --- main --------------------------------------------------------------------------------------
+
+
+def server_defaults() -> str:
+    """The defaults that shape these figures (read from the server's settings)."""
+    names = ("render_workers", "render_queue_size", "render_timeout_s", "max_image_size", "max_full_pixels",
+             "max_preview_pixels", "rate_limit_pixels_per_s", "rate_limit_burst_pixels", "threads")
+    fields = Settings.model_fields
+    return ", ".join(f"{name} {fields[name].default}" for name in names if name in fields)
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--clients", type=int, default=4)
-    parser.add_argument("--duration", type=float, default=30.0, help="seconds of load")
+    parser.add_argument("--mode", choices=["throughput", "heavy", "both"], default="both")
+    parser.add_argument("--duration", type=float, default=30.0, help="seconds of each phase")
     parser.add_argument("--checkpoints", type=Path, default=ROOT / "checkpoints")
     parser.add_argument("--tiny", action="store_true", help="serve tiny random checkpoints made for the run")
+    parser.add_argument("--clients", type=int, default=4, help="throughput mode: concurrent clients")
     parser.add_argument("--width", type=int, default=128)
     parser.add_argument("--height", type=int, default=128)
     parser.add_argument("--quality", choices=["preview", "full"], default="full")
     parser.add_argument("--format", choices=["png", "jpeg", "webp"], default="jpeg")
-    parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results" / "server_load")
+    parser.add_argument("--heavy-clients", type=int, default=4, help="heavy mode: clients asking for the largest frame")
+    parser.add_argument("--heavy-size", type=int, default=largest_full_frame(),
+                        help="side of the square frames the heavy clients ask for (default: the largest allowed)")
+    parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results")
     parser.add_argument("--seed", type=int, default=0)
-    args = parser.parse_args(argv)
+    return parser.parse_args(argv)
 
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    record: dict[str, Any] = {**machine_record(), "command": "python bench/server_load.py " + " ".join(
+        sys.argv[1:] if argv is None else argv), "server_defaults": server_defaults(), "notes": []}
+    load = {"before": round(load_average(), 2)}
     with tempfile.TemporaryDirectory(prefix="visnerf-load-") as tmp:
-        tmp_dir = Path(tmp)
+        work = Path(tmp)
+        checkpoints = args.checkpoints
         if args.tiny:
-            checkpoints = tmp_dir / "checkpoints"
+            checkpoints = work / "checkpoints"
             checkpoints.mkdir()
             make_tiny_checkpoints(checkpoints)
-            note = "tiny random checkpoints from visnerf.testing.make_tiny_checkpoint, 8^3 grids"
-        else:
-            checkpoints = args.checkpoints
-            if not any(checkpoints.glob("*.safetensors")):
-                print(f"no checkpoints in {checkpoints}; use --tiny or --checkpoints DIR", file=sys.stderr)
-                return 2
-            note = f"checkpoints from {checkpoints}"
-        port = free_port()
-        url = f"http://127.0.0.1:{port}"
-        load_before = os.getloadavg()
-        proc = start_server(checkpoints, port, tmp_dir / "server.log")
-        try:
-            wait_ready(proc, url)
-            scenes = httpx.get(f"{url}/api/scenes").json()
-            samples: list[Sample] = []
-            rss: list[tuple[float, int]] = []
-            t0 = time.perf_counter()
-            deadline = t0 + args.duration
-            stop = threading.Event()
-
-            def sample_rss() -> None:
-                while not stop.is_set():
-                    kb = read_rss_kb(proc.pid)
-                    if kb is not None:
-                        rss.append((time.perf_counter() - t0, kb))
-                    stop.wait(0.25)
-
-            sampler = threading.Thread(target=sample_rss, daemon=True)
-            sampler.start()
-            per_client: list[list[Sample]] = [[] for _ in range(args.clients)]
-            threads = [
-                threading.Thread(
-                    target=client_loop, args=(url, scenes, args, t0, deadline, args.seed + i, per_client[i])
-                )
-                for i in range(args.clients)
-            ]
-            for t in threads:
-                t.start()
-            for t in threads:
-                t.join()
-            elapsed = time.perf_counter() - t0
-            stop.set()
-            sampler.join()
-            for chunk in per_client:
-                samples.extend(chunk)
-        finally:
-            proc.send_signal(signal.SIGTERM)
-            try:
-                exit_code = proc.wait(timeout=30)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                exit_code = proc.wait()
-        load_after = os.getloadavg()
-        results = summarise(samples, rss, elapsed)
-
-    try:
-        import torch
-
-        threads_note = f", torch {torch.__version__} with {torch.get_num_threads()} threads"
-    except ImportError:
-        threads_note = ""
-    result = {
-        "argv": sys.argv[1:] if argv is None else argv,
-        "date": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
-        "machine": {
-            "summary": f"{platform.machine()} Linux, {os.cpu_count()} CPU cores, no GPU{threads_note}",
-            "cpu_count": os.cpu_count(),
-            "python": platform.python_version(),
-            "load_average_1min_before_after": [round(load_before[0], 2), round(load_after[0], 2)],
-        },
-        "config": {
-            "clients": args.clients,
-            "duration_s": args.duration,
-            "width": args.width,
-            "height": args.height,
-            "quality": args.quality,
-            "format": args.format,
-        },
-        "scenes": [s["id"] for s in scenes],
-        "checkpoints_note": note,
-        "server_exit_code": exit_code,
-        "results": results,
-        "notes": [],
-    }
-    if args.tiny:
-        result["notes"].append(
-            "The bundled checkpoints (checkpoints/) did not exist yet when this was recorded, so the run "
-            "used tiny random models; a trained scene's render cost per frame will differ."
-        )
-    busy = load_before[0] > (os.cpu_count() or 1)
-    result["notes"].append(
-        f"1-minute load average before/after the run: {load_before[0]:.2f} / {load_after[0]:.2f} on "
-        f"{os.cpu_count()} cores"
-        + (
-            "; other jobs were running on the machine, so the absolute figures are pessimistic."
-            if busy
-            else "."
-        )
+            record["notes"].append("Tiny random checkpoints (visnerf.testing.make_tiny_checkpoint, 8^3 grids).")
+        elif not any(checkpoints.glob("*.safetensors")):
+            print(f"no checkpoints in {checkpoints}; use --tiny or --checkpoints DIR", file=sys.stderr)
+            return 2
+        if args.mode in ("throughput", "both"):
+            record["throughput"] = throughput_mode(args, checkpoints, work)
+            load["between"] = round(load_average(), 2)
+        if args.mode in ("heavy", "both"):
+            record["heavy"] = heavy_mode(args, checkpoints, work)
+    load["after"] = round(load_average(), 2)
+    record["load_average_1min"] = load
+    record["notes"].append(
+        "The machine record's torch threads are the load generator's; the server picks its own. Load generator "
+        "and server share the machine's cores."
     )
-    args.out.parent.mkdir(parents=True, exist_ok=True)
-    write_json(args.out.with_suffix(".json"), result)
-    write_markdown(args.out.with_suffix(".md"), result)
-    print(json.dumps(results, indent=2))
-    return 0 if results["errors"] == 0 and exit_code == 0 else 1
+    write_results(args.out, "server_load", record, write_markdown)
+    exits = [record[m]["server_exit_code"] for m in ("throughput", "heavy") if m in record]
+    return 0 if all(code == 0 for code in exits) else 1
 
 
 if __name__ == "__main__":

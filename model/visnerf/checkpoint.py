@@ -1,6 +1,7 @@
 """Checkpoints: one ``.safetensors`` file, tensors only, with a JSON document under ``visnerf``.
 
 Loading validates everything before building a model: the container, the format version, the
+metadata (``meta_checks``: finite numbers, parameter axes, box, camera, background, kind), the
 configuration, every tensor's presence, shape and dtype, and that all values are finite. Any
 problem raises ``CheckpointError`` with a message that names it. Saving is atomic.
 """
@@ -19,6 +20,7 @@ from safetensors.torch import save as save_safetensors_bytes
 
 from visnerf.config import FACTOR_STORAGE_DTYPES, FieldConfig, RenderConfig
 from visnerf.factor_codec import ROW_SCALE_SUFFIX, decode_rows, encode_rows
+from visnerf.meta_checks import MetadataError, check_metadata, parse_metadata_json
 from visnerf.representation.field import VisNerfField
 
 FORMAT_VERSION = 1
@@ -78,10 +80,12 @@ class CheckpointMeta:
 
     @classmethod
     def from_json(cls, text: str) -> "CheckpointMeta":
+        """Parse and check the metadata (``meta_checks``, then the configurations' own checks):
+        ``CheckpointError`` names the field of the first problem, before anything is built."""
         try:
-            data = json.loads(text)
-        except json.JSONDecodeError as exc:
-            raise CheckpointError(f"checkpoint metadata is not valid JSON: {exc}") from None
+            data = parse_metadata_json(text)
+        except MetadataError as exc:
+            raise CheckpointError(f"checkpoint metadata: {exc}") from None
         if not isinstance(data, dict):
             raise CheckpointError("checkpoint metadata is not a JSON object")
         version = data.get("format_version")
@@ -90,6 +94,12 @@ class CheckpointMeta:
                 f"unsupported checkpoint format version {version!r} (this build reads {FORMAT_VERSION})"
             )
         try:
+            check_metadata(data)
+        except MetadataError as exc:
+            raise CheckpointError(f"checkpoint metadata: {exc}") from None
+        field_cfg = _config_from(FieldConfig, data["field"], "field")
+        render_cfg = _config_from(RenderConfig, data.get("render", {}), "render")
+        try:
             axes = tuple(
                 ParamAxis(str(a["name"]), float(a["min"]), float(a["max"]),
                           tuple(float(v) for v in a["values"]), float(a["default"]))
@@ -97,14 +107,14 @@ class CheckpointMeta:
             )
             occ = data.get("occupancy_resolution")
             meta = cls(
-                field=FieldConfig.from_dict(data["field"]),
-                render=RenderConfig.from_dict(data.get("render", {})),
+                field=field_cfg,
+                render=render_cfg,
                 param_axes=axes,
                 bbox=tuple(tuple(float(x) for x in corner) for corner in data["bbox"]),  # type: ignore[arg-type]
                 background=tuple(float(x) for x in data.get("background", (1.0, 1.0, 1.0))),  # type: ignore[arg-type]
                 camera={k: float(v) for k, v in data.get("camera", {}).items()},
-                image_width=int(data.get("image_width", 0)),
-                image_height=int(data.get("image_height", 0)),
+                image_width=int(data["image_width"]),
+                image_height=int(data["image_height"]),
                 title=str(data.get("title", "")),
                 kind=str(data.get("kind", "dvr")),
                 occupancy_resolution=None if occ is None else tuple(int(r) for r in occ),  # type: ignore[arg-type]
@@ -120,6 +130,14 @@ class CheckpointMeta:
             if len(axis.values) != length:
                 raise CheckpointError(f"axis {axis.name!r} lists {len(axis.values)} values, the field {length}")
         return meta
+
+
+def _config_from(cls: type[FieldConfig] | type[RenderConfig], data: Any, key: str) -> Any:
+    """``cls.from_dict(data)``, its refusal naming the metadata key (``render: max_samples ...``)."""
+    try:
+        return cls.from_dict(data)
+    except (TypeError, ValueError) as exc:
+        raise CheckpointError(f"checkpoint metadata: {key}: {exc}") from None
 
 
 FACTOR_PREFIXES = ("density_grid.", "appearance_grid.")

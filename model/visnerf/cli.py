@@ -6,6 +6,7 @@ A handler takes the parsed arguments and returns the process exit code.
 
 import argparse
 import importlib
+import importlib.util
 import sys
 
 # Modules that contribute sub-commands, in the order they appear in ``visnerf --help``.
@@ -34,11 +35,24 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+def missing_modules(args: argparse.Namespace) -> list[str]:
+    """The modules a sub-command needs (``set_defaults(requires=(...))``) that this install lacks:
+    training and evaluation packages live in the ``train`` extra, which a server install leaves out."""
+    return [name for name in getattr(args, "requires", ()) if importlib.util.find_spec(name) is None]
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if getattr(args, "func", None) is None:
         parser.print_help()
+        return 2
+    if missing := missing_modules(args):
+        print(
+            f"error: visnerf {args.command} needs {', '.join(missing)}, from the train extra: "
+            "pip install 'visnerf[train]' (in a checkout: pip install -e '.[train]')",
+            file=sys.stderr,
+        )
         return 2
     try:
         return int(args.func(args) or 0)

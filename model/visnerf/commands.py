@@ -365,7 +365,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--force", action="store_true", help="overwrite --out")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_config_options(p)
-    p.set_defaults(func=_train)
+    p.set_defaults(func=_train, requires=("skimage",))  # SSIM of held-out frames
 
     r = sub.add_parser("render", help="render one frame from a checkpoint")
     r.add_argument("checkpoint")

@@ -2,6 +2,8 @@
 
 import dataclasses
 import math
+import numbers
+import typing
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -50,6 +52,71 @@ def _check_fractions(config: object, *names: str) -> None:
                  f"{name} must increase, got {values!r}")
 
 
+def _is_whole(value: object) -> bool:
+    """An integer (numpy's too), not a bool and not a float that happens to be whole."""
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
+
+
+def _has_type(value: object, annotation: object) -> bool:
+    """Whether ``value`` is of a field's annotated type: int, float (an int too), bool, str, or a
+    tuple of ints."""
+    if typing.get_origin(annotation) is tuple:
+        return isinstance(value, tuple) and all(_is_whole(v) for v in value)
+    if annotation is int:
+        return _is_whole(value)
+    if annotation is float:
+        return isinstance(value, numbers.Real) and not isinstance(value, bool)
+    return isinstance(value, annotation) if isinstance(annotation, type) else True
+
+
+_TYPE_WORDS = {int: "a whole number", float: "a number", bool: "true or false", str: "a string"}
+
+
+def _check_types(cls: type, values: dict[str, Any]) -> None:
+    """Each value has its field's annotated type. ``from_dict`` checks before it builds (a
+    configuration read from JSON may hold anything), so that the refusal names the field."""
+    for f in dataclasses.fields(cls):
+        if f.name in values:
+            word = "whole numbers" if typing.get_origin(f.type) is tuple else _TYPE_WORDS.get(f.type, str(f.type))  # type: ignore[arg-type]
+            _require(_has_type(values[f.name], f.type), f"{f.name} must be {word}, got {values[f.name]!r}")
+
+
+def _check_whole_in(config: object, least: int, most: int, *names: str) -> None:
+    """Whole numbers in [least, most]; a tuple field is checked element by element."""
+    for name in names:
+        value = getattr(config, name)
+        items = value if isinstance(value, tuple) else (value,)
+        _require(all(_is_whole(v) and least <= v <= most for v in items),
+                 f"{name} must be {'whole numbers' if isinstance(value, tuple) else 'a whole number'} "
+                 f"in [{least}, {most}], got {value!r}")
+
+
+def _check_number_in(config: object, least: float, most: float, *names: str) -> None:
+    for name in names:
+        value = getattr(config, name)
+        _require(isinstance(value, numbers.Real) and math.isfinite(value) and least <= value <= most,
+                 f"{name} must be a finite number in [{least:g}, {most:g}], got {value!r}")
+
+
+MAX_GRID_RESOLUTION = 4096
+"""Largest grid size along one axis (``FieldConfig.resolution``; the recipe's are a few hundred)."""
+MAX_PARAM_VALUES = 4096
+"""Most training values of one parameter axis."""
+MAX_COMPONENTS = 1024
+"""Most VM or parameter-vector components."""
+MAX_HIDDEN_WIDTH = 4096
+"""Widest decoder hidden layer."""
+MAX_ENCODING_FREQS = 32
+"""Most positional-encoding frequencies."""
+MAX_SAMPLES_LIMIT = 16384
+"""Largest ``RenderConfig.max_samples``: a frame costs up to this many samples a ray (1024 by default)."""
+STEP_RATIO_RANGE = (0.01, 16.0)
+"""Sample spacings (``step_ratio``, ``full_step_ratio``) and the preview's multiplier, in voxels:
+a spacing near 0 would ask for unbounded samples a ray, one of many voxels samples nothing."""
+PREVIEW_SCALE_RANGE = (1.0 / 16.0, 1.0)
+"""Resolution scales of the preview quality."""
+
+
 @dataclass(frozen=True)
 class FieldConfig:
     """Shape of a ViSNeRF field. Everything that fixes a tensor shape lives here."""
@@ -89,6 +156,7 @@ class FieldConfig:
     instead of 12.17 MB. Checkpoints that do not say hold float32."""
 
     def __post_init__(self) -> None:
+        _check_types(type(self), self.__dict__)
         if len(self.resolution) != 3 or min(self.resolution) < 2:
             raise ValueError(f"resolution must be three sizes >= 2, got {self.resolution}")
         if any(n < 1 for n in self.param_lengths):
@@ -106,6 +174,11 @@ class FieldConfig:
         _check_at_least(self, 0, "pos_encoding_freqs")
         _check_positive(self, "density_scale", "init_scale")
         _require(math.isfinite(self.density_shift), f"density_shift must be a finite number, got {self.density_shift!r}")
+        _check_whole_in(self, 2, MAX_GRID_RESOLUTION, "resolution")
+        _check_whole_in(self, 1, MAX_PARAM_VALUES, "param_lengths")
+        _check_whole_in(self, 1, MAX_COMPONENTS, "n_density_components", "n_appearance_components", "n_param_components")
+        _check_whole_in(self, 1, MAX_HIDDEN_WIDTH, "hidden_width")
+        _check_whole_in(self, 0, MAX_ENCODING_FREQS, "pos_encoding_freqs")
 
     @property
     def n_params(self) -> int:
@@ -123,10 +196,9 @@ class FieldConfig:
         unknown = set(data) - names
         if unknown:
             raise ValueError(f"unknown field configuration keys {sorted(unknown)}")
-        values = dict(data)
-        values["resolution"] = tuple(values.get("resolution", cls.resolution))
-        values["param_lengths"] = tuple(values.get("param_lengths", ()))
+        values = {k: tuple(v) if isinstance(v, list) else v for k, v in data.items()}  # JSON lists
         values.setdefault("factor_storage", "float32")  # checkpoints from before the option
+        _check_types(cls, values)
         return cls(**values)
 
 
@@ -146,7 +218,7 @@ class RenderConfig:
     exhaustive ones (``evaluation.spacing``, ``visnerf calibrate``); this default is for
     checkpoints that stored none."""
     max_samples: int = 1024
-    """Upper bound on samples per ray."""
+    """Upper bound on samples per ray (at most ``MAX_SAMPLES_LIMIT``)."""
     bf16: bool = True
     """Full and preview frames run the decoders' matrix products in bfloat16 where the device has
     bf16 matrix instructions (AMX or AVX512-BF16 on x86; ``runtime.bf16_native``), as training does."""
@@ -166,10 +238,14 @@ class RenderConfig:
     """Step multiplier of the preview quality."""
 
     def __post_init__(self) -> None:
+        _check_types(type(self), self.__dict__)
         _check_positive(self, "step_ratio", "full_step_ratio", "preview_step_factor")
         _check_at_least(self, 1, "max_samples")
         _check_below_one(self, "occupancy_threshold", "weight_threshold", "full_weight_threshold", "early_stop_eps")
         _require(0.0 < self.preview_scale <= 1.0, f"preview_scale must be in (0, 1], got {self.preview_scale!r}")
+        _check_whole_in(self, 1, MAX_SAMPLES_LIMIT, "max_samples")
+        _check_number_in(self, *STEP_RATIO_RANGE, "step_ratio", "full_step_ratio", "preview_step_factor")
+        _check_number_in(self, *PREVIEW_SCALE_RANGE, "preview_scale")
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -177,7 +253,9 @@ class RenderConfig:
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> "RenderConfig":
         names = {f.name for f in dataclasses.fields(cls)}
-        return cls(**{k: v for k, v in data.items() if k in names})
+        values = {k: v for k, v in data.items() if k in names}
+        _check_types(cls, values)
+        return cls(**values)
 
 
 @dataclass(frozen=True)

@@ -20,13 +20,24 @@ import torch
 
 from visnerf.checkpoint import CheckpointError, CheckpointMeta, load_checkpoint
 from visnerf.data.cameras import Intrinsics, check_rigid_c2w
+from visnerf.rendering.cancel import CancelCheck, RenderCancelled, raise_if_cancelled
 from visnerf.rendering.renderer import RenderSettings, render_image_scaled
-from visnerf.rendering.setting_occupancy import SettingOccupancy, SettingOccupancyConfig
+from visnerf.rendering.setting_occupancy import BackgroundRunner, SettingOccupancy, SettingOccupancyConfig
 from visnerf.representation.field import VisNerfField
 
 Quality = Literal["preview", "full"]
 
-__all__ = ["CheckpointError", "ParamAxisInfo", "SceneInfo", "SceneRenderer", "load_scene", "Quality"]
+__all__ = [
+    "BackgroundRunner",
+    "CancelCheck",
+    "CheckpointError",
+    "ParamAxisInfo",
+    "Quality",
+    "RenderCancelled",
+    "SceneInfo",
+    "SceneRenderer",
+    "load_scene",
+]
 
 
 @dataclass(frozen=True)
@@ -125,12 +136,17 @@ class SceneRenderer:
         height: int,
         params: Mapping[str, float] | None = None,
         quality: Quality = "full",
+        cancel: CancelCheck | None = None,
+        background: BackgroundRunner | None = None,
     ) -> np.ndarray:
         """Render one frame: uint8 array [height, width, 3].
 
         ``c2w`` is a 4x4 camera-to-world matrix in OpenGL axes; ``fov_deg`` the horizontal field of
         view. ``preview`` renders at half resolution with twice the step and upsamples.
-        Raises ValueError for any invalid input (nothing is rendered then).
+        Raises ValueError for any invalid input (nothing is rendered then), and RenderCancelled
+        once ``cancel`` answers True (asked between chunks of rays). ``background`` runs the build
+        of this parameter setting's occupancy grid when one is due (default: the scene's own
+        thread; ``rendering.setting_occupancy``).
         """
         m = check_rigid_c2w(c2w)
         if not (math.isfinite(fov_deg) and 0.0 < fov_deg < 180.0):
@@ -146,10 +162,12 @@ class SceneRenderer:
         normalized = [axis.normalize(v) for axis, v in zip(self.meta.param_axes, values, strict=True)]
         params_t = torch.tensor(normalized, dtype=torch.float32, device=self.device)
         with self._lock, torch.inference_mode():
+            raise_if_cancelled(cancel)  # it may have waited for the lock
             own = None
             if quality == "full" and settings.use_occupancy:
-                own = self.setting_occupancy.lookup(params_t, self.field.voxel_size() * settings.step_ratio)
-            rgb = render_image_scaled(self.field, c2w_t, intrinsics, params_t, settings, own)  # [h, w, 3]
+                step = self.field.voxel_size() * settings.step_ratio
+                own = self.setting_occupancy.lookup(params_t, step, background)
+            rgb = render_image_scaled(self.field, c2w_t, intrinsics, params_t, settings, own, cancel)  # [h, w, 3]
             out = (rgb.clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
         return out
 

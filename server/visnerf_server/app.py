@@ -17,11 +17,14 @@ from fastapi.responses import JSONResponse
 from fastapi.staticfiles import StaticFiles
 from starlette.concurrency import run_in_threadpool
 
+from visnerf_server.api_docs import add_offline_docs
 from visnerf_server.auth import resolve_token
+from visnerf_server.cpu_threads import apply_threads
 from visnerf_server.dependencies import ServerState
 from visnerf_server.frame_cache import FrameCache
 from visnerf_server.metrics import Metrics
 from visnerf_server.middleware import AccessLogMiddleware
+from visnerf_server.rate_limit import limiter_from_settings
 from visnerf_server.registry import SceneRegistry
 from visnerf_server.render_queue import RenderQueue
 from visnerf_server.routers import health, render, scenes, stream
@@ -58,9 +61,11 @@ def _lifespan(settings: Settings, metrics: Metrics):
         elif removed := remove_stale_uploads(settings.checkpoints_dir):
             logger.info("removed %d stale upload temporaries", removed)
         queue = RenderQueue(settings.render_workers, settings.render_queue_size, metrics)
-        server = ServerState(
-            settings, metrics, registry, queue, FrameCache(settings.frame_cache_bytes), token
-        )
+        cache = FrameCache(settings.frame_cache_bytes, settings.frame_cache_entries)
+        metrics.watch_cache(cache)
+        threads = apply_threads(settings.threads)
+        logger.info("rendering with %d torch thread(s)%s", threads, "" if settings.threads else " (CPU quota or cores)")
+        server = ServerState(settings, metrics, registry, queue, cache, token, limiter=limiter_from_settings(settings))
         app.state.server = server
         stop = threading.Event()
         loader: asyncio.Task | None = None
@@ -99,11 +104,6 @@ async def _validation_error(request: Request, exc: RequestValidationError) -> JS
     return JSONResponse({"detail": _clean_errors(exc.errors())}, status_code=422)
 
 
-async def _value_error(request: Request, exc: ValueError) -> JSONResponse:
-    """A renderer or checkpoint check refused the input: the client's mistake, never a 500."""
-    return JSONResponse({"detail": str(exc)}, status_code=422)
-
-
 def create_app(settings: Settings | None = None) -> FastAPI:
     """Build the app. Scenes load in the lifespan; ``/api/ready`` says when they are warm."""
     settings = settings if settings is not None else get_settings()
@@ -113,15 +113,23 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         version=server_version(),
         description="Renders trained ViSNeRF scenes from any viewpoint and parameter value.",
         lifespan=_lifespan(settings, metrics),
+        docs_url=None,  # FastAPI's pages load from a CDN: api_docs serves them from local files
+        redoc_url=None,
     )
-    app.dependency_overrides[get_settings] = lambda: settings
+
+    async def app_settings() -> Settings:  # async: no thread of the pool for a constant
+        return settings
+
+    app.dependency_overrides[get_settings] = app_settings
+    # No handler turns ValueError into 422: a client input is refused by an explicit
+    # HTTPException(422) where it is checked, so that a ValueError from a bug is a 500.
     app.add_exception_handler(RequestValidationError, _validation_error)  # type: ignore[arg-type]
-    app.add_exception_handler(ValueError, _value_error)  # type: ignore[arg-type]
     app.include_router(health.router)
     app.include_router(scenes.router)
     app.include_router(render.router)
     app.include_router(stream.router)
     app.include_router(health.metrics_router)
+    add_offline_docs(app, settings.docs_assets_dir)
     if settings.client_dir is not None and settings.client_dir.is_dir():
         app.mount("/", StaticFiles(directory=settings.client_dir, html=True), name="client")
     app.add_middleware(

@@ -12,6 +12,16 @@ from visnerf_server.registry import SCENE_ID_PATTERN, is_valid_scene_id
 LOOPBACK_HOSTS = {"127.0.0.1", "::1", "localhost"}
 
 
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
+
+
 def register(subparsers: Any) -> None:
     serve = subparsers.add_parser(
         "serve", help="serve trained scenes over HTTP and WebSocket", description="Run the render server."
@@ -27,6 +37,14 @@ def register(subparsers: Any) -> None:
     )
     serve.add_argument("--device", default=None, help="torch device for the scenes, e.g. cpu or cuda:0")
     serve.add_argument("--no-client", action="store_true", help="serve the API only, not the web client")
+    serve.add_argument(
+        "--threads",
+        type=_positive_int,
+        default=None,
+        metavar="N",
+        help="torch threads for rendering (default: $VISNERF_THREADS, else the CPU quota of the cgroup, "
+        "else the usable cores)",
+    )
     serve.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"])
     serve.set_defaults(func=serve_command)
 
@@ -70,9 +88,8 @@ def configure_logging(level: str, log_format: str) -> None:
 
 
 def serve_command(args: argparse.Namespace) -> int:
-    import uvicorn
-
     from visnerf_server.app import create_app
+    from visnerf_server.serving import serve
     from visnerf_server.settings import Settings
 
     overrides: dict[str, Any] = {}
@@ -82,6 +99,8 @@ def serve_command(args: argparse.Namespace) -> int:
         overrides["device"] = args.device
     if args.no_client:
         overrides["client_dir"] = None
+    if args.threads is not None:
+        overrides["threads"] = args.threads
     settings = Settings(**overrides)
     configure_logging(args.log_level, settings.log_format)
     log = logging.getLogger("visnerf_server")
@@ -92,7 +111,7 @@ def serve_command(args: argparse.Namespace) -> int:
     # uvicorn shuts down gracefully on SIGTERM, then re-raises the signal; a no-op handler here makes
     # that re-raise harmless so a clean shutdown exits with status 0.
     signal.signal(signal.SIGTERM, lambda signum, frame: None)
-    uvicorn.run(
+    started = serve(  # uvicorn.run, and the stop signal also stops the renders in flight (``serving``)
         app,
         host=args.host,
         port=args.port,
@@ -100,8 +119,9 @@ def serve_command(args: argparse.Namespace) -> int:
         log_level=args.log_level,
         access_log=False,
         timeout_graceful_shutdown=5,
+        ws_max_size=settings.ws_max_message_bytes,  # the protocol refuses bigger frames (close 1009)
     )
-    return 0
+    return 0 if started else 3
 
 
 def submit_command(args: argparse.Namespace) -> int:

@@ -3,17 +3,23 @@ the bounded render queue and image encoding. Shared by the HTTP render routes an
 
 import hashlib
 import io
+import threading
 import time
+from collections.abc import Callable
+from concurrent.futures import Future
 from dataclasses import dataclass
 
 import numpy as np
 from PIL import Image
 
 from visnerf.data.cameras import orbit_c2w
+from visnerf.rendering.empty_space import EmptySpace
+from visnerf_server.costs import FrameLimits
 from visnerf_server.frame_cache import CachedFrame, FrameCache
 from visnerf_server.metrics import Metrics
+from visnerf_server.rate_limit import ClientRateLimiter, RateLimited
 from visnerf_server.registry import Scene, default_view
-from visnerf_server.render_queue import RenderQueue
+from visnerf_server.render_queue import Lane, QueueFullError, RenderQueue
 from visnerf_server.schemas import MEDIA_TYPES, MatrixCamera, RenderRequest
 
 
@@ -30,6 +36,8 @@ class FrameJob:
     """Every parameter of the scene, by name, defaults filled in."""
     quality: str
     format: str
+    cost: float = 0.0
+    """Rate-limit price: the frame's pixels, a preview pixel at ``FrameLimits.preview_pixel_cost``."""
 
     def key(self) -> tuple:
         """Identical requests (same scene version) give identical keys; starts with the scene id."""
@@ -74,15 +82,15 @@ class Frame:
         }
 
 
-def prepare_frame(scene: Scene, request: RenderRequest, max_image_size: int) -> FrameJob:
-    """Check a request against the scene and the server's limits; ValueError names the problem."""
+def prepare_frame(scene: Scene, request: RenderRequest, limits: FrameLimits) -> FrameJob:
+    """Check a request against the scene and the server's limits; ValueError names the problem
+    (``costs.FrameTooLarge`` for a size over the limits). A size not given is the scene's trained
+    size, scaled down to fit the limits."""
     default_c2w, default_fov = default_view(scene.renderer)
-    trained_w, trained_h = scene.renderer.info.image_size
-    width = request.width if request.width is not None else min(max(trained_w, 8), max_image_size)
-    height = request.height if request.height is not None else min(max(trained_h, 8), max_image_size)
-    for name, value in (("width", width), ("height", height)):
-        if value > max_image_size:
-            raise ValueError(f"{name} {value} exceeds this server's limit of {max_image_size} pixels")
+    default_w, default_h = limits.default_size(*scene.renderer.info.image_size, request.quality)
+    width = request.width if request.width is not None else default_w
+    height = request.height if request.height is not None else default_h
+    limits.check(width, height, request.quality)
     camera = request.camera
     if camera is None:
         c2w = default_c2w
@@ -93,7 +101,8 @@ def prepare_frame(scene: Scene, request: RenderRequest, max_image_size: int) -> 
     fov_deg = request.fov_deg if request.fov_deg is not None else default_fov
     values = scene.renderer.resolve_params(request.params)
     params = {axis.name: v for axis, v in zip(scene.renderer.info.params, values, strict=True)}
-    return FrameJob(scene, c2w, float(fov_deg), width, height, params, request.quality, request.format)
+    cost = limits.cost(width, height, request.quality)
+    return FrameJob(scene, c2w, float(fov_deg), width, height, params, request.quality, request.format, cost)
 
 
 def encode_image(image: np.ndarray, fmt: str, quality: int) -> bytes:
@@ -112,13 +121,17 @@ def encode_image(image: np.ndarray, fmt: str, quality: int) -> bytes:
 
 @dataclass
 class FrameRenderer:
-    """Renders ``FrameJob``s through the cache and the bounded queue."""
+    """Renders ``FrameJob``s through the cache, the client's rate limit and the bounded queue
+    (previews in the queue's preview lane). A render stops early, between chunks of rays, when
+    its deadline passes or its caller goes away (``render_queue``)."""
 
     queue: RenderQueue
     cache: FrameCache
     metrics: Metrics
     timeout_s: float
     jpeg_quality: int
+    limiter: ClientRateLimiter | None = None
+    """Per-client token buckets; None: no rate limit."""
 
     def _lookup(self, job: FrameJob) -> Frame | None:
         cached = self.cache.get(job.key())
@@ -128,7 +141,27 @@ class FrameRenderer:
         self.metrics.cache_hits.inc()
         return Frame(cached.data, cached.media_type, cached.width, cached.height, 0.0, 0.0, 0.0, True)
 
-    def _work(self, job: FrameJob, submitted: float):
+    def _charge(self, job: FrameJob, client: str | None) -> None:
+        """Take the frame's cost from the client's bucket (a cache hit costs nothing)."""
+        if self.limiter is None or client is None:
+            return
+        try:
+            self.limiter.take(client, job.cost)
+        except RateLimited:
+            self.metrics.rate_limited.inc()
+            raise
+
+    def _refund(self, job: FrameJob, client: str | None) -> None:
+        """The queue refused the frame: nothing was rendered, so nothing is owed."""
+        if self.limiter is not None and client is not None:
+            self.limiter.give_back(client, job.cost)
+
+    def _in_background(self, build: Callable[[], EmptySpace]) -> "Future[EmptySpace]":
+        """Occupancy grid builds wait in the queue's background lane: they count against its
+        capacity like any render instead of taking CPU beside it."""
+        return self.queue.submit(build, Lane.BACKGROUND)
+
+    def _work(self, job: FrameJob, submitted: float, cancel: threading.Event):
         def run() -> Frame:
             started = time.perf_counter()
             image = job.scene.renderer.render(
@@ -138,6 +171,8 @@ class FrameRenderer:
                 job.height,
                 job.params,
                 job.quality,  # type: ignore[arg-type]
+                cancel=cancel.is_set,
+                background=self._in_background,
             )
             rendered = time.perf_counter()
             data = encode_image(image, job.format, self.jpeg_quality)
@@ -160,15 +195,32 @@ class FrameRenderer:
 
         return run
 
-    def render(self, job: FrameJob) -> Frame:
-        """Blocking; raises QueueFullError, RenderTimeoutError or ValueError."""
+    def render(self, job: FrameJob, client: str | None = None) -> Frame:
+        """Blocking; raises RateLimited, QueueFullError, RenderTimeoutError or ValueError.
+        ``client`` is the rate-limit key (``rate_limit.client_key``; None: not limited)."""
         hit = self._lookup(job)
         if hit is not None:
             return hit
-        return self.queue.run(self._work(job, time.perf_counter()), self.timeout_s)
+        self._charge(job, client)
+        cancel = threading.Event()
+        try:
+            return self.queue.run(
+                self._work(job, time.perf_counter(), cancel), self.timeout_s, Lane.of_quality(job.quality), cancel
+            )
+        except QueueFullError:
+            self._refund(job, client)
+            raise
 
-    async def render_async(self, job: FrameJob) -> Frame:
+    async def render_async(self, job: FrameJob, client: str | None = None) -> Frame:
+        """``render`` for coroutines; cancelling the awaiting task stops the render."""
         hit = self._lookup(job)
         if hit is not None:
             return hit
-        return await self.queue.run_async(self._work(job, time.perf_counter()), self.timeout_s)
+        self._charge(job, client)
+        cancel = threading.Event()
+        work = self._work(job, time.perf_counter(), cancel)
+        try:
+            return await self.queue.run_async(work, self.timeout_s, Lane.of_quality(job.quality), cancel)
+        except QueueFullError:
+            self._refund(job, client)
+            raise

@@ -4,6 +4,8 @@ from dataclasses import dataclass, field
 
 from prometheus_client import CollectorRegistry, Counter, Gauge, Histogram, generate_latest
 
+from visnerf_server.frame_cache import FrameCache
+
 _LATENCY_BUCKETS = (0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1.0, 2.5, 5.0, 10.0, 30.0, 60.0)
 
 
@@ -27,6 +29,12 @@ class Metrics:
         self.rejected = Counter(
             "visnerf_render_rejected", "Renders refused because the queue was full", registry=r
         )
+        self.cancelled = Counter(
+            "visnerf_renders_cancelled", "Running renders stopped early (deadline passed, client left)", registry=r
+        )
+        self.rate_limited = Counter(
+            "visnerf_rate_limited", "Render requests refused by the per-client rate limit", registry=r
+        )
         self.dropped_frames = Counter(
             "visnerf_stream_dropped_frames", "Stale stream requests replaced before rendering", registry=r
         )
@@ -38,6 +46,22 @@ class Metrics:
             "visnerf_http_responses", "HTTP responses by status code", ["status"], registry=r
         )
         self.scenes = Gauge("visnerf_scenes_loaded", "Scenes available", registry=r)
+        self.cache_entries = Gauge("visnerf_frame_cache_entries", "Frames in the frame cache", registry=r)
+        self.cache_bytes = Gauge(
+            "visnerf_frame_cache_bytes", "Memory of the frame cache: frames, keys and overhead", registry=r
+        )
+        self.stream_sessions = Gauge("visnerf_stream_sessions", "Stream sessions open", registry=r)
+        self.stream_refused = Counter(
+            "visnerf_stream_refused",
+            "Stream handshakes and messages refused: origin, sessions (over the cap), rate",
+            ["reason"],
+            registry=r,
+        )
+
+    def watch_cache(self, cache: FrameCache) -> None:
+        """Report ``cache``'s entries and bytes at each scrape."""
+        self.cache_entries.set_function(lambda: len(cache))
+        self.cache_bytes.set_function(lambda: cache.n_bytes)
 
     def render(self) -> bytes:
         return generate_latest(self.registry)

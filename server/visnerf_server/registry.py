@@ -32,6 +32,20 @@ def is_valid_scene_id(scene_id: str) -> bool:
     return _SCENE_ID_RE.fullmatch(scene_id) is not None
 
 
+_ABSOLUTE_PATH_RE = re.compile(r"(?<![\w.~:/])/(?:[^\s'\"/:,;()\[\]]+/)*([^\s'\"/:,;()\[\]]*)")
+"""A POSIX absolute path in a message; group 1 is its last part (the file name)."""
+
+
+def public_error(exc: BaseException, folder: Path | None = None) -> str:
+    """``Type: message`` with ``folder`` and every other absolute path cut to the file name:
+    ``/api/ready`` shows which file failed and why, not where the server keeps its files."""
+    message = str(exc)
+    if folder is not None:
+        for prefix in {str(folder), str(folder.resolve())}:
+            message = message.replace(prefix.rstrip("/") + "/", "")
+    return f"{type(exc).__name__}: {_ABSOLUTE_PATH_RE.sub(lambda m: m.group(1), message)}"
+
+
 @dataclass(frozen=True)
 class Scene:
     """One servable scene."""
@@ -119,7 +133,7 @@ class SceneRegistry:
                 version = file_digest(path)
                 renderer = load_and_check(path, self.device) if warmup else load_scene(path, self.device)
             except Exception as exc:  # a bad file on disk must not stop the others from loading
-                errors[scene_id] = f"{type(exc).__name__}: {exc}"
+                errors[scene_id] = public_error(exc, self.checkpoints_dir)
                 logger.error("scene %r not loaded from %s: %s", scene_id, path, exc)
                 continue
             with self.mutation_lock:

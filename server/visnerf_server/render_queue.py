@@ -1,16 +1,31 @@
-"""A bounded render queue: a fixed pool of render threads and a fixed number of waiting slots.
+"""A bounded render queue: a fixed pool of render threads, a fixed number of waiting slots, and
+three lanes served in order of priority.
 
 When every slot is taken, ``submit`` refuses at once (the server answers 503 with Retry-After), so the
-backlog never grows without bound. Callers wait with a time limit: a render still queued when the
-limit passes is cancelled (503); one still running is abandoned to finish on its own (504).
+backlog never grows without bound. A free worker takes the oldest job of the first non-empty lane:
+interactive previews, then full-quality frames, then background work (occupancy grid builds), so
+a preview never waits behind a queued full frame (it may wait for the one running). A steady
+stream of previews delays full frames; each client's share is bounded by its rate limit.
+
+Each job may carry a ``threading.Event`` its work polls (a render asks it between chunks of rays,
+``visnerf.rendering.cancel``). Callers wait with a time limit: a job still queued when the limit
+passes is dropped (503); one running is told to stop through its event (504), which frees the
+worker within a chunk of rays instead of when the frame is done. A caller that goes away (its
+task cancelled: the HTTP client disconnected, the stream closed) stops its job the same way.
+``close`` (``visnerf serve`` calls it on SIGTERM) and ``shutdown`` stop every running job and fail
+the queued ones with QueueFullError, so a stop never waits for a large frame to finish.
 """
 
 import asyncio
 import concurrent.futures
 import threading
+from collections import deque
 from collections.abc import Callable
-from typing import TypeVar
+from dataclasses import dataclass, field
+from enum import IntEnum
+from typing import Any, TypeVar
 
+from visnerf.inference import RenderCancelled
 from visnerf_server.metrics import Metrics
 
 T = TypeVar("T")
@@ -19,7 +34,7 @@ _TIMEOUT_ERRORS = (TimeoutError, asyncio.TimeoutError, concurrent.futures.Timeou
 
 
 class QueueFullError(RuntimeError):
-    """Every render slot is taken."""
+    """Every render slot is taken (or the server is stopping)."""
 
 
 class RenderTimeoutError(RuntimeError):
@@ -30,24 +45,41 @@ class RenderTimeoutError(RuntimeError):
         self.started = started
 
 
-class _Job:
-    __slots__ = ("started",)
+class Lane(IntEnum):
+    """Priority of a job: lower values are served first."""
 
-    def __init__(self) -> None:
-        self.started = False
+    PREVIEW = 0
+    """Interactive previews (cheap by their pixel budget)."""
+    FULL = 1
+    """Full-quality frames."""
+    BACKGROUND = 2
+    """Work no request waits for (occupancy grids of parameter settings)."""
+
+    @classmethod
+    def of_quality(cls, quality: str) -> "Lane":
+        return cls.PREVIEW if quality == "preview" else cls.FULL
+
+
+@dataclass(eq=False)
+class _Job:
+    fn: Callable[[], Any]
+    lane: Lane
+    cancel: threading.Event
+    future: concurrent.futures.Future = field(default_factory=concurrent.futures.Future)
+    started: bool = False
 
 
 class RenderQueue:
-    """``workers`` render threads plus ``queue_size`` waiting slots."""
+    """``workers`` render threads plus ``queue_size`` waiting slots, shared by all lanes."""
 
     def __init__(self, workers: int, queue_size: int, metrics: Metrics) -> None:
         self.capacity = workers + queue_size
+        self._workers = workers
         self._metrics = metrics
-        self._executor = concurrent.futures.ThreadPoolExecutor(
-            max_workers=workers, thread_name_prefix="render"
-        )
-        self._slots = threading.BoundedSemaphore(self.capacity)
-        self._lock = threading.Lock()
+        self._cond = threading.Condition()
+        self._lanes: dict[Lane, deque[_Job]] = {lane: deque() for lane in Lane}
+        self._active: set[_Job] = set()
+        self._threads: list[threading.Thread] = []
         self._waiting = 0
         self._running = 0
         self._closed = False
@@ -60,73 +92,168 @@ class RenderQueue:
     def running(self) -> int:
         return self._running
 
+    @property
+    def closed(self) -> bool:
+        return self._closed
+
     def _update_gauges(self) -> None:
         self._metrics.queue_depth.set(self._waiting)
         self._metrics.in_flight.set(self._running)
 
-    def submit(self, fn: Callable[[], T]) -> "concurrent.futures.Future[T]":
-        """Queue ``fn``; raises QueueFullError when no slot is free (never blocks)."""
-        if self._closed or not self._slots.acquire(blocking=False):
-            self._metrics.rejected.inc()
-            raise QueueFullError("render queue is full")
-        job = _Job()
-        with self._lock:
+    def submit(
+        self, fn: Callable[[], T], lane: Lane = Lane.FULL, cancel: threading.Event | None = None
+    ) -> "concurrent.futures.Future[T]":
+        """Queue ``fn`` in ``lane``; raises QueueFullError when no slot is free (never blocks).
+
+        ``cancel`` is set when the job should stop (its caller's deadline passed or it left, or the
+        queue shuts down); ``fn`` should poll it. Cancelling the future drops a job not yet started.
+        """
+        job = _Job(fn, lane, cancel if cancel is not None else threading.Event())
+        with self._cond:
+            if self._closed or self._waiting + self._running >= self.capacity:
+                self._metrics.rejected.inc()
+                raise QueueFullError("server is shutting down" if self._closed else "render queue is full")
+            self._lanes[lane].append(job)
             self._waiting += 1
             self._update_gauges()
+            if len(self._threads) < min(self._workers, self._waiting + self._running):
+                thread = threading.Thread(target=self._work, name=f"render-{len(self._threads)}", daemon=True)
+                self._threads.append(thread)
+                thread.start()
+            self._cond.notify()
+        job.future.add_done_callback(lambda _: self._forget_if_dropped(job))
+        return job.future
 
-        def run() -> T:
-            with self._lock:
-                job.started = True
-                self._waiting -= 1
-                self._running += 1
-                self._update_gauges()
+    def _forget_if_dropped(self, job: _Job) -> None:
+        """A job cancelled before it started gives its slot back at once."""
+        with self._cond:
+            if job.started or not job.future.cancelled():
+                return
             try:
-                return fn()
-            finally:
-                with self._lock:
-                    self._running -= 1
-                    self._update_gauges()
+                self._lanes[job.lane].remove(job)
+                taken_off_here = True
+            except ValueError:  # a worker or shutdown took it off, and notifies
+                taken_off_here = False
+            self._waiting -= 1
+            self._update_gauges()
+        if taken_off_here:
+            job.future.set_running_or_notify_cancel()  # so that concurrent.futures.wait() sees it done
 
-        def finished(_: concurrent.futures.Future) -> None:
-            with self._lock:
-                if not job.started:  # cancelled while queued
-                    self._waiting -= 1
-                    self._update_gauges()
-            self._slots.release()
+    def _next_job(self) -> _Job | None:
+        """The job to run next (waits for one); None once the queue is closed and empty."""
+        with self._cond:
+            while True:
+                for lane in self._lanes.values():
+                    while lane:
+                        job = lane.popleft()
+                        if job.future.set_running_or_notify_cancel():
+                            job.started = True
+                            self._waiting -= 1
+                            self._running += 1
+                            self._active.add(job)
+                            self._update_gauges()
+                            return job
+                        # cancelled meanwhile: its callback does the accounting
+                if self._closed:
+                    return None
+                self._cond.wait()
 
-        try:
-            future = self._executor.submit(run)
-        except RuntimeError as exc:  # executor shut down
-            with self._lock:
-                self._waiting -= 1
-                self._update_gauges()
-            self._slots.release()
-            raise QueueFullError("server is shutting down") from exc
-        future.add_done_callback(finished)
-        return future
+    def _work(self) -> None:
+        while (job := self._next_job()) is not None:
+            try:
+                result = job.fn()
+            except BaseException as exc:  # noqa: BLE001 - handed to whoever waits on the future
+                self._finish(job)
+                job.future.set_exception(exc)
+            else:
+                self._finish(job)
+                job.future.set_result(result)
 
-    def run(self, fn: Callable[[], T], timeout: float) -> T:
-        """Render ``fn`` and wait for it at most ``timeout`` seconds (blocking; for sync handlers)."""
-        future = self.submit(fn)
+    def _finish(self, job: _Job) -> None:
+        with self._cond:
+            self._active.discard(job)
+            self._running -= 1
+            self._update_gauges()
+
+    def _stopped(self, future: concurrent.futures.Future, cancel: threading.Event) -> bool:
+        """Stop a job its caller gave up on: drop it if queued, else tell it to stop. True when
+        it had started."""
+        cancel.set()
+        started = not future.cancel()
+        if started and not future.done():
+            self._metrics.cancelled.inc()
+        return started
+
+    def run(
+        self,
+        fn: Callable[[], T],
+        timeout: float,
+        lane: Lane = Lane.FULL,
+        cancel: threading.Event | None = None,
+    ) -> T:
+        """Run ``fn`` and wait for it at most ``timeout`` seconds (blocking; for sync callers).
+        Past the limit the job is dropped or stopped and RenderTimeoutError raised."""
+        cancel = cancel if cancel is not None else threading.Event()
+        future = self.submit(fn, lane, cancel)
         try:
             return future.result(timeout=timeout)
         except _TIMEOUT_ERRORS:
-            raise RenderTimeoutError(started=not future.cancel()) from None
+            raise RenderTimeoutError(started=self._stopped(future, cancel)) from None
+        except RenderCancelled:
+            if self._closed:
+                raise QueueFullError("server is shutting down") from None
+            raise
 
-    async def run_async(self, fn: Callable[[], T], timeout: float) -> T:
-        """``run`` for coroutines: waits without blocking the event loop."""
-        future = self.submit(fn)
+    async def run_async(
+        self,
+        fn: Callable[[], T],
+        timeout: float,
+        lane: Lane = Lane.FULL,
+        cancel: threading.Event | None = None,
+    ) -> T:
+        """``run`` for coroutines: waits without blocking the event loop. When the waiting task is
+        cancelled (its client left), the job is dropped or stopped too."""
+        cancel = cancel if cancel is not None else threading.Event()
+        future = self.submit(fn, lane, cancel)
         waiter = asyncio.wrap_future(future)
         waiter.add_done_callback(lambda f: f.cancelled() or f.exception())  # never "unretrieved"
         try:
             return await asyncio.wait_for(asyncio.shield(waiter), timeout)
         except _TIMEOUT_ERRORS:
-            raise RenderTimeoutError(started=not future.cancel()) from None
+            waiter.cancel()  # nobody waits for the result any more (nor after this loop has closed)
+            raise RenderTimeoutError(started=self._stopped(future, cancel)) from None
         except asyncio.CancelledError:
-            future.cancel()
+            waiter.cancel()
+            self._stopped(future, cancel)
+            raise
+        except RenderCancelled:
+            if self._closed:
+                raise QueueFullError("server is shutting down") from None
             raise
 
+    def close(self) -> None:
+        """Refuse new work, fail the queued jobs with QueueFullError (the server answers 503) and
+        tell the running ones to stop (a render stops within a chunk of rays); returns at once."""
+        with self._cond:
+            self._closed = True
+            queued = [job for lane in self._lanes.values() for job in lane]
+            for lane in self._lanes.values():
+                lane.clear()
+            running = list(self._active)
+            self._cond.notify_all()
+        for job in queued:
+            if not job.future.set_running_or_notify_cancel():
+                continue  # its caller cancelled it meanwhile; its callback gave the slot back
+            with self._cond:
+                self._waiting -= 1
+                self._update_gauges()
+            job.future.set_exception(QueueFullError("server is shutting down"))
+        for job in running:
+            job.cancel.set()
+
     def shutdown(self) -> None:
-        """Refuse new work, drop what is queued and wait for the renders already running."""
-        self._closed = True
-        self._executor.shutdown(wait=True, cancel_futures=True)
+        """``close``, then wait for the workers to end (each finishes the job it is running,
+        told to stop)."""
+        self.close()
+        for thread in list(self._threads):
+            thread.join()

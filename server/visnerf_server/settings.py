@@ -6,10 +6,15 @@ overrides it with the settings the app was built with.
 
 from functools import lru_cache
 from pathlib import Path
-from typing import Literal
+from typing import Annotated, Literal
 
-from pydantic import Field, SecretStr
-from pydantic_settings import BaseSettings, SettingsConfigDict
+from pydantic import Field, SecretStr, field_validator
+from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
+
+from visnerf_server.origins import normalize_origin
+
+MIN_FRAME_PIXELS = 64
+"""The smallest frame (8x8) any pixel budget must allow."""
 
 _PROJECT_ROOT = Path(__file__).resolve().parents[2]
 """The checkout (or install prefix) holding ``server/``, ``checkpoints/`` and ``client/``."""
@@ -60,6 +65,29 @@ class Settings(BaseSettings):
     """Per-request limit, waiting included: 503 if still queued, 504 if still rendering."""
     retry_after_s: int = Field(default=1, ge=1)
     """``Retry-After`` sent with 503 answers."""
+    # Costs per request and per client
+    # (ms per megapixel from bench/results/render_speed.md, 2-core CPU, 256x256 frames, slowest
+    # scene nyx: full quality 4600 median / 4830 p95, preview 1410 / 1800.)
+    threads: int | None = Field(default=None, ge=1, le=1024)
+    """Torch threads for rendering (``VISNERF_THREADS``, ``--threads``); None: the CPU quota of
+    the server's cgroup where there is one, else the cores it may run on."""
+    max_preview_pixels: int = Field(default=512 * 512, ge=MIN_FRAME_PIXELS)
+    """Largest width x height of a preview frame: 512x512 renders in about 0.37 s (0.47 s at the
+    p95 rate). Previews go ahead of queued full frames, so they must stay cheap."""
+    max_full_pixels: int = Field(default=1920 * 1080, ge=MIN_FRAME_PIXELS)
+    """Largest width x height of a full-quality frame: 1920x1080 renders in about 9.5 s (10 s at
+    the p95 rate), a third of ``render_timeout_s``."""
+    preview_pixel_cost: float = Field(default=0.3, gt=0.0, le=1.0)
+    """What a preview pixel costs against a full-quality one (rate limit): 0.29 to 0.35 measured."""
+    rate_limit_pixels_per_s: float = Field(default=100_000.0, ge=0.0)
+    """Full-quality pixels each client may have rendered per second, sustained (cache hits are
+    free): about 0.46 s of rendering per second on the slowest scene. 0 turns the limit off."""
+    rate_limit_burst_pixels: int = Field(default=1920 * 1080, ge=1)
+    """Pixels a client may spend at once from a full bucket (one largest full frame); a frame that
+    costs more waits for a full bucket."""
+    rate_limit_clients: int = Field(default=10_000, ge=1)
+    """Clients the rate limiter remembers; an idle client's bucket (refilled) is forgotten first."""
+
     frame_cache_bytes: int = Field(default=64 * 1024 * 1024, ge=0)
     """Memory for the LRU cache of encoded frames."""
     jpeg_quality: int = Field(default=88, ge=1, le=100)
@@ -71,6 +99,42 @@ class Settings(BaseSettings):
     """Load scenes after the server starts listening (``/api/ready`` answers 503 meanwhile)."""
     log_format: Literal["json", "text"] = "json"
     """Access log: one JSON line per request, or plain text."""
+
+    # WebSocket, errors and documentation
+    ws_max_message_bytes: int = Field(default=64 * 1024, ge=1024, le=16 * 1024 * 1024)
+    """Largest stream message. ``visnerf serve`` gives it to uvicorn (``ws_max_size``), whose
+    protocol closes the connection with code 1009 on a bigger frame before buffering it; the stream
+    also refuses longer text itself (an error message), for servers started another way."""
+    ws_max_sessions: int = Field(default=32, ge=1, le=100_000)
+    """Stream sessions open at once; one more gets an error (status 503, ``retry_after``) and
+    close code 1013 (try again later)."""
+    ws_messages_per_s: float = Field(default=30.0, gt=0, le=10_000)
+    """Sustained messages a second one stream session may send (a token bucket refilled at this
+    rate); a message over it is not rendered and gets an error with status 429 and ``retry_after``,
+    the session stays open."""
+    ws_message_burst: int = Field(default=60, ge=1, le=100_000)
+    """Messages a stream session may send at once before ``ws_messages_per_s`` applies."""
+    allowed_origins: Annotated[tuple[str, ...], NoDecode] = ()
+    """Browser origins allowed to open a stream besides the server's own (the ``Host`` header):
+    ``VISNERF_ALLOWED_ORIGINS=https://a.example,http://b.example:8080``. A handshake without
+    ``Origin`` (not a browser) is allowed; one from any other origin is refused with 403."""
+    docs_assets_dir: Path | None = None
+    """Folder with Swagger UI's ``swagger-ui-bundle.js`` and ``swagger-ui.css`` (npm package
+    ``swagger-ui-dist``) and ReDoc's ``redoc.standalone.js``: ``/docs`` and ``/redoc`` are served,
+    with those files and nothing from a CDN, only when it is set (off by default; ``/openapi.json``
+    is always served)."""
+    frame_cache_entries: int = Field(default=4096, ge=0)
+    """Most frames the frame cache holds, whatever their size (``frame_cache_bytes`` counts each
+    entry's overhead too)."""
+
+    @field_validator("allowed_origins", mode="before")
+    @classmethod
+    def _split_origins(cls, value: object) -> object:
+        """A comma-separated string (the environment variable) or a list; each origin normalised."""
+        items = value.split(",") if isinstance(value, str) else value
+        if not isinstance(items, list | tuple):
+            return value
+        return tuple(normalize_origin(str(item)) for item in items if str(item).strip())
 
 
 @lru_cache

@@ -127,3 +127,119 @@ def test_pickle_and_truncated_files_are_rejected(tmp_path):
     truncated.write_bytes(good.read_bytes()[:-100])
     with pytest.raises(CheckpointError):
         read_checkpoint(truncated)
+
+
+def _edit_document(edit):
+    """A ``_tamper`` edit of the metadata document (NaN and infinities written as json writes them)."""
+    import json
+
+    def apply(tensors, metadata):
+        document = json.loads(metadata["visnerf"])
+        edit(document)
+        metadata["visnerf"] = json.dumps(document)
+
+    return apply
+
+
+def _axis(i, **changes):
+    return lambda d: d["param_axes"][i].update(changes)
+
+
+def _set(**changes):
+    return lambda d: d.update(changes)
+
+
+def _in(section, **changes):
+    return lambda d: d[section].update(changes)
+
+
+METADATA_DEFECTS = [
+    # no NaN or infinity anywhere, named where it is
+    (_set(background=[1.0, float("nan"), 1.0]), "background[1] is NaN"),
+    (_in("camera", distance=float("inf")), "camera.distance is Infinity"),
+    (_in("provenance", val_psnr=float("-inf")), "provenance.val_psnr is -Infinity"),
+    (_axis(1, values=[0.0, float("nan")]), "param_axes[1].values[1] is NaN"),
+    # parameter axes
+    (_axis(0, default=1.5), "param_axes[0].default 1.5 is outside [0, 1]"),
+    (_axis(0, default=-0.1), "param_axes[0].default -0.1 is outside [0, 1]"),
+    (_axis(0, min=2.0), "param_axes[0].min 2.0 is above param_axes[0].max 1.0"),
+    (_axis(0, min=1.0, values=[1.0, 1.0], default=1.0), "param_axes[0].min must be below param_axes[0].max"),
+    (_axis(0, values=[1.0, 0.0]), "param_axes[0].values must increase strictly"),
+    (_axis(0, values=[0.5, 0.5]), "param_axes[0].values must increase strictly"),
+    (_axis(0, values=[0.0, 1.5]), "param_axes[0].values[1] 1.5 is outside [0, 1]"),
+    (_axis(0, values=[]), "param_axes[0].values must list at least one training value"),
+    (_axis(0, min="0"), "param_axes[0].min must be a number"),
+    (_axis(0, default=True), "param_axes[0].default must be a number"),
+    (_axis(1, name="a"), "param_axes[1].name 'a' names a second axis"),
+    (_axis(0, name="azimuth"), "param_axes[0].name 'azimuth' is the name of a render request field"),
+    (_axis(1, name="format"), "param_axes[1].name 'format' is the name of a render request field"),
+    (_axis(0, name=""), "param_axes[0].name must be a name of 1 to 64 characters"),
+    (_axis(0, name=" a"), "param_axes[0].name ' a' has control characters or surrounding spaces"),
+    (lambda d: d["param_axes"][0].pop("default"), "param_axes[0].default is missing"),
+    # the scene
+    (_set(background=[1.0, 1.0, 1.5]), "background[2] 1.5 is outside [0, 1]"),
+    (_set(background=[1.0, 1.0]), "background must hold 3 numbers, got 2"),
+    (_set(background="white"), "background must be a list of numbers"),
+    (_set(kind="hologram"), "kind must be one of dvr, ir, got 'hologram'"),
+    (_set(image_width=0), "image_width must be a whole number in [1, 65536], got 0"),
+    (_set(image_height=-64), "image_height must be a whole number in [1, 65536], got -64"),
+    (_set(image_width=64.5), "image_width must be a whole number"),
+    (lambda d: d.pop("image_height"), "image_height is missing"),
+    (_in("camera", fov_deg=180.0), "camera.fov_deg 180.0 is outside (0, 180)"),
+    (_in("camera", distance=0.0), "camera.distance 0.0 is outside (0, 1e+06)"),
+    (_in("camera", elevation=95.0), "camera.elevation 95.0 is outside [-90, 90]"),
+    (_in("camera", zoom=2.0), "camera.zoom is not a camera value"),
+    (_set(bbox=[[0.5, -0.5, -0.5], [-0.5, 0.5, 0.5]]), "bbox[0][0] 0.5 is not below bbox[1][0] -0.5"),
+    (_set(bbox=[[0, 0, 0]]), "bbox must be two corners"),
+    (_set(title=7), "title must be a string"),
+    (_set(occupancy_resolution=[8, 8, 0]), "occupancy_resolution[2] must be a whole number"),
+    (_set(provenance=[]), "provenance must be a JSON object"),
+    # the render configuration, bounded
+    (_in("render", max_samples=1e9), "render: max_samples must be a whole number, got 1000000000.0"),
+    (_in("render", max_samples=10**9), "render: max_samples must be a whole number in [1, 16384]"),
+    (_in("render", max_samples=0), "render: max_samples must be a whole number of at least 1"),
+    (_in("render", step_ratio=1e-9), "render: step_ratio must be a finite number in [0.01, 16]"),
+    (_in("render", full_step_ratio=1e6), "render: full_step_ratio must be a finite number in [0.01, 16]"),
+    (_in("render", preview_step_factor=100.0), "render: preview_step_factor must be a finite number in [0.01, 16]"),
+    (_in("render", preview_scale=0.001), "render: preview_scale must be a finite number in [0.0625, 1]"),
+    (_in("render", early_stop_eps=1.0), "render: early_stop_eps must be in [0, 1)"),
+    (_in("render", bf16="yes"), "render: bf16 must be true or false"),
+    # the field configuration
+    (_in("field", hidden_width="16"), "field: hidden_width must be a whole number"),
+    (_in("field", resolution=[8, 8, 10**6]), "field: resolution must be whole numbers in [2, 4096]"),
+    (_in("field", pos_encoding_freqs=1000), "field: pos_encoding_freqs must be a whole number in [0, 32]"),
+]
+
+
+@pytest.mark.parametrize(("edit", "message"), METADATA_DEFECTS, ids=[m for _, m in METADATA_DEFECTS])
+def test_metadata_defects_are_refused_naming_the_field(tmp_path, edit, message):
+    good = make_tiny_checkpoint(tmp_path / "good.safetensors", [("a", [0.0, 1.0]), ("b", [0.0, 0.5, 1.0])])
+    bad = _tamper(good, tmp_path, _edit_document(edit))
+    with pytest.raises(CheckpointError) as refused:
+        read_checkpoint(bad)
+    assert message in str(refused.value)
+
+
+def test_overflowing_numbers_in_the_text_are_refused(tmp_path):
+    good = make_tiny_checkpoint(tmp_path / "good.safetensors")
+    bad = _tamper(good, tmp_path, lambda t, m: m.__setitem__("visnerf", m["visnerf"].replace('"max": 1.0', '"max": 1e999')))
+    with pytest.raises(CheckpointError, match=r"param_axes\[0\]\.max is 1e999: every number must be finite"):
+        read_checkpoint(bad)
+
+
+def test_the_bundled_checkpoints_pass_the_metadata_checks():
+    """Their metadata only (the header), not their tensors."""
+    import json
+    import struct
+    from pathlib import Path
+
+    from visnerf.checkpoint import CheckpointMeta
+
+    bundled = sorted((Path(__file__).resolve().parents[2] / "checkpoints").glob("*.safetensors"))
+    assert bundled
+    for path in bundled:
+        with path.open("rb") as f:
+            (n,) = struct.unpack("<Q", f.read(8))
+            header = json.loads(f.read(n))
+        meta = CheckpointMeta.from_json(header["__metadata__"]["visnerf"])
+        assert meta.kind in ("dvr", "ir") and meta.param_axes, path.name

@@ -1,10 +1,19 @@
-"""Helpers shared by the server tests (constants, image checks, bad checkpoints, a slow scene)."""
+"""Helpers shared by the server tests (constants, image checks, bad checkpoints, a slow scene, a real
+`visnerf serve` process)."""
 
 import io
+import os
 import pickle
+import socket
+import subprocess
+import sys
 import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 
+import httpx
 import numpy as np
 import torch
 from fastapi.testclient import TestClient
@@ -101,3 +110,63 @@ class SlowRenderer:
         self.calls += 1
         time.sleep(self.delay_s)
         return self.inner.render(*args, **kwargs)
+
+
+# --- a real server process ---------------------------------------------------------------------
+
+
+@dataclass
+class LiveServer:
+    """A running ``visnerf serve``: the process, its base URL and the file its output goes to."""
+
+    process: subprocess.Popen
+    url: str
+    log_path: Path
+
+    def log(self) -> str:
+        return self.log_path.read_text(errors="replace")
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _wait_ready(server: LiveServer, timeout_s: float) -> None:
+    deadline = time.monotonic() + timeout_s
+    while True:
+        assert server.process.poll() is None, server.log()
+        try:
+            if httpx.get(f"{server.url}/api/ready", timeout=2).status_code == 200:
+                return
+        except httpx.TransportError:
+            pass
+        assert time.monotonic() < deadline, "server did not become ready:\n" + server.log()
+        time.sleep(0.1)
+
+
+@contextmanager
+def serve_process(
+    ckpt_dir: Path, work_dir: Path, env: dict[str, str] | None = None, ready_timeout_s: float = 60.0
+) -> Iterator[LiveServer]:
+    """``visnerf serve --no-client`` on ``ckpt_dir`` in a subprocess, on a free loopback port, with the
+    test token and its state in ``work_dir/state``; its output goes to ``work_dir/server.log``.
+    Yields once ``/api/ready`` answers 200; kills the process on the way out if it still runs.
+    ``VISNERF_*`` variables of the caller's environment are not passed on; ``env`` adds some."""
+    port = free_port()
+    log_path = work_dir / "server.log"
+    inherited = {k: v for k, v in os.environ.items() if not k.startswith("VISNERF_")}
+    full_env = {**inherited, "VISNERF_TOKEN": TOKEN, "VISNERF_STATE_DIR": str(work_dir / "state"), **(env or {})}
+    command = [sys.executable, "-m", "visnerf.cli", "serve", "--port", str(port), "--checkpoints", str(ckpt_dir),
+               "--no-client"]  # fmt: skip
+    with log_path.open("wb") as log:
+        process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, env=full_env)
+    server = LiveServer(process, f"http://127.0.0.1:{port}", log_path)
+    try:
+        _wait_ready(server, ready_timeout_s)
+        yield server
+    finally:
+        if process.poll() is None:
+            process.kill()
+            process.wait(10)

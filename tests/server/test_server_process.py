@@ -4,7 +4,6 @@ over the WebSocket, an upload with ``visnerf submit``, then SIGTERM and a clean 
 import json
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -13,56 +12,15 @@ from pathlib import Path
 
 import httpx
 import pytest
-from server_helpers import ORBIT, TOKEN, image_size
+from server_helpers import ORBIT, TOKEN, image_size, serve_process
 from websockets.exceptions import ConnectionClosed
 from websockets.sync.client import connect
 
 
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
 @pytest.fixture
 def server(ckpt_dir: Path, tmp_path: Path) -> Iterator[tuple[subprocess.Popen, str, Path]]:
-    port = free_port()
-    log_path = tmp_path / "server.log"
-    env = {**os.environ, "VISNERF_TOKEN": TOKEN, "VISNERF_STATE_DIR": str(tmp_path / "state")}
-    with log_path.open("wb") as log:
-        proc = subprocess.Popen(
-            [
-                sys.executable,
-                "-m",
-                "visnerf.cli",
-                "serve",
-                "--port",
-                str(port),
-                "--checkpoints",
-                str(ckpt_dir),
-                "--no-client",
-            ],
-            stdout=log,
-            stderr=subprocess.STDOUT,
-            env=env,
-        )
-    url = f"http://127.0.0.1:{port}"
-    try:
-        deadline = time.monotonic() + 60
-        while True:
-            assert proc.poll() is None, log_path.read_text()
-            try:
-                if httpx.get(f"{url}/api/ready", timeout=2).status_code == 200:
-                    break
-            except httpx.TransportError:
-                pass
-            assert time.monotonic() < deadline, "server did not become ready:\n" + log_path.read_text()
-            time.sleep(0.1)
-        yield proc, url, log_path
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-            proc.wait(10)
+    with serve_process(ckpt_dir, tmp_path) as live:
+        yield live.process, live.url, live.log_path
 
 
 def test_serve_http_websocket_submit_and_sigterm(server, templates, tmp_path: Path) -> None:  # noqa: ANN001

@@ -335,12 +335,15 @@ def test_render_queue_accounting() -> None:
 def test_frame_cache_is_bounded_by_bytes() -> None:
     from visnerf_server.frame_cache import CachedFrame
 
-    cache = FrameCache(max_bytes=100)
+    entry = FrameCache.entry_bytes(("s", 0), CachedFrame(b"x" * 40, "image/png", 8, 8, 1.0))
+    assert entry > 40  # the key and the entry's overhead count too
+    budget = 2 * entry + 10
+    cache = FrameCache(max_bytes=budget)
     for i in range(5):
         cache.put(("s", i), CachedFrame(b"x" * 40, "image/png", 8, 8, 1.0))
-    assert cache.n_bytes <= 100 and len(cache) == 2
+    assert cache.n_bytes <= budget and len(cache) == 2
     assert cache.get(("s", 0)) is None and cache.get(("s", 4)) is not None
-    cache.put(("s", "huge"), CachedFrame(b"x" * 101, "image/png", 8, 8, 1.0))
+    cache.put(("s", "huge"), CachedFrame(b"x" * budget, "image/png", 8, 8, 1.0))
     assert cache.get(("s", "huge")) is None
     cache.drop_scene("s")
     assert len(cache) == 0 and cache.n_bytes == 0

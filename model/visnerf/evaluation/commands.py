@@ -49,7 +49,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help=f"frames rendered per render setting in the sweep (default {SweepConfig.n_frames})")
     p.add_argument("--no-sweep", action="store_true", help="skip the render-settings sweep")
     p.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N")
-    p.set_defaults(func=eval_command)
+    p.set_defaults(func=eval_command, requires=("skimage", "matplotlib"))  # SSIM, report figures
 
 
 def eval_command(args: argparse.Namespace) -> int:

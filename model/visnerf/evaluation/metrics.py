@@ -3,7 +3,6 @@
 import math
 
 import numpy as np
-from skimage.metrics import structural_similarity
 
 
 def mse_to_psnr(mse: float, data_range: float = 1.0) -> float:
@@ -26,6 +25,10 @@ def ssim(a: np.ndarray, b: np.ndarray) -> float:
     """SSIM (scikit-image, Gaussian weights as in the NeRF literature, data range 1, colour)."""
     if a.shape != b.shape:
         raise ValueError(f"image shapes differ: {a.shape} vs {b.shape}")
+    # Imported here: scikit-image is in the `train` extra, and the server (which imports this module
+    # through the command line) must start without it.
+    from skimage.metrics import structural_similarity
+
     return float(
         structural_similarity(
             a.astype(np.float64), b.astype(np.float64), data_range=1.0, channel_axis=-1,

@@ -19,6 +19,8 @@ import torch.nn.functional as F
 from jaxtyping import Bool, Float, Int, UInt8
 from torch import Tensor
 
+from visnerf.rendering.cancel import CancelCheck, raise_if_cancelled
+
 MAX_DISTANCE = 16
 """Distances are counted up to this many cells; farther cells hold this value."""
 MAX_JUMPS = 24
@@ -123,6 +125,7 @@ class EmptySpace:
         first: Int[Tensor, " n"],
         last: Int[Tensor, " n"],
         near: int = 0,
+        cancel: CancelCheck | None = None,
     ) -> tuple[Int[Tensor, " n"], Int[Tensor, " n"]]:
         """Shrink each ray's window ``[first, last]`` of lattice samples to the first and the last
         sample in an occupied cell (``near = 1``: in a cell within one cell of an occupied one).
@@ -135,11 +138,12 @@ class EmptySpace:
         ``near = 1`` serves stratified training samples: a sample moved by at most half a step
         from its lattice point, with the step no larger than a cell, lies in the lattice point's
         cell or a neighbour, so every such sample in an occupied cell has its lattice point in
-        the window."""
+        the window. ``cancel`` is asked between jumps (``rendering.cancel``): the walk of a large
+        frame's rays takes seconds."""
         n = first.shape[0]
         sign = torch.cat([torch.ones(n, dtype=first.dtype, device=first.device), -torch.ones_like(first)])
         ends = self.walk(rays_o.repeat(2, 1), rays_d.repeat(2, 1), t_near.repeat(2), step,
-                         torch.cat([first, last]), torch.cat([last, first]), sign, near)
+                         torch.cat([first, last]), torch.cat([last, first]), sign, near, cancel)
         return ends[:n], ends[n:]
 
     def walk(
@@ -152,6 +156,7 @@ class EmptySpace:
         bound: Int[Tensor, " m"],
         sign: Int[Tensor, " m"],
         near: int,
+        cancel: CancelCheck | None = None,
     ) -> Int[Tensor, " m"]:
         """Move each walk's lattice index from ``start`` towards ``bound`` (up the ray where
         ``sign`` is 1, down where it is -1) past samples in empty blocks. Returns the first index
@@ -170,6 +175,7 @@ class EmptySpace:
         for _ in range(MAX_JUMPS):
             if walks.numel() == 0:
                 break
+            raise_if_cancelled(cancel)
             t = tn + step * ((s * u).to(tn.dtype) + 0.5)
             occupied, exit_t = self._jump(o + d * t[:, None], w, near)
             target = torch.ceil(u.to(tn.dtype) + exit_t / step - _GUARD)

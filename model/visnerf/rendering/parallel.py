@@ -13,7 +13,7 @@ worker runs under the caller's grad / inference mode.
 
 import threading
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor, wait
 
 import torch
 
@@ -38,7 +38,9 @@ def chunk_workers(device: torch.device) -> int:
 
 
 def map_chunks(fn: Callable[[int], None], n_chunks: int, workers: int) -> None:
-    """Call ``fn(i)`` for every chunk ``i``, on ``workers`` threads when more than one."""
+    """Call ``fn(i)`` for every chunk ``i``, on ``workers`` threads when more than one. The first
+    exception of a chunk reaches the caller once no chunk is running any more; the chunks not
+    started by then are skipped."""
     if workers <= 1 or n_chunks <= 1:
         for i in range(n_chunks):
             fn(i)
@@ -53,7 +55,17 @@ def map_chunks(fn: Callable[[int], None], n_chunks: int, workers: int) -> None:
         previous = torch.get_num_threads()
         torch.set_num_threads(1)
         try:
-            for _ in _executor(workers).map(run, range(n_chunks)):
-                pass
+            pool = _executor(workers)
+            futures = [pool.submit(run, i) for i in range(n_chunks)]
+            try:
+                for future in futures:
+                    future.result()
+            except BaseException:
+                # A chunk failed (or the render was cancelled): drop the chunks not started and let
+                # the running ones end before the caller goes on (they write into its buffers).
+                for future in futures:
+                    future.cancel()
+                wait(futures)
+                raise
         finally:
             torch.set_num_threads(previous)

@@ -21,6 +21,7 @@ from torch import Tensor
 from visnerf.config import RenderConfig
 from visnerf.data.cameras import Intrinsics, image_rays
 from visnerf.rendering.aabb import intersect_aabb
+from visnerf.rendering.cancel import CancelCheck, raise_if_cancelled
 from visnerf.rendering.density_gradients import DensityGradientSampling, density_with_sampled_gradients
 from visnerf.rendering.empty_space import EmptySpace
 from visnerf.rendering.occupancy import query_occupancy
@@ -397,11 +398,12 @@ def ray_windows(
     max_samples: int | None,
     empty_space: EmptySpace | None,
     near: int = 0,
+    cancel: CancelCheck | None = None,
 ) -> RayWindows:
     """Box interval of every ray and its window of lattice samples (``t_near + step * (i + 0.5)``):
     the whole lattice inside the box (at most ``max_samples`` unless None), narrowed to the span
     of the samples in occupied cells when ``empty_space`` is given (``near = 1``: within one cell
-    of an occupied one, ``EmptySpace.sample_window``)."""
+    of an occupied one, ``EmptySpace.sample_window``, which asks ``cancel`` between its jumps)."""
     t_near, t_far, hit = intersect_aabb(rays_o, rays_d, field.aabb)
     count = torch.ceil((t_far - t_near) / step - 0.5 + 1e-3).clamp_min(0)  # may count one beyond t_far
     if max_samples is not None:
@@ -409,7 +411,7 @@ def ray_windows(
     last = torch.where(hit, count.long() - 1, -1)
     first = torch.zeros_like(last)
     if empty_space is not None:
-        first, last = empty_space.sample_window(rays_o, rays_d, t_near, step, first, last, near)
+        first, last = empty_space.sample_window(rays_o, rays_d, t_near, step, first, last, near, cancel)
     return RayWindows(t_near, t_far, first, last)
 
 
@@ -420,13 +422,18 @@ def render_image(
     params: Float[Tensor, " k"],
     settings: RenderSettings,
     empty_space: EmptySpace | None = None,
+    cancel: CancelCheck | None = None,
 ) -> Float[Tensor, "h w 3"]:
     """Render one image at normalised parameters (inference; call under ``torch.inference_mode``).
 
     ``empty_space`` replaces the field's union grid (a grid for these parameters,
-    ``rendering.setting_occupancy``); it is ignored when the settings use no occupancy."""
+    ``rendering.setting_occupancy``); it is ignored when the settings use no occupancy.
+    ``cancel`` is asked between the jumps of the empty-space walk that finds the rays' sample
+    windows and before each chunk of rays; once it answers True the render stops with
+    ``RenderCancelled`` (``rendering.cancel``)."""
     rays_o, rays_d = image_rays(c2w, intrinsics)
     rays_o, rays_d = rays_o.reshape(-1, 3), rays_d.reshape(-1, 3)
+    raise_if_cancelled(cancel)  # a 2048x2048 frame's rays take a while on a busy CPU
     background = torch.tensor(settings.background, dtype=rays_o.dtype, device=rays_o.device)
     empty = None
     if settings.use_occupancy:
@@ -435,11 +442,12 @@ def render_image(
     dtype = torch.bfloat16 if settings.bf16 and bf16_native(rays_o.device) else rays_o.dtype
     frame = FrameField(field, q_d, q_a, dtype)
     step = field.voxel_size() * settings.step_ratio
-    windows = ray_windows(field, rays_o, rays_d, step, settings.max_samples, empty)
+    windows = ray_windows(field, rays_o, rays_d, step, settings.max_samples, empty, cancel=cancel)
     out = torch.empty_like(rays_o)
     chunk = settings.chunk_rays
 
     def march_chunk(i: int) -> None:
+        raise_if_cancelled(cancel)
         sl = slice(i * chunk, (i + 1) * chunk)
         out[sl] = march_rays(field, rays_o[sl], rays_d[sl], frame, background, settings, empty, windows[sl])
 
@@ -455,6 +463,7 @@ def render_image_scaled(
     params: Float[Tensor, " k"],
     settings: RenderSettings,
     empty_space: EmptySpace | None = None,
+    cancel: CancelCheck | None = None,
 ) -> Float[Tensor, "h w 3"]:
     """``render_image`` marched at ``settings.resolution_scale`` of the camera's size and upsampled
     bilinearly to that size (the preview quality); the full size itself when the scale is 1."""
@@ -462,8 +471,8 @@ def render_image_scaled(
     w_r = max(1, round(width * settings.resolution_scale))
     h_r = max(1, round(height * settings.resolution_scale))
     if (w_r, h_r) == (width, height):
-        return render_image(field, c2w, intrinsics, params, settings, empty_space)
-    rgb = render_image(field, c2w, intrinsics.scaled(w_r, h_r), params, settings, empty_space)  # [h_r, w_r, 3]
+        return render_image(field, c2w, intrinsics, params, settings, empty_space, cancel)
+    rgb = render_image(field, c2w, intrinsics.scaled(w_r, h_r), params, settings, empty_space, cancel)  # [h_r, w_r, 3]
     return F.interpolate(rgb.permute(2, 0, 1)[None], size=(height, width), mode="bilinear",
                          align_corners=False)[0].permute(1, 2, 0)
 

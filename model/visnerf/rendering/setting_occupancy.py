@@ -12,13 +12,17 @@ being dragged, a test path) asks once per tuple and never pays for a build it ca
 orbiting at one setting builds once, from the second frame on. With ``background`` the build runs
 on a worker thread (one at a time) and the frames go on with the union grid until it is ready, so
 no frame waits for it. The key is the exact tuple of normalised values (Python floats): two
-tuples that differ at all never share a grid.
+tuples that differ at all never share a grid. A caller that bounds the work running at once (the
+render server's queue) hands ``lookup`` a ``BackgroundRunner`` and the build runs there instead.
 """
 
+import contextlib
 import logging
 from collections import OrderedDict
-from concurrent.futures import Future, ThreadPoolExecutor
+from collections.abc import Callable
+from concurrent.futures import CancelledError, Future, ThreadPoolExecutor
 from dataclasses import dataclass
+from functools import partial
 
 import torch
 from jaxtyping import Float
@@ -29,6 +33,9 @@ from visnerf.rendering.occupancy import build_occupancy
 from visnerf.representation.field import VisNerfField
 
 ParamKey = tuple[float, ...]
+BackgroundRunner = Callable[[Callable[[], EmptySpace]], "Future[EmptySpace]"]
+"""Runs a grid build off the frame's thread and returns its future; raises RuntimeError when it
+takes no work now (full or stopping), and the build is asked for again by a later frame."""
 log = logging.getLogger(__name__)
 
 
@@ -106,6 +113,8 @@ class SettingOccupancy:
             return
         key, future = self._pending
         self._pending = None
+        if future.cancelled():  # dropped by its runner (a server stopping): the union serves
+            return
         try:
             self._store(key, future.result())
         except Exception:  # noqa: BLE001 - the union grid is always a correct fallback
@@ -114,13 +123,17 @@ class SettingOccupancy:
     def wait(self) -> None:
         """Block until a background build has finished and is stored (tests, benchmarks)."""
         if self._pending is not None:
-            self._pending[1].exception()
+            with contextlib.suppress(CancelledError):  # dropped by its runner: nothing to wait for
+                self._pending[1].exception()
             self._collect()
 
-    def lookup(self, params: Float[Tensor, " k"], step: float) -> EmptySpace | None:
+    def lookup(
+        self, params: Float[Tensor, " k"], step: float, background: BackgroundRunner | None = None
+    ) -> EmptySpace | None:
         """The empty space of ``params``, or None (use the union) while the tuple has asked fewer
         than ``build_after`` times or its grid is being built, when the cache is off, or when the
-        field has no grid."""
+        field has no grid. A background build runs on ``background`` when given, else on this
+        cache's own worker thread."""
         if self.cfg.capacity == 0 or self.field.occupancy is None:
             return None
         self._collect()
@@ -140,9 +153,16 @@ class SettingOccupancy:
         if not self.cfg.background:
             return self._store(key, self.build(params, step))
         if self._pending is None:  # one build at a time; a busy worker leaves this tuple for later
-            if self._pool is None:
-                self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="occupancy")
-            self._pending = (key, self._pool.submit(self.build, params.detach().clone(), step))
+            build = partial(self.build, params.detach().clone(), step)
+            try:
+                self._pending = (key, background(build) if background is not None else self._own_pool().submit(build))
+            except RuntimeError:  # the runner takes no work now: a later frame asks again
+                self._asked[key] = asked
         else:
             self._asked[key] = asked
         return None
+
+    def _own_pool(self) -> ThreadPoolExecutor:
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(max_workers=1, thread_name_prefix="occupancy")
+        return self._pool

@@ -12,13 +12,14 @@ router = APIRouter(prefix="/api", tags=["health"])
 
 
 @router.get("/health", response_model=Health)
-def health(server: ServerDep) -> Health:
-    """Liveness: answers as soon as the process serves HTTP."""
+async def health(server: ServerDep) -> Health:
+    """Liveness: answers as soon as the process serves HTTP. Async, dependencies too: it never
+    waits for a thread of the pool that render requests fill."""
     return Health(version=server_version(), scenes=len(server.registry), ready=server.ready)
 
 
 @router.get("/ready", response_model=Readiness, responses={503: {"model": Readiness}})
-def ready(server: ServerDep) -> JSONResponse:
+async def ready(server: ServerDep) -> JSONResponse:
     """Readiness: 503 until every scene is loaded and has rendered one tiny warm-up frame."""
     body = Readiness(ready=server.ready, scenes=len(server.registry), failed=server.load_errors)
     headers = None if server.ready else {"Retry-After": "1"}
@@ -29,6 +30,6 @@ metrics_router = APIRouter(tags=["metrics"])
 
 
 @metrics_router.get("/metrics", include_in_schema=False)
-def metrics(metrics: MetricsDep) -> Response:
+async def metrics(metrics: MetricsDep) -> Response:
     """Prometheus exposition format."""
     return Response(metrics.render(), media_type=CONTENT_TYPE_LATEST)

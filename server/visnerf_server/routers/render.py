@@ -1,6 +1,6 @@
 """Single frames: POST with a JSON body, or GET with query parameters (so ``<img src>`` and HTTP
-caches work). Render handlers are sync ``def``: FastAPI runs them in its threadpool, and they wait
-on the bounded render queue."""
+caches work). Render handlers are ``async``: they wait on the bounded render queue without a
+thread, and a client that disconnects meanwhile stops its render (``disconnect``)."""
 
 from typing import Annotated, Any
 
@@ -8,8 +8,12 @@ from fastapi import APIRouter, HTTPException, Query, Request, Response
 from fastapi.exceptions import RequestValidationError
 from pydantic import ValidationError
 
-from visnerf_server.dependencies import FrameRendererDep, RegistryDep, SettingsDep
+from visnerf.inference import RenderCancelled
+from visnerf_server.costs import FrameLimits
+from visnerf_server.dependencies import ClientKeyDep, FrameRendererDep, RegistryDep, SettingsDep
+from visnerf_server.disconnect import ClientDisconnected, until_disconnected
 from visnerf_server.frames import FrameJob, FrameRenderer, prepare_frame
+from visnerf_server.rate_limit import RateLimited
 from visnerf_server.render_queue import QueueFullError, RenderTimeoutError
 from visnerf_server.routers.scenes import ERRORS, SceneIdPath, find_scene
 from visnerf_server.schemas import MEDIA_TYPES, ImageFormat, Quality, RenderRequest
@@ -23,8 +27,11 @@ IMAGE_RESPONSES: dict[int | str, dict[str, Any]] = {
         "description": "The frame. Headers: X-Render-Time-Ms, Server-Timing, X-Cache (hit or miss).",
     },
     **ERRORS,
+    429: {"description": "This client's rate limit is spent; Retry-After says when enough is back"},
     504: {"description": "The render took longer than the per-request limit"},
 }
+CLIENT_CLOSED_REQUEST = 499
+"""Status logged for a request whose client disconnected before its frame was ready (nginx's)."""
 RESERVED_QUERY = {
     "azimuth",
     "elevation",
@@ -38,20 +45,28 @@ RESERVED_QUERY = {
 }
 
 
-def render_response(
+async def render_response(
+    request: Request,
     job: FrameJob,
     frames: FrameRenderer,
     settings: Settings,
+    client: str,
     cache_control: str,
     if_none_match: str | None = None,
 ) -> Response:
-    """Render (or reuse) one frame and map queue trouble to 503/504."""
+    """Render (or reuse) one frame; map the rate limit to 429 and queue trouble to 503/504."""
     etag = job.etag()
     if if_none_match is not None and etag in {t.strip() for t in if_none_match.split(",")}:
         return Response(status_code=304, headers={"ETag": etag, "Cache-Control": cache_control})
     retry = {"Retry-After": str(settings.retry_after_s)}
     try:
-        frame = frames.render(job)
+        frame = await until_disconnected(request, frames.render_async(job, client))
+    except ClientDisconnected:
+        return Response(status_code=CLIENT_CLOSED_REQUEST)
+    except RateLimited as exc:
+        raise HTTPException(429, str(exc), {"Retry-After": exc.retry_after_header}) from None
+    except RenderCancelled:
+        raise HTTPException(503, "render cancelled; retry shortly", retry) from None
     except QueueFullError as exc:
         raise HTTPException(503, f"{exc}; retry shortly", retry) from None
     except RenderTimeoutError as exc:
@@ -71,22 +86,24 @@ def render_response(
 def _prepare(scene_id: str, body: RenderRequest, registry: RegistryDep, settings: Settings) -> FrameJob:
     scene = find_scene(registry, scene_id)
     try:
-        return prepare_frame(scene, body, settings.max_image_size)
+        return prepare_frame(scene, body, FrameLimits.from_settings(settings))
     except ValueError as exc:
         raise HTTPException(422, str(exc)) from None
 
 
 @router.post("", response_class=Response, responses=IMAGE_RESPONSES)
-def render_post(
+async def render_post(
     scene_id: SceneIdPath,
     body: RenderRequest,
+    request: Request,
     registry: RegistryDep,
     frames: FrameRendererDep,
     settings: SettingsDep,
+    client: ClientKeyDep,
 ) -> Response:
     """Render one frame described by a JSON body."""
     job = _prepare(scene_id, body, registry, settings)
-    return render_response(job, frames, settings, "no-store")
+    return await render_response(request, job, frames, settings, client, "no-store")
 
 
 def _query_error(name: str, message: str, kind: str = "value_error") -> RequestValidationError:
@@ -106,12 +123,13 @@ def _parse_c2w(text: str) -> list[list[float]]:
 
 
 @router.get("", response_class=Response, responses=IMAGE_RESPONSES)
-def render_get(
+async def render_get(
     scene_id: SceneIdPath,
     request: Request,
     registry: RegistryDep,
     frames: FrameRendererDep,
     settings: SettingsDep,
+    client: ClientKeyDep,
     azimuth: Annotated[float | None, Query(description="Orbit azimuth, degrees")] = None,
     elevation: Annotated[float | None, Query(description="Orbit elevation, degrees")] = None,
     distance: Annotated[float | None, Query(description="Orbit distance to the centre")] = None,
@@ -151,4 +169,6 @@ def render_get(
     except ValidationError as exc:
         raise RequestValidationError(exc.errors()) from None
     job = _prepare(scene_id, request_model, registry, settings)
-    return render_response(job, frames, settings, "no-cache", request.headers.get("if-none-match"))
+    return await render_response(
+        request, job, frames, settings, client, "no-cache", request.headers.get("if-none-match")
+    )

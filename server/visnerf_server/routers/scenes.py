@@ -3,6 +3,7 @@
 from typing import Annotated
 
 from fastapi import APIRouter, HTTPException, Path, Request, Response
+from fastapi.responses import JSONResponse
 
 from visnerf_server.dependencies import RegistryDep, ServerDep, TokenDep
 from visnerf_server.registry import SCENE_ID_PATTERN, Scene, SceneRegistry
@@ -14,7 +15,7 @@ from visnerf_server.schemas import (
     SceneSummary,
     json_safe,
 )
-from visnerf_server.uploads import delete_scene, receive_checkpoint
+from visnerf_server.uploads import delete_scene_alone, receive_checkpoint
 
 router = APIRouter(prefix="/api/scenes", tags=["scenes"])
 
@@ -86,20 +87,24 @@ def get_scene(scene_id: SceneIdPath, registry: RegistryDep) -> SceneDetail:
         }
     },
 )
-async def upload_scene(
-    scene_id: SceneIdPath, request: Request, response: Response, server: ServerDep
-) -> SceneDetail:
+async def upload_scene(scene_id: SceneIdPath, request: Request, server: ServerDep) -> Response:
     """Upload a ``.safetensors`` checkpoint as the raw body. 201 when new, 200 when it replaced one.
 
-    The scene becomes visible only after every check passed; the swap is atomic."""
-    scene, replaced = await receive_checkpoint(request, server, scene_id)
-    if not replaced:
-        response.status_code = 201
-        response.headers["Location"] = f"/api/scenes/{scene_id}"
-    return scene_detail(scene)
+    The scene becomes visible only after every check passed; the swap is atomic. A second upload
+    of the same id waits for the first to finish."""
+    return await receive_checkpoint(request, server, scene_id, upload_answer)
+
+
+def upload_answer(scene: Scene, created: bool) -> JSONResponse:
+    """The PUT's response, rendered to bytes before the scene is committed."""
+    body = scene_detail(scene).model_dump(mode="json")
+    if created:
+        return JSONResponse(body, status_code=201, headers={"Location": f"/api/scenes/{scene.id}"})
+    return JSONResponse(body)
 
 
 @router.delete("/{scene_id}", status_code=204, responses=ERRORS, dependencies=[TokenDep])
-def remove_scene(scene_id: SceneIdPath, server: ServerDep) -> Response:
-    delete_scene(server, scene_id)
+async def remove_scene(scene_id: SceneIdPath, server: ServerDep) -> Response:
+    """Delete a scene (after any upload of the same id in progress)."""
+    await delete_scene_alone(server, scene_id)
     return Response(status_code=204)

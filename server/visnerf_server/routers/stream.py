@@ -13,6 +13,23 @@ Protocol (the browser client is written against exactly this):
   there but not loaded yet (server start-up): status 503 with ``"retry_after"``, then close code 1013
   (try again later).
 
+Limits (``Settings``, block "WebSocket, errors and documentation"):
+
+- a browser page of another origin than the server's own (the ``Host`` header) or
+  ``allowed_origins`` is refused at the handshake (HTTP 403); no ``Origin`` header (a client that
+  is not a browser) is accepted.
+- a message over ``ws_max_message_bytes`` is refused by the protocol under ``visnerf serve`` (close
+  code 1009 before it is buffered); text over it that still arrives gets an error with status 422.
+- past ``ws_max_sessions`` open sessions, a new one gets an error with status 503 and
+  ``"retry_after"``, then close code 1013.
+- each session may send ``ws_message_burst`` messages at once, then ``ws_messages_per_s`` a
+  second (a token bucket): a message over the rate is not rendered and gets an error with status
+  429, its ``seq`` and ``"retry_after"`` (seconds until one more is taken); the session stays open.
+- each frame rendered (not served from the cache) is paid from the client's pixel budget, shared
+  with its HTTP requests (``rate_limit``): a frame over it waits up to ``RATE_WAIT_MAX_S`` for the
+  budget (or is dropped for a newer request), else gets an error with status 429, its ``seq`` and
+  ``"retry_after"``. Frames over the size limits (``costs``) get status 422.
+
 A receive task keeps only the newest valid message; the render loop takes it, so stale requests
 are dropped (``dropped`` counts them) and a slow renderer never builds a backlog.
 """
@@ -21,19 +38,34 @@ import asyncio
 import contextlib
 import json
 import logging
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
 from typing import Any
 
 from fastapi import APIRouter, WebSocket
 from pydantic import ValidationError
 from starlette.websockets import WebSocketDisconnect, WebSocketState
 
-from visnerf_server.dependencies import FrameRendererDep, MetricsDep, RegistryDep, SettingsDep
+from visnerf_server.costs import FrameLimits
+from visnerf_server.dependencies import (
+    ClientKeyDep,
+    FrameRendererDep,
+    MetricsDep,
+    RegistryDep,
+    ServerDep,
+    SettingsDep,
+)
 from visnerf_server.frames import FrameJob, FrameRenderer, prepare_frame
 from visnerf_server.metrics import Metrics
+from visnerf_server.origins import origin_allowed
+from visnerf_server.rate_limit import RateLimited
 from visnerf_server.registry import SceneRegistry
 from visnerf_server.render_queue import QueueFullError, RenderTimeoutError
 from visnerf_server.routers.scenes import LOADING_RETRY_S
 from visnerf_server.schemas import StreamRequest
+from visnerf_server.settings import Settings
 
 logger = logging.getLogger(__name__)
 
@@ -41,8 +73,51 @@ router = APIRouter(tags=["stream"])
 
 CLOSE_UNKNOWN_SCENE = 4404
 CLOSE_TRY_AGAIN_LATER = 1013
-MAX_MESSAGE_CHARS = 64 * 1024
+CLOSE_POLICY_VIOLATION = 1008
+"""Sent before the handshake is accepted, which the server answers with HTTP 403."""
+RATE_LIMITED = 429
 QUEUE_RETRY_S = 0.02
+RATE_WAIT_MAX_S = 1.0
+"""A frame over the client's pixel budget waits this long at most for it to refill (the stream
+slows down); longer, and it gets an error with status 429."""
+
+
+@dataclass(frozen=True)
+class StreamLimits:
+    """What one session may send (``Settings.ws_*``)."""
+
+    max_message_chars: int = 64 * 1024
+    messages_per_s: float = 30.0
+    message_burst: int = 60
+
+    @classmethod
+    def from_settings(cls, settings: Settings) -> "StreamLimits":
+        return cls(settings.ws_max_message_bytes, settings.ws_messages_per_s, settings.ws_message_burst)
+
+
+class MessageBucket:
+    """A token bucket: ``burst`` messages at once, then ``rate`` a second."""
+
+    def __init__(self, rate: float, burst: int, clock: Callable[[], float] = time.monotonic) -> None:
+        self.rate = rate
+        self.burst = burst
+        self.clock = clock
+        self.tokens = float(burst)
+        self.updated = clock()
+
+    def take(self) -> bool:
+        """Spend one token if there is one."""
+        now = self.clock()
+        self.tokens = min(float(self.burst), self.tokens + (now - self.updated) * self.rate)
+        self.updated = now
+        if self.tokens < 1.0:
+            return False
+        self.tokens -= 1.0
+        return True
+
+    def wait_s(self) -> float:
+        """Seconds until the next token."""
+        return max(0.0, (1.0 - self.tokens) / self.rate)
 
 
 def format_validation_error(exc: ValidationError) -> str:
@@ -51,6 +126,14 @@ def format_validation_error(exc: ValidationError) -> str:
         where = ".".join(str(p) for p in error["loc"])
         parts.append(f"{where}: {error['msg']}" if where else error["msg"])
     return "; ".join(parts)
+
+
+def _parse_json(text: str) -> tuple[Any, str | None]:
+    """(the parsed message, None) or (None, why it is not JSON)."""
+    try:
+        return json.loads(text), None
+    except ValueError as exc:
+        return None, str(exc)
 
 
 class StreamSession:
@@ -63,44 +146,57 @@ class StreamSession:
         registry: SceneRegistry,
         frames: FrameRenderer,
         metrics: Metrics,
-        max_image_size: int,
+        frame_limits: FrameLimits,
         retry_after_s: int = 1,
+        limits: StreamLimits | None = None,
+        client: str | None = None,
     ) -> None:
         self.websocket = websocket
         self.scene_id = scene_id
         self.registry = registry
         self.frames = frames
         self.metrics = metrics
-        self.max_image_size = max_image_size
+        self.frame_limits = frame_limits
+        self.client = client
+        """Whose rate limit pays for the frames (``rate_limit.client_key``); None: no limit."""
         self.retry_after_s = retry_after_s
         self.pending: tuple[int, FrameJob] | None = None
         self.wakeup = asyncio.Event()
         self.closed = False
         self.dropped = 0
         self.send_lock = asyncio.Lock()
+        self.limits = limits or StreamLimits()
+        self.bucket = MessageBucket(self.limits.messages_per_s, self.limits.message_burst)
 
     async def send_json(self, message: dict[str, Any]) -> None:
         async with self.send_lock:
             await self.websocket.send_text(json.dumps(message))
 
-    async def send_error(self, seq: int | None, status: int, detail: str) -> None:
+    async def send_error(
+        self, seq: int | None, status: int, detail: str, retry_after: float | None = None
+    ) -> None:
         message: dict[str, Any] = {"type": "error", "seq": seq, "status": status, "detail": detail}
-        if status == 503:
-            message["retry_after"] = self.retry_after_s  # seconds, as in the HTTP Retry-After header
+        if status == 503 and retry_after is None:
+            retry_after = self.retry_after_s  # seconds, as in the HTTP Retry-After header
+        if retry_after is not None:
+            message["retry_after"] = retry_after
         await self.send_json(message)
 
     async def accept_message(self, text: str) -> None:
         """Validate one client message; keep it as the newest pending request or answer an error."""
-        if len(text) > MAX_MESSAGE_CHARS:
-            await self.send_error(None, 422, f"message over {MAX_MESSAGE_CHARS} characters")
+        limit = self.limits.max_message_chars
+        if len(text) > limit:
+            await self.send_error(None, 422, f"message over {limit} characters")
             return
-        try:
-            data = json.loads(text)
-        except ValueError as exc:
-            await self.send_error(None, 422, f"message is not valid JSON: {exc}")
-            return
+        data, not_json = _parse_json(text)
         seq = data.get("seq") if isinstance(data, dict) else None
         seq = seq if isinstance(seq, int) and not isinstance(seq, bool) else None
+        if not self.bucket.take():  # every message counts, valid or not
+            await self._refuse_over_rate(seq)
+            return
+        if not_json is not None:
+            await self.send_error(None, 422, f"message is not valid JSON: {not_json}")
+            return
         try:
             request = StreamRequest.model_validate(data)
         except ValidationError as exc:
@@ -111,7 +207,7 @@ class StreamSession:
             await self.send_error(request.seq, 404, f"unknown scene {self.scene_id!r}")
             return
         try:
-            job = prepare_frame(scene, request, self.max_image_size)
+            job = prepare_frame(scene, request, self.frame_limits)
         except ValueError as exc:
             await self.send_error(request.seq, 422, str(exc))
             return
@@ -119,6 +215,12 @@ class StreamSession:
             self._drop()
         self.pending = (request.seq, job)
         self.wakeup.set()
+
+    async def _refuse_over_rate(self, seq: int | None) -> None:
+        self.metrics.stream_refused.labels("rate").inc()
+        wait = math.ceil(self.bucket.wait_s() * 1000) / 1000
+        detail = f"over {self.limits.messages_per_s:g} messages a second: not rendered, send it again later"
+        await self.send_error(seq, RATE_LIMITED, detail, retry_after=wait)
 
     def _drop(self) -> None:
         self.dropped += 1
@@ -132,7 +234,10 @@ class StreamSession:
                     return
                 text = message.get("text")
                 if text is None:
-                    await self.send_error(None, 422, "messages must be text JSON")
+                    if self.bucket.take():
+                        await self.send_error(None, 422, "messages must be text JSON")
+                    else:
+                        await self._refuse_over_rate(None)
                     continue
                 await self.accept_message(text)
         finally:
@@ -153,7 +258,20 @@ class StreamSession:
             deadline = loop.time() + self.frames.timeout_s
             while True:
                 try:
-                    frame = await self.frames.render_async(job)
+                    frame = await self.frames.render_async(job, self.client)
+                    break
+                except RateLimited as exc:  # the client's pixel budget (``rate_limit``)
+                    if exc.retry_after_s <= RATE_WAIT_MAX_S and loop.time() + exc.retry_after_s < deadline:
+                        await asyncio.sleep(exc.retry_after_s)  # a short wait: the stream slows down
+                        if self.closed:
+                            return
+                        if self.pending is not None:  # a newer request replaces this one
+                            self._drop()
+                            frame = None
+                            break
+                        continue
+                    await self.send_error(seq, RATE_LIMITED, str(exc), retry_after=round(exc.retry_after_s, 3))
+                    frame = None
                     break
                 except QueueFullError:  # back off; a newer request may replace this one meanwhile
                     if self.closed:
@@ -171,10 +289,8 @@ class StreamSession:
                     await self.send_error(seq, 504 if exc.started else 503, f"render {exc}")
                     frame = None
                     break
-                except ValueError as exc:
-                    await self.send_error(seq, 422, str(exc))
-                    frame = None
-                    break
+                # A ValueError here is a bug (``prepare_frame`` checked the request): it ends the
+                # session with close code 1011 and a logged traceback (``run``), not a 422.
             if frame is None:
                 continue
             header = {
@@ -220,21 +336,53 @@ async def stream(
     frames: FrameRendererDep,
     metrics: MetricsDep,
     settings: SettingsDep,
+    server: ServerDep,
+    client: ClientKeyDep,
 ) -> None:
+    origin = websocket.headers.get("origin")
+    if not origin_allowed(origin, websocket.headers.get("host"), settings.allowed_origins):
+        metrics.stream_refused.labels("origin").inc()
+        await websocket.close(CLOSE_POLICY_VIOLATION)  # before accept: the handshake gets 403
+        return
     await websocket.accept()
     if registry.get(scene_id) is None:
-        if registry.pending(scene_id):
-            error = {"type": "error", "seq": None, "status": 503, "retry_after": LOADING_RETRY_S,
-                     "detail": f"scene {scene_id!r} is still loading"}
-            code = CLOSE_TRY_AGAIN_LATER
-        else:
-            error = {"type": "error", "seq": None, "status": 404, "detail": f"unknown scene {scene_id!r}"}
-            code = CLOSE_UNKNOWN_SCENE
-        with contextlib.suppress(RuntimeError, WebSocketDisconnect):
-            await websocket.send_text(json.dumps(error))
-        await _close(websocket, code)
+        await _refuse_scene(websocket, registry, scene_id)
+        return
+    if server.stream_sessions >= settings.ws_max_sessions:
+        metrics.stream_refused.labels("sessions").inc()
+        detail = f"the server has its maximum of {settings.ws_max_sessions} stream sessions open"
+        await _refuse(websocket, 503, detail, CLOSE_TRY_AGAIN_LATER, settings.retry_after_s)
         return
     session = StreamSession(
-        websocket, scene_id, registry, frames, metrics, settings.max_image_size, settings.retry_after_s
+        websocket, scene_id, registry, frames, metrics, FrameLimits.from_settings(settings), settings.retry_after_s,
+        StreamLimits.from_settings(settings), client,
     )
-    await session.run()
+    server.stream_sessions += 1  # no await between the check and here: the count cannot race
+    metrics.stream_sessions.inc()
+    try:
+        await session.run()
+    finally:
+        server.stream_sessions -= 1
+        metrics.stream_sessions.dec()
+
+
+async def _refuse_scene(websocket: WebSocket, registry: SceneRegistry, scene_id: str) -> None:
+    """An unknown scene (close 4404), or one still loading at start-up (close 1013)."""
+    if registry.pending(scene_id):
+        detail = f"scene {scene_id!r} is still loading"
+        await _refuse(websocket, 503, detail, CLOSE_TRY_AGAIN_LATER, LOADING_RETRY_S)
+    else:
+        await _refuse(websocket, 404, f"unknown scene {scene_id!r}", CLOSE_UNKNOWN_SCENE)
+
+
+async def _refuse(
+    websocket: WebSocket, status: int, detail: str, code: int, retry_after: float | None = None
+) -> None:
+    """One error message, then close with ``code``."""
+    error: dict[str, Any] = {"type": "error", "seq": None, "status": status}
+    if retry_after is not None:
+        error["retry_after"] = retry_after
+    error["detail"] = detail
+    with contextlib.suppress(RuntimeError, WebSocketDisconnect):
+        await websocket.send_text(json.dumps(error))
+    await _close(websocket, code)

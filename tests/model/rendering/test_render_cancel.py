@@ -1,0 +1,151 @@
+"""Stopping a render between chunks of rays (``rendering.cancel``): a cancel check that turns True
+after the first chunk ends the frame there, on one thread or several; the empty-space walk before
+the chunks stops between its jumps; a chunk already running finishes before the caller goes on; a scene render refuses to start once cancelled; occupancy
+grid builds handed to a runner that refuses or drops them leave the union grid serving."""
+
+import math
+import threading
+import time
+from concurrent.futures import Future
+from dataclasses import replace
+
+import pytest
+import torch
+
+from visnerf.data.cameras import Intrinsics, image_rays, orbit_c2w
+from visnerf.inference import RenderCancelled, load_scene
+from visnerf.rendering.parallel import map_chunks
+from visnerf.rendering.renderer import RenderSettings, empty_space_of, ray_windows, render_image
+from visnerf.rendering.setting_occupancy import SettingOccupancy, SettingOccupancyConfig
+from visnerf.testing import make_tiny_checkpoint, make_tiny_field
+
+
+@pytest.fixture()
+def two_threads():
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    yield
+    torch.set_num_threads(before)
+
+
+class CancelAfter:
+    """A cancel check that answers False ``allowed`` times, then True; counts the False answers
+    (the chunks let through)."""
+
+    def __init__(self, allowed: int) -> None:
+        self.allowed = allowed
+        self.let_through = 0
+        self._lock = threading.Lock()
+
+    def __call__(self) -> bool:
+        with self._lock:
+            if self.let_through < self.allowed:
+                self.let_through += 1
+                return False
+            return True
+
+
+@pytest.mark.parametrize("threaded", [True, False])
+def test_a_cancelled_render_stops_after_the_chunk_it_was_in(two_threads, threaded: bool) -> None:  # noqa: ANN001
+    field, _ = make_tiny_field([("a", [0.0, 1.0])], seed=2, resolution=12)
+    field.eval()
+    intr = Intrinsics.from_fov(64, 64, math.radians(40.0))
+    c2w = torch.from_numpy(orbit_c2w(20.0, 30.0, 2.2)).float()
+    settings = replace(RenderSettings(chunk_rays=128), threaded_chunks=threaded)  # 32 chunks
+    params = torch.tensor([0.3])
+    torch.set_num_threads(2 if threaded else 1)  # one after another: on one thread, as a worker would
+    with torch.inference_mode():
+        render_image(field, c2w, intr, params, settings)  # warm-up
+        started = time.perf_counter()
+        whole = render_image(field, c2w, intr, params, settings, cancel=lambda: False)
+        whole_s = time.perf_counter() - started
+        cancel = CancelAfter(1)
+        started = time.perf_counter()
+        with pytest.raises(RenderCancelled):
+            render_image(field, c2w, intr, params, settings, cancel=cancel)
+        cancelled_s = time.perf_counter() - started
+    assert whole.shape == (64, 64, 3)
+    assert cancel.let_through == 1  # one chunk of 32 marched
+    assert cancelled_s < 0.5 * whole_s, (cancelled_s, whole_s)
+
+
+def test_the_empty_space_walk_stops_between_jumps() -> None:
+    """The sample windows of a large frame's rays take seconds to find, before any chunk: the
+    walk asks the cancel check between its jumps, and a check that stays False changes nothing."""
+    field, _ = make_tiny_field([("a", [0.0, 1.0])], seed=4, resolution=8)
+    field.eval()
+    grid = torch.zeros(8, 8, 8, dtype=torch.bool)
+    grid[2:6, 1:7, 3:5] = True
+    field.set_occupancy(grid)
+    rays_o, rays_d = image_rays(torch.from_numpy(orbit_c2w(35.0, 25.0, 2.2)).float(),
+                                Intrinsics.from_fov(40, 30, math.radians(40.0)))
+    rays_o, rays_d = rays_o.reshape(-1, 3), rays_d.reshape(-1, 3)
+    empty, step = empty_space_of(field), field.voxel_size() * 0.5
+    with torch.inference_mode():
+        plain = ray_windows(field, rays_o, rays_d, step, 1024, empty)
+        asked = ray_windows(field, rays_o, rays_d, step, 1024, empty, cancel=lambda: False)
+        cancel = CancelAfter(1)
+        with pytest.raises(RenderCancelled):
+            ray_windows(field, rays_o, rays_d, step, 1024, empty, cancel=cancel)
+    assert torch.equal(plain.first, asked.first) and torch.equal(plain.last, asked.last)
+    assert cancel.let_through == 1  # stopped at the second jump
+
+
+def test_map_chunks_lets_running_chunks_end_and_skips_the_rest(two_threads) -> None:  # noqa: ANN001
+    ran: list[int] = []
+    finished = threading.Event()
+
+    def chunk(i: int) -> None:
+        if i == 0:
+            time.sleep(0.05)
+            raise RenderCancelled("stop")
+        if i == 1:
+            time.sleep(0.3)
+            finished.set()
+        else:
+            time.sleep(0.02)
+        ran.append(i)
+
+    with pytest.raises(RenderCancelled):
+        map_chunks(chunk, 50, workers=2)
+    assert finished.is_set()  # chunk 1 was running: it ended before the caller went on
+    assert len(ran) < 10  # the chunks not started were skipped
+
+
+def test_a_scene_render_cancelled_before_it_starts_renders_nothing(tmp_path) -> None:  # noqa: ANN001
+    scene = load_scene(make_tiny_checkpoint(tmp_path / "s.safetensors"))
+    c2w = orbit_c2w(30.0, 20.0, 2.5)
+    with pytest.raises(RenderCancelled):
+        scene.render(c2w, 30.0, 16, 16, {}, "full", cancel=lambda: True)
+    image = scene.render(c2w, 30.0, 16, 16, {}, "full", cancel=lambda: False)
+    assert image.shape == (16, 16, 3)
+
+
+def test_grid_builds_go_to_the_runner_given_and_a_refusal_or_a_drop_is_harmless() -> None:
+    field, _ = make_tiny_field([("a", [0.0, 1.0])], seed=3, resolution=8)
+    field.eval()
+    field.set_occupancy(torch.ones(8, 8, 8, dtype=torch.bool))  # a union grid to narrow
+    step = field.voxel_size()
+    cache = SettingOccupancy(field, SettingOccupancyConfig(capacity=4, build_after=1))
+    a = torch.tensor([0.5])
+
+    def refuse(build):  # noqa: ANN001, ANN202
+        raise RuntimeError("render queue is full")
+
+    assert cache.lookup(a, step, refuse) is None  # the union serves; asked again later
+    dropped: Future = Future()
+    assert cache.lookup(a, step, lambda build: dropped) is None
+    dropped.cancel()  # e.g. the server stopping
+    cache.wait()
+    assert cache.lookup(a, step, lambda build: dropped) is None  # not stored; a new build is handed out
+    runs: list[Future] = []
+
+    def run_now(build):  # noqa: ANN001, ANN202
+        future: Future = Future()
+        future.set_result(build())
+        runs.append(future)
+        return future
+
+    cache = SettingOccupancy(field, SettingOccupancyConfig(capacity=4, build_after=1))
+    assert cache.lookup(a, step, run_now) is None
+    assert cache.lookup(a, step, run_now) is not None and len(runs) == 1 and cache.builds == 1
