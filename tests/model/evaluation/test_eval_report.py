@@ -115,7 +115,7 @@ def test_missing_ground_truth_image_is_named(tiny_eval, tmp_path, capsys):
     shutil.copytree(data, broken)
     (broken / "test" / "r_3.png").unlink()
     err = _eval_fails(capsys, ckpt, broken, tmp_path / "out")
-    assert "'./test/r_3'" in err and "not found" in err
+    assert "frame 3 (./test/r_3)" in err and "not found" in err
 
 
 def test_missing_split_names_the_file(tiny_eval, tmp_path, capsys):
