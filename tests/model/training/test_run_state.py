@@ -176,7 +176,9 @@ def test_a_job_killed_outright_goes_on_from_its_last_periodic_state(scene_split,
     deadline = time.monotonic() + 240
     while not _has_validated(state) and time.monotonic() < deadline and job.poll() is None:
         time.sleep(0.1)
-    time.sleep(1.0)  # a few more periodic states
+    while (job.poll() is None and time.monotonic() < deadline
+           and read_run_state(state)[0]["state"]["states_written"] < 3):
+        time.sleep(0.1)  # a few more periodic states
     job.kill()
     job.wait()
     document = read_run_state(state)[0]  # the last whole state: the kill cannot have torn it
@@ -208,8 +210,11 @@ while True:
 def test_sigkill_during_writes_never_leaves_a_file_that_fails_to_load(tmp_path) -> None:
     path = tmp_path / "k.resume"
     seen = []
-    for delay in (0.9, 1.13, 1.37, 1.61, 1.85):  # killed at different points of a 16 MB write
+    for delay in (0.0, 0.13, 0.37, 0.61, 0.85):  # killed at different points of a 16 MB write
         writer = subprocess.Popen([sys.executable, "-c", WRITER, str(path)])
+        deadline = time.monotonic() + 120
+        while not path.exists() and time.monotonic() < deadline:
+            time.sleep(0.02)  # the first write is done: the writer is past its imports
         time.sleep(delay)
         writer.kill()
         writer.wait()
