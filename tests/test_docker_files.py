@@ -294,6 +294,7 @@ def test_the_files_the_server_image_needs_are_in_the_build_context() -> None:
         "model/visnerf/__pycache__/cli.cpython-311.pyc",
         ".pytest_cache/v/cache/nodeids",
         ".ruff_cache/content",
+        ".hypothesis/constants/a3a0",
         "visnerf.egg-info/PKG-INFO",
         "tangle.safetensors",
         "tests/server/model.safetensors",
