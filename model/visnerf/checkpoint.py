@@ -225,11 +225,13 @@ def write_atomically(path: str | Path, blob: bytes) -> Path:
     return path
 
 
-def _read_header(blob: bytes) -> dict[str, Any]:
+def read_safetensors_header(blob: bytes, max_header_bytes: int = _MAX_HEADER_BYTES) -> dict[str, Any]:
+    """The JSON header of a safetensors file's bytes, checked before the tensors are parsed:
+    ``CheckpointError`` where the file is too short, the header too long or not a JSON object."""
     if len(blob) < 8:
         raise CheckpointError("file is too short to be a safetensors checkpoint")
     (n,) = struct.unpack("<Q", blob[:8])
-    if n > _MAX_HEADER_BYTES or n + 8 > len(blob) or blob[8:9] != b"{":
+    if n > max_header_bytes or n + 8 > len(blob) or blob[8:9] != b"{":
         raise CheckpointError("not a safetensors file (bad header; a pickle or another format?)")
     try:
         header = json.loads(blob[8 : 8 + n])
@@ -262,7 +264,7 @@ def read_checkpoint(path: str | Path) -> tuple[CheckpointMeta, dict[str, torch.T
         blob = path.read_bytes()
     except OSError as exc:
         raise CheckpointError(f"cannot read checkpoint {path}: {exc.strerror}") from None
-    header = _read_header(blob)
+    header = read_safetensors_header(blob)
     metadata = header.get("__metadata__") or {}
     if METADATA_KEY not in metadata:
         raise CheckpointError(f"safetensors file has no {METADATA_KEY!r} metadata: not a ViSNeRF checkpoint")

@@ -16,7 +16,6 @@ tensor is finite, and raises ``RunStateError`` naming the problem otherwise.
 
 import hashlib
 import json
-import struct
 from pathlib import Path
 from typing import Any
 
@@ -25,13 +24,14 @@ from safetensors.torch import load as load_safetensors_bytes
 from safetensors.torch import save as save_safetensors_bytes
 from torch import Tensor
 
-from visnerf.checkpoint import write_atomically
+from visnerf.checkpoint import CheckpointError, read_safetensors_header, write_atomically
 from visnerf.data.scene import SceneData
 
 RUN_STATE_KEY = "visnerf_run_state"
 RUN_STATE_VERSION = 1
 RUN_STATE_SUFFIX = ".resume"
 _MAX_HEADER_BYTES = 64 * 1024 * 1024
+"""Longest JSON header read: the document holds the run's whole log."""
 
 
 class RunStateError(ValueError):
@@ -72,19 +72,17 @@ def read_run_state(path: str | Path) -> tuple[dict[str, Any], dict[str, Tensor]]
         blob = path.read_bytes()
     except OSError as exc:
         raise RunStateError(f"cannot read run state {path}: {exc.strerror}") from None
-    if len(blob) < 8:
-        raise RunStateError(f"{path} is too short to be a run state")
-    (n,) = struct.unpack("<Q", blob[:8])
-    if n > _MAX_HEADER_BYTES or n + 8 > len(blob) or blob[8:9] != b"{":
-        raise RunStateError(f"{path} is not a run state (not a safetensors file)")
     try:
-        header = json.loads(blob[8 : 8 + n])
+        header = read_safetensors_header(blob, _MAX_HEADER_BYTES)
+    except CheckpointError as exc:
+        raise RunStateError(f"{path} is not a run state ({exc})") from None
+    try:
         document = json.loads((header.get("__metadata__") or {})[RUN_STATE_KEY])
-    except (json.JSONDecodeError, UnicodeDecodeError, KeyError, AttributeError, TypeError):
+    except (json.JSONDecodeError, KeyError, AttributeError, TypeError):
         raise RunStateError(f"{path} is not a run state of visnerf train (no {RUN_STATE_KEY!r} document)") from None
-    if not isinstance(document, dict) or document.get("format_version") != RUN_STATE_VERSION:
-        raise RunStateError(f"{path}: unsupported run-state version {document.get('format_version')!r} "
-                            f"(this build reads {RUN_STATE_VERSION})")
+    version = document.get("format_version") if isinstance(document, dict) else None
+    if version != RUN_STATE_VERSION:
+        raise RunStateError(f"{path}: unsupported run-state version {version!r} (this build reads {RUN_STATE_VERSION})")
     try:
         tensors = load_safetensors_bytes(blob)
     except Exception as exc:  # safetensors raises its own error types for truncation / corruption

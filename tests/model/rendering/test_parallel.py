@@ -14,14 +14,6 @@ from visnerf.rendering.renderer import RenderSettings, render_image
 from visnerf.testing import make_tiny_field
 
 
-@pytest.fixture()
-def two_threads():
-    before = torch.get_num_threads()
-    torch.set_num_threads(2)
-    yield
-    torch.set_num_threads(before)
-
-
 def test_threaded_chunks_render_the_same_frame(two_threads) -> None:
     field, _ = make_tiny_field([("a", [0.0, 1.0])], seed=2, resolution=12)
     field.eval()

@@ -20,14 +20,6 @@ from visnerf.rendering.setting_occupancy import SettingOccupancy, SettingOccupan
 from visnerf.testing import make_tiny_checkpoint, make_tiny_field
 
 
-@pytest.fixture()
-def two_threads():
-    before = torch.get_num_threads()
-    torch.set_num_threads(2)
-    yield
-    torch.set_num_threads(before)
-
-
 class CancelAfter:
     """A cancel check that answers False ``allowed`` times, then True; counts the False answers
     (the chunks let through)."""
