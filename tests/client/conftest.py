@@ -110,8 +110,10 @@ def base_url(server: ServerProcess) -> str:
     return server.base_url
 
 
-@pytest.fixture(scope="session")
+@pytest.fixture(scope="package")
 def browser() -> Iterator[object]:
+    """One Chromium for the client tests, closed when they end: Playwright's sync API keeps an
+    event loop running in the main thread while it is open, which later tests may not expect."""
     playwright_sync = pytest.importorskip("playwright.sync_api")
     if not Path(CHROMIUM).exists():
         pytest.skip(f"no Chromium at {CHROMIUM} (set VISNERF_CHROMIUM)")

@@ -157,7 +157,20 @@ def test_a_render_whose_caller_leaves_is_stopped() -> None:
         with pytest.raises(asyncio.CancelledError):
             await task
 
-    asyncio.run(leave_early())
+    # A thread of its own: asyncio.run refuses a thread whose event loop is already running.
+    outcome: list[BaseException | None] = []
+
+    def run_loop() -> None:
+        try:
+            asyncio.run(leave_early())
+            outcome.append(None)
+        except BaseException as exc:  # noqa: BLE001 - handed to the test's thread
+            outcome.append(exc)
+
+    runner = threading.Thread(target=run_loop)
+    runner.start()
+    runner.join(timeout=30)
+    assert outcome == [None], outcome
     assert cancel.is_set()
     started = time.monotonic()
     assert queue.run(lambda: 8, timeout=5) == 8
