@@ -137,12 +137,6 @@ class FieldConfig:
     """Frequencies of the positional encoding of x fed to the density decoder."""
     sh_degree: int = 3
     """Spherical-harmonics degree (0..3) of the view-direction encoding."""
-    shading_normals: bool = False
-    """Whether the colour decoder also sees the surface normal at each shaded sample (the density's
-    gradient, by central differences one voxel apart) and its cosine with the view direction. Lit
-    isosurfaces are shaded by their normal and a light that follows the camera; without the normal
-    the colour of a surface point must be learned anew for each direction it is seen from. The
-    recipe turns it on for opaque scenes (``training.recipe``)."""
     density_shift: float = -2.0
     """Added to the raw density before softplus, so that a fresh field is a faint fog (0.13 per world
     unit at a ``density_scale`` of 1): at TensoRF's -10 the photometric gradient behind the density

@@ -14,10 +14,9 @@ from visnerf.representation.field import VisNerfField
 
 
 def make_tiny_field(
-    param_axes: list[tuple[str, list[float]]], seed: int = 0, resolution: int = 8, shading_normals: bool = False
+    param_axes: list[tuple[str, list[float]]], seed: int = 0, resolution: int = 8
 ) -> tuple[VisNerfField, tuple[ParamAxis, ...]]:
-    """A small random field whose density is high enough to show something (its colour shaded by
-    surface normals with ``shading_normals``)."""
+    """A small random field whose density is high enough to show something."""
     generator_state = torch.random.get_rng_state()
     torch.manual_seed(seed)
     try:
@@ -30,7 +29,6 @@ def make_tiny_field(
             density_shift=0.0,
             init_scale=0.5,
             factor_storage="float16",
-            shading_normals=shading_normals,
         )
         field = VisNerfField(cfg, torch.tensor([[-0.5, -0.5, -0.5], [0.5, 0.5, 0.5]]))
         axes = []

@@ -66,7 +66,7 @@ def test_given_options_round_trip_through_the_checkpoint(tangle, tmp_path) -> No
     assert meta.render == dataclasses.replace(RenderConfig(max_samples=512, full_weight_threshold=0.001),
                                               full_step_ratio=meta.render.full_step_ratio)
     expected_field = FieldConfig(hidden_width=32, sh_degree=1, density_scale=40.0, param_lengths=(),
-                                 resolution=meta.field.resolution, shading_normals=True)  # chosen: opaque
+                                 resolution=meta.field.resolution)
     assert meta.field == expected_field
     assert recipe == TrainConfig(iterations=3, l1_weight_rest=2e-5, mixed_precision=False, upsample_at=(0.1, 0.2),
                                  betas=(0.8, 0.95), stop_eps=1e-3, resolution_final=recipe.resolution_final,

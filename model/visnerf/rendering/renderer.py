@@ -157,11 +157,8 @@ def _shade_samples(
     rgb = torch.zeros(n, 3, dtype=points.dtype, device=points.device)
     if shade.numel() > 0:
         shade_rays = torch.div(shade, s, rounding_mode="floor")
-        shade_points, shade_dirs = flat_points.index_select(0, shade), rays_d.index_select(0, shade_rays)
-        normals = None
-        if field.cfg.shading_normals:
-            normals = field.shading_normals(shade_points, shade_dirs, q_density.index_select(0, shade_rays))
-        colors = field.color(shade_points, shade_dirs, q_appearance.index_select(0, shade_rays), normals)  # [k, 3]
+        colors = field.color(flat_points.index_select(0, shade), rays_d.index_select(0, shade_rays),
+                             q_appearance.index_select(0, shade_rays))  # [k, 3]
         rgb = rgb.index_add(0, shade_rays, weights.reshape(-1).index_select(0, shade)[:, None] * colors)
     return rgb, tau.sum(dim=-1), weights
 
@@ -169,7 +166,6 @@ def _shade_samples(
 def _shade_frame_samples(
     frame: FrameField,
     ray_terms: Float[Tensor, "n h"],
-    ray_dirs: Float[Tensor, "n 3"],
     rays: Int[Tensor, " a"],
     points: Float[Tensor, "a s 3"],
     step: float,
@@ -179,7 +175,7 @@ def _shade_frame_samples(
     rgbw: Float[Tensor, "n 4"],
 ) -> Float[Tensor, " a"]:
     """Inference twin of ``_shade_samples`` at one parameter tuple, equal spacing ``step``, for
-    the segment ``points`` of rays ``rays`` (indices into ``ray_terms``, ``ray_dirs`` and ``rgbw``).
+    the segment ``points`` of rays ``rays`` (indices into ``ray_terms`` and ``rgbw``).
 
     The VM taps of the valid samples are computed once; colour reuses those of the samples whose
     weight matters. Adds the segment's weighted colour and the weight of its shaded samples into
@@ -198,11 +194,7 @@ def _shade_frame_samples(
     shade = (valid_weights > weight_threshold).nonzero()[:, 0]  # into the valid samples
     if shade.numel() > 0:
         ray_idx = rays.index_select(0, flat.index_select(0, shade) // s)
-        shaded_samples = samples.select(shade)
-        normals = None
-        if frame.shading_normals:
-            normals = frame.normal_terms(shaded_samples.points, ray_dirs.index_select(0, ray_idx))
-        colors = frame.color_at(shaded_samples.taps, ray_terms.index_select(0, ray_idx), normals)  # [k, 3]
+        colors = frame.color_at(samples.taps.select(shade), ray_terms.index_select(0, ray_idx))  # [k, 3]
         shaded = valid_weights.index_select(0, shade)[:, None]  # [k, 1]
         rgbw.index_add_(0, ray_idx, torch.cat([shaded * colors, shaded], dim=1))
     return tau.sum(dim=-1)
@@ -532,7 +524,7 @@ def march_rays(
             valid = torch.zeros_like(valid).view(-1).index_copy_(
                 0, flat, empty_space.occupied_at(points.view(-1, 3).index_select(0, flat))).view_as(valid)
         tau_active += _shade_frame_samples(
-            frame, ray_terms, rays_d, active, points, step, valid, tau_active, settings.weight_threshold, rgbw,
+            frame, ray_terms, active, points, step, valid, tau_active, settings.weight_threshold, rgbw,
         )
         keep = ((tau_active < tau_stop) & (idx[:, -1] < last)).nonzero()[:, 0]
         if keep.numel() < active.numel():

@@ -5,13 +5,8 @@ parameter axes of each branch. The ``n_param_components`` parameter features sca
 groups of the spatial features (channel ``c`` by component ``c % n_param_components``) and are also
 appended to the decoder input, so parameter vectors of ones leave the spatial features unchanged.
 
-With ``FieldConfig.shading_normals`` the colour decoder's input ends with four more columns, the
-shading normal and its cosine with the view direction (``normal_terms``).
-
 Coordinates: world points are mapped to grid coordinates in [-1, 1]^3 over ``aabb``.
 """
-
-from collections.abc import Callable
 
 import torch
 import torch.nn.functional as F
@@ -28,32 +23,6 @@ from visnerf.representation.decoders import (
 )
 from visnerf.representation.param_axes import ParamAxes
 from visnerf.representation.vm import VMGrid
-
-NORMAL_TERMS = 4
-"""Colour decoder input columns of the shading normal: its three components, then its cosine with
-the view direction."""
-
-
-def normal_terms(
-    density: Callable[[Tensor], Tensor],
-    points: Float[Tensor, "n 3"],
-    directions: Float[Tensor, "n 3"],
-    spacing: float,
-) -> Float[Tensor, "n 4"]:
-    """The shading normal at ``points`` and its cosine with the unit ``directions``: minus the
-    gradient of ``density`` (a function of world points ``[m, 3] -> [m]``) by central differences
-    ``spacing`` apart, normalised; zero where the density is flat (no division by a vanishing
-    gradient). Points outward, where the density falls; a surface facing the camera has a cosine
-    near -1. Not differentiated (the caller decides under which grad mode it runs)."""
-    n = points.shape[0]
-    offsets = torch.eye(3, dtype=points.dtype, device=points.device) * spacing  # [3, 3]
-    probes = torch.cat([points[:, None, :] + offsets, points[:, None, :] - offsets], dim=1)  # [n, 6, 3]
-    values = density(probes.reshape(-1, 3)).reshape(n, 2, 3).to(points.dtype)
-    gradient = (values[:, 0] - values[:, 1]) / (2.0 * spacing)  # [n, 3]
-    length = gradient.norm(dim=-1, keepdim=True)
-    tiny = torch.finfo(points.dtype).tiny ** 0.5
-    normal = torch.where(length > tiny, -gradient / length.clamp_min(tiny), torch.zeros_like(gradient))
-    return torch.cat([normal, (normal * directions).sum(dim=-1, keepdim=True)], dim=-1)
 
 
 def modulate(spatial: Float[Tensor, "n f"], param_feats: Float[Tensor, "n c"]) -> Float[Tensor, "n f"]:
@@ -82,9 +51,7 @@ class VisNerfField(nn.Module):
             1,
         )
         self.color_decoder = Decoder(
-            3 * cfg.n_appearance_components + pc + sh_dim(cfg.sh_degree) + NORMAL_TERMS * cfg.shading_normals,
-            cfg.hidden_width,
-            3,
+            3 * cfg.n_appearance_components + pc + sh_dim(cfg.sh_degree), cfg.hidden_width, 3
         )
 
     @property
@@ -98,10 +65,6 @@ class VisNerfField(nn.Module):
     def current_config(self) -> FieldConfig:
         """The configuration that matches the current tensor shapes (after upsampling)."""
         return self.cfg.with_resolution(self.resolution)
-
-    def normal_spacing(self) -> float:
-        """Half the spacing of the central differences of ``normal_terms``: one voxel."""
-        return self.voxel_size()
 
     def voxel_size(self) -> float:
         """Mean world-space size of one grid cell."""
@@ -137,30 +100,13 @@ class VisNerfField(nn.Module):
         points: Float[Tensor, "n 3"],
         directions: Float[Tensor, "n 3"],
         q_appearance: Float[Tensor, "n c"],
-        normals: Float[Tensor, "n 4"] | None = None,
     ) -> Float[Tensor, "n 3"]:
-        """RGB in [0, 1] at world points seen along unit ``directions``. Differentiable in the
-        field's parameters. With ``cfg.shading_normals``, ``normals`` are the points'
-        ``shading_normals`` (required)."""
+        """RGB in [0, 1] at world points seen along unit ``directions``. Differentiable."""
         coords = self.to_grid(points)
         spatial = self.appearance_grid.sample(coords)
-        columns = [modulate(spatial, q_appearance), q_appearance, encode_sh(directions, self.cfg.sh_degree)]
-        if self.cfg.shading_normals:
-            if normals is None:
-                raise ValueError("this field shades by surface normals: pass shading_normals(points, ...)")
-            columns.append(normals.to(spatial.dtype))
-        raw = self.color_decoder(torch.cat(columns, dim=-1))
+        sh = encode_sh(directions, self.cfg.sh_degree)
+        raw = self.color_decoder(torch.cat([modulate(spatial, q_appearance), q_appearance, sh], dim=-1))
         return torch.sigmoid(raw)
-
-    def shading_normals(
-        self, points: Float[Tensor, "n 3"], directions: Float[Tensor, "n 3"], q_density: Float[Tensor, "n c"]
-    ) -> Float[Tensor, "n 4"]:
-        """``normal_terms`` of this field's density at ``points`` (parameter features ``q_density``
-        per point), without a graph: the normal is an input of the colour, not a path for its
-        gradient into the density."""
-        with torch.no_grad():
-            q6 = q_density.repeat_interleave(6, dim=0)
-            return normal_terms(lambda probes: self.density(probes, q6), points, directions, self.normal_spacing())
 
     @torch.no_grad()
     def set_occupancy(self, grid: Tensor | None) -> None:

@@ -34,7 +34,7 @@ from jaxtyping import Float, Int
 from torch import Tensor
 
 from visnerf.representation.decoders import Decoder, encode_position_into, encode_sh, padded_rows
-from visnerf.representation.field import NORMAL_TERMS, VisNerfField, normal_terms
+from visnerf.representation.field import VisNerfField
 from visnerf.representation.linear_relu import linear_relu
 from visnerf.representation.vm import VMGrid
 from visnerf.representation.vm_taps import TapLayout, VMTaps, lookup_modes, take_rows
@@ -144,8 +144,6 @@ class FrameField:
         cfg = field.cfg
         self.density_layer = fold_first_layer(field.density_decoder, q_density[0], cfg.n_density_components, dtype)
         self.color_layer = fold_first_layer(field.color_decoder, q_appearance[0], cfg.n_appearance_components, dtype)
-        self.shading_normals = cfg.shading_normals
-        self.normal_spacing = field.normal_spacing()
         self.density_tables = ModeTables.of(field.density_grid, dtype)
         self.appearance_tables = ModeTables.of(field.appearance_grid, dtype)
         if field.appearance_grid.resolution != field.density_grid.resolution:
@@ -163,22 +161,9 @@ class FrameField:
     def density(self, points: Float[Tensor, "m 3"]) -> Float[Tensor, " m"]:
         return self.density_at(self.lookup(points))
 
-    def color(
-        self, points: Float[Tensor, "m 3"], ray_terms: Float[Tensor, "m e"], directions: Float[Tensor, "m 3"] | None = None
-    ) -> Float[Tensor, "m 3"]:
-        """RGB at ``points``; ``ray_terms`` is ``direction_terms`` of each sample's ray, and
-        ``directions`` the rays' unit directions (needed with shading normals)."""
-        normals = None
-        if self.shading_normals:
-            if directions is None:
-                raise ValueError("this field shades by surface normals: pass the view directions")
-            normals = self.normal_terms(points, directions)
-        return self.color_at(self.lookup(points).taps, ray_terms, normals)
-
-    def normal_terms(self, points: Float[Tensor, "m 3"], directions: Float[Tensor, "m 3"]) -> Float[Tensor, "m 4"]:
-        """``field.normal_terms`` of this frame's density (six lookups a point: central differences
-        one voxel apart), in float32."""
-        return normal_terms(self.density, points, directions, self.normal_spacing)
+    def color(self, points: Float[Tensor, "m 3"], ray_terms: Float[Tensor, "m e"]) -> Float[Tensor, "m 3"]:
+        """RGB at ``points``; ``ray_terms`` is ``direction_terms`` of each sample's ray."""
+        return self.color_at(self.lookup(points).taps, ray_terms)
 
     def density_at(self, samples: SampleTaps) -> Float[Tensor, " m"]:
         out = torch.empty(len(samples), dtype=samples.points.dtype, device=samples.points.device)
@@ -206,32 +191,22 @@ class FrameField:
         per sample and cost more than the product it saved)."""
         return encode_sh(directions, self.field.cfg.sh_degree).to(self.dtype)
 
-    def color_at(
-        self, taps: VMTaps, ray_terms: Float[Tensor, "m e"], normals: Float[Tensor, "m 4"] | None = None
-    ) -> Float[Tensor, "m 3"]:
+    def color_at(self, taps: VMTaps, ray_terms: Float[Tensor, "m e"]) -> Float[Tensor, "m 3"]:
         """RGB at samples with VM taps ``taps`` (``lookup(points).taps``); ``ray_terms`` is
-        ``direction_terms`` of each sample's ray; ``normals`` their ``normal_terms`` (required with
-        shading normals, ignored without)."""
-        if self.shading_normals and normals is None:
-            raise ValueError("this field shades by surface normals: pass normal_terms(points, directions)")
+        ``direction_terms`` of each sample's ray."""
         out = torch.empty(len(taps), 3, dtype=torch.float32, device=ray_terms.device)
         for start in range(0, len(taps), SUB_CHUNK):
             sl = slice(start, start + SUB_CHUNK)
-            out[sl] = self._color(taps.select(sl), ray_terms[sl], normals[sl] if self.shading_normals else None)
+            out[sl] = self._color(taps.select(sl), ray_terms[sl])
         return out
 
-    def _color(
-        self, taps: VMTaps, ray_terms: Float[Tensor, "m e"], normals: Float[Tensor, "m 4"] | None
-    ) -> Float[Tensor, "m 3"]:
+    def _color(self, taps: VMTaps, ray_terms: Float[Tensor, "m e"]) -> Float[Tensor, "m 3"]:
         m = len(taps)
         n_spatial = 3 * self.appearance_tables.n_components
-        e = ray_terms.shape[1]
         x = torch.empty(padded_rows(m), self.color_layer.weight.shape[1], dtype=self.dtype, device=ray_terms.device)
         x[m:].zero_()
         self.appearance_tables.features_into(taps, x[:m])  # [m, 3c]
-        x[:m, n_spatial:n_spatial + e] = ray_terms
-        if normals is not None:
-            x[:m, n_spatial + e:n_spatial + e + NORMAL_TERMS] = normals
+        x[:m, n_spatial:] = ray_terms
         hidden = linear_relu(x, self.color_layer.weight, self.color_layer.bias)  # [padded, h]
         raw = F.linear(hidden, *self._color_out)[:m]
         return torch.sigmoid(raw.float())

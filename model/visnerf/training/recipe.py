@@ -17,9 +17,6 @@ the images and cameras alone, each choice with the reason ``visnerf info`` shows
   their content), the content is an opaque surface, which needs an optical depth of about 10
   within a voxel or two. The density is then scaled by one over the final voxel size
   (``FieldConfig.density_scale``), the fog it starts from kept as it is;
-- shading by surface normals (``FieldConfig.shading_normals``) for opaque scenes: the colour
-  decoder sees the density's normal and its cosine with the view direction, as lit isosurfaces
-  are shaded;
 - dropping occluded samples (``TrainConfig.stop_eps``) only for opaque scenes: a translucent
   scene's rays seldom turn opaque, and the density pass that finds occluded samples cost Nyx 6 %
   of its steps;
@@ -65,7 +62,7 @@ tangle_iso and tangle_static (128x128, 32x32), 0.04 to 0.21 on vortex_tf1, vorte
 Nyx (32x32 to 256x256 renders)."""
 CHOSEN_FIELDS = frozenset({("TrainConfig", "resolution_final"), ("TrainConfig", "carve_min_seen_fraction"),
                            ("FieldConfig", "density_scale"), ("FieldConfig", "density_shift"),
-                           ("FieldConfig", "shading_normals"), ("TrainConfig", "stop_eps")})
+                           ("TrainConfig", "stop_eps")})
 """The configuration fields ``choose_recipe`` sets from the data unless the user gives them."""
 BORDER_PIXELS = 1
 """Width of the image border in which a foreground pixel means content cut by the frame."""
@@ -228,15 +225,6 @@ def choose_recipe(scene: SceneData, base: TrainConfig, base_field: FieldConfig,
         choices.append(Choice("density_scale", base_field.density_scale,
                               f"{100 * traits.faint_fraction:.1f} % of the foreground pixels are faint: translucent "
                               "content, densities as the decoder gives them"))
-
-    if "shading_normals" in fixed:
-        choices.append(Choice("shading_normals", base_field.shading_normals, "set by the user"))
-    elif traits.opaque:
-        field_values["shading_normals"] = True
-        choices.append(Choice("shading_normals", True,
-                              "opaque surfaces are lit by their normal: the colour decoder sees the density's "
-                              "normal and its cosine with the view direction, so that shading seen from a new "
-                              "direction follows from the surface instead of being learned per direction"))
 
     if "stop_eps" in fixed:
         choices.append(Choice("stop_eps", base.stop_eps, "set by the user"))

@@ -303,11 +303,11 @@ def _table_field(monkeypatch: pytest.MonkeyPatch, sigma: torch.Tensor, colours: 
     field.aabb = torch.tensor([[0.0, -0.5, -0.5], [float(s), n - 0.5, 0.5]])
     monkeypatch.setattr(VisNerfField, "voxel_size", lambda self: 1.0)
     monkeypatch.setattr(VisNerfField, "density", lambda self, points, q: _lookup(sigma, points))
-    monkeypatch.setattr(VisNerfField, "color", lambda self, points, dirs, q, normals=None: _lookup(colours, points))
+    monkeypatch.setattr(VisNerfField, "color", lambda self, points, dirs, q: _lookup(colours, points))
     monkeypatch.setattr(FrameField, "lookup", lambda self, points: SampleTaps(points, points, _index_taps(points)))
     monkeypatch.setattr(FrameField, "density_at", lambda self, samples: _lookup(sigma, samples.points).detach())
     monkeypatch.setattr(FrameField, "color_at",
-                        lambda self, taps, terms, normals=None: _lookup(colours, taps.plane_weights[:, 0, :3]).detach())
+                        lambda self, taps, terms: _lookup(colours, taps.plane_weights[:, 0, :3]).detach())
     return field
 
 

@@ -125,7 +125,7 @@ def test_unshaded_weight_takes_the_mean_colour_of_the_shaded_samples(shell_field
     (no gain) is off by the skipped weight, the haze in front of the shell."""
     colour = torch.tensor([0.2, 0.6, 0.9])
     monkeypatch.setattr(FrameField, "density_at", lambda self, samples: _haze_density(samples.points))
-    monkeypatch.setattr(FrameField, "color_at", lambda self, taps, ray_terms, normals=None: colour.expand(len(taps), 3))
+    monkeypatch.setattr(FrameField, "color_at", lambda self, taps, ray_terms: colour.expand(len(taps), 3))
     import visnerf.rendering.renderer as renderer
 
     intr = Intrinsics.from_fov(24, 24, math.radians(35.0))

@@ -14,18 +14,10 @@ from visnerf.representation.frame_field import FrameField, ModeTables
 from visnerf.testing import make_tiny_field
 
 
-@pytest.fixture(params=[False, True], ids=["sh_only", "shading_normals"])
-def field(request):
-    f, _ = make_tiny_field([("a", [0.0, 0.5, 1.0]), ("b", [0.0, 1.0])], seed=3, resolution=12,
-                           shading_normals=request.param)
+@pytest.fixture()
+def field():
+    f, _ = make_tiny_field([("a", [0.0, 0.5, 1.0]), ("b", [0.0, 1.0])], seed=3, resolution=12)
     return f.eval()
-
-
-def field_colour(field, points, dirs, q_d, q_a):
-    """The training path's colour at ``points`` (with the shading normals its config asks for)."""
-    n = points.shape[0]
-    normals = field.shading_normals(points, dirs, q_d.expand(n, -1)) if field.cfg.shading_normals else None
-    return field.color(points, dirs, q_a.expand(n, -1), normals)
 
 
 def test_table_lookups_equal_the_concatenated_features(field) -> None:
@@ -76,8 +68,8 @@ def test_folded_decoders_equal_the_field(field, params) -> None:
     frame = FrameField(field, q_d, q_a)
     with torch.no_grad():
         assert torch.allclose(frame.density(points), field.density(points, q_d.expand(400, -1)), rtol=1e-5, atol=1e-6)
-        colour = frame.color(points, frame.direction_terms(dirs), dirs)
-        assert torch.allclose(colour, field_colour(field, points, dirs, q_d, q_a), atol=1e-6)
+        colour = frame.color(points, frame.direction_terms(dirs))
+        assert torch.allclose(colour, field.color(points, dirs, q_a.expand(400, -1)), atol=1e-6)
 
 
 def _both_renders(field, settings: RenderSettings, size: int = 24):
@@ -146,8 +138,8 @@ def test_bf16_decoders_differ_from_float32_only_by_rounding(field, params) -> No
     exact, rounded = FrameField(field, q_d, q_a), FrameField(field, q_d, q_a, torch.bfloat16)
     with torch.no_grad():
         sigma, sigma_b = exact.density(points), rounded.density(points)
-        colour = exact.color(points, exact.direction_terms(dirs), dirs)
-        colour_b = rounded.color(points, rounded.direction_terms(dirs), dirs)
+        colour = exact.color(points, exact.direction_terms(dirs))
+        colour_b = rounded.color(points, rounded.direction_terms(dirs))
     assert sigma_b.dtype == colour_b.dtype == torch.float32
     assert torch.isfinite(sigma_b).all() and torch.isfinite(colour_b).all()
     rel = (sigma_b - sigma).abs() / sigma.abs().clamp_min(1e-3)

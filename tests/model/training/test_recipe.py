@@ -38,8 +38,6 @@ def test_opaque_surfaces_get_a_surface_density_and_volumes_do_not(surface_scene,
     got = torch.nn.functional.softplus(torch.tensor(surface.field.density_shift)).item() * surface.field.density_scale
     assert got == pytest.approx(fog, rel=1e-5)
     assert "opaque" in next(c.reason for c in surface.choices if c.name == "density_scale")
-    # Opaque surfaces are shaded by their normal; translucent volumes have none to be shaded by.
-    assert surface.field.shading_normals and not volume.field.shading_normals
     # Only opaque content drops occluded samples from a training step.
     assert surface.train.stop_eps == TrainConfig().stop_eps > 0 and "stop_eps" not in choices_of(surface)
     assert volume.train.stop_eps == 0.0 and "translucent" in next(c.reason for c in volume.choices
@@ -90,10 +88,9 @@ def test_settings_the_user_gave_are_kept(surface_scene):
     base = TrainConfig(resolution_final=40, carve_min_seen_fraction=0.1)
     field = FieldConfig(density_scale=3.0)
     recipe = choose_recipe(surface_scene, base, field,
-                           frozenset({"resolution_final", "carve_min_seen_fraction", "density_scale",
-                                      "shading_normals"}))
+                           frozenset({"resolution_final", "carve_min_seen_fraction", "density_scale"}))
     assert recipe.train.resolution_final == 40 and recipe.train.carve_min_seen_fraction == 0.1
-    assert recipe.field.density_scale == 3.0 and not recipe.field.shading_normals
+    assert recipe.field.density_scale == 3.0
     assert all(c.reason == "set by the user" for c in recipe.choices if c.name != "parameter_axes")
 
 
