@@ -35,7 +35,7 @@ HOLDOUT_VIEWS = (5, 17, 29, 40)
 
 
 def holdout_for(scene: SceneData) -> HoldoutConfig:
-    """The hold-out of bench/nyx_train.py and scripts/train_bundled.sh: views 5, 17, 29 and 40 at
+    """The hold-out of bench/nyx_train.py and bench/train_speed.py: views 5, 17, 29 and 40 at
     every setting, plus the four whole Nyx parameter settings where the dataset has that many
     parameters (a setting that matches no frame holds nothing out)."""
     settings = tuple(s for s in HOLDOUT_SETTINGS if len(s) == scene.n_params)

@@ -3,7 +3,8 @@
 For each scene of ``visnerf scenes``: generate the dataset at ``--res`` (the full protocol: 42
 icosphere views per parameter setting, a 181-view test path between training values), train under
 ``--minutes-per-scene`` with views 3, 11 and 25 held out for validation, evaluate the checkpoint on
-the test path as ``visnerf eval`` does (per-scene report in RESULTS/eval_scenes/NAME/), and write one
+the test path as ``visnerf eval`` does (per-scene report in RESULTS/eval_scenes/NAME/, or
+RESULTS/eval_scenes.partial/NAME/ for a partial run), and write one
 table (scene, K, PSNR, SSIM, training minutes, ms per frame, model MB) next to the paper's figures
 where the paper has a corresponding row.
 

@@ -8,7 +8,7 @@
 Both train on the same training frames with the same seed under the same budget of training seconds
 (the trainer's clock: carving counts, validation does not), plain first, and validate every
 ``--validate-every`` training seconds on the same held-out frames (views 5, 17, 29 and 40 at every
-setting as in scripts/train_bundled.sh, plus bench/nyx_train.py's held-out settings on Nyx).
+setting, as bench/nyx_train.py holds out, plus its held-out settings on Nyx).
 Records iterations, iterations per second, samples per iteration and validation PSNR against
 training seconds, and compares the validation PSNR of the two at equal training time by linear
 interpolation of the logged curves at the union of their validation times.

@@ -396,8 +396,12 @@ class Trainer:
         wall0 = time.perf_counter()
         last_val = last_state = self.state.train_seconds
         self.stopped = False
-        bar = tqdm(total=cfg.iterations, initial=self.state.iteration, disable=not progress_bar,
-                   dynamic_ncols=True, desc="train")
+        # Under a time budget the bar counts seconds of training (its rate and time left are then
+        # those of the budget, not of an iteration count the run never reaches).
+        timed = cfg.time_budget_s is not None
+        bar = tqdm(total=round(cfg.time_budget_s) if timed else cfg.iterations,
+                   initial=min(round(self.state.train_seconds), round(cfg.time_budget_s)) if timed else self.state.iteration,
+                   unit="s" if timed else "it", disable=not progress_bar, dynamic_ncols=True, desc="train")
         while self.progress() < 1.0:
             if stop is not None and stop.requested():
                 self.stopped = True
@@ -412,10 +416,13 @@ class Trainer:
             if self.state.iteration % self.cfg.trim_every == 0:
                 release_free_memory()
             self.ema_mse = stats["mse"] if self.ema_mse is None else 0.95 * self.ema_mse + 0.05 * stats["mse"]
-            bar.update(1)
+            if timed:
+                bar.update(max(0, min(round(self.state.train_seconds), bar.total) - bar.n))
+            else:
+                bar.update(1)
             if self.state.iteration % 10 == 0:
-                bar.set_postfix(loss=f"{stats['loss']:.4f}", psnr=f"{mse_to_psnr(self.ema_mse):.2f}",
-                                res=str(self.field.resolution[0]), refresh=False)
+                bar.set_postfix(it=self.state.iteration, loss=f"{stats['loss']:.4f}",
+                                psnr=f"{mse_to_psnr(self.ema_mse):.2f}", res=str(self.field.resolution[0]), refresh=False)
             if self.val_scene is not None and self.state.train_seconds - last_val >= cfg.validate_every_s:
                 last_val = self.state.train_seconds
                 self._record(mse_to_psnr(self.ema_mse), wall0, on_validate)
