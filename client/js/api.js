@@ -58,10 +58,16 @@ async function errorFromResponse(response, what) {
   return new ApiError(message, { status: response.status, detail, retryAfterS });
 }
 
-async function request(url, what, { signal, accept } = {}) {
+async function request(url, what, { signal, accept, method = "GET", json } = {}) {
   let response;
+  const headers = accept ? { Accept: accept } : {};
+  const init = { signal, method, headers };
+  if (json !== undefined) {
+    headers["Content-Type"] = "application/json";
+    init.body = JSON.stringify(json);
+  }
   try {
-    response = await fetch(url, { signal, headers: accept ? { Accept: accept } : {} });
+    response = await fetch(url, init);
   } catch (err) {
     if (err && err.name === "AbortError") throw new ApiError(`${what}: cancelled`, { kind: "aborted" });
     throw new ApiError("Server unreachable: no answer from " + new URL(url, location.href).host, {
@@ -157,6 +163,33 @@ export class HttpRenderer {
 export async function fetchImage(sceneId, req, options) {
   const response = await request(renderUrl(sceneId, req), "Render", options);
   return response.blob();
+}
+
+/**
+ * POST /api/scenes/{id}/movies: start rendering a movie of a camera path.
+ * @param {{path: object, fps: number, width: number, height: number, format: "mp4"|"gif",
+ *          quality: "full"|"preview"}} job
+ * @returns {Promise<{job_id: string, frames: number, status_url: string, file_url: string}>}
+ */
+export async function createMovie(sceneId, job, options) {
+  const url = `/api/scenes/${encodeURIComponent(sceneId)}/movies`;
+  const response = await request(url, "Movie", { ...options, method: "POST", json: job, accept: "application/json" });
+  return response.json();
+}
+
+/** GET /api/movies/{job} -> {state, frames_done, frames_total, error, frames_per_second, seconds_left} */
+export function getMovieStatus(statusUrl, options) {
+  return getJson(statusUrl, "Movie status", options);
+}
+
+/** DELETE /api/movies/{job}: cancel a queued or running movie. */
+export async function cancelMovie(statusUrl, options) {
+  await request(statusUrl, "Cancelling the movie", { ...options, method: "DELETE", accept: "application/json" });
+}
+
+/** The status URL of a movie job (the server also returns it as `status_url`). */
+export function movieStatusUrl(jobId) {
+  return `/api/movies/${encodeURIComponent(jobId)}`;
 }
 
 const MIME = { png: "image/png", jpeg: "image/jpeg", webp: "image/webp" };

@@ -1,10 +1,12 @@
-// Wiring: scene picker, state, controls, render channels, comparison, URL and alerts.
+// Wiring: scene picker, state, controls, render channels, comparison, movie, URL and alerts.
 
 import * as api from "./api.js";
 import { DiffView } from "./compare.js";
 import { buildParamControls, formatValue } from "./controls.js";
 import { FrameChannel, PreviewSizer, RenderScheduler } from "./frames.js";
 import { attachCameraInput } from "./interaction.js";
+import { setupMoviePanel } from "./movie.js";
+import { setupMovieJob } from "./movie_job.js";
 import { defaultResolution, fillExportSize, fillResolutions, fillScenePicker, setupExport, showSceneInfo } from "./panels.js";
 import { roundTo, ViewState } from "./state.js";
 import { AlertBox, FrameStats, FrameView, StatusBar } from "./viewer.js";
@@ -93,6 +95,9 @@ async function openScene(sceneId, query = null) {
   scene = state.scene;
   state.resolution = defaultResolution(scene);
   if (query) state.applyQuery(query);
+  if (state.pathWarning) {
+    alerts.set("link-path", `The camera path in this link is malformed (${state.pathWarning}); it was left out.`, "warning");
+  }
   fillScenePicker($("#scene-select"), sceneList, scene.id);
   showSceneInfo($("#scene-kind"), $("#scene-info"), scene);
   fillResolutions($("#resolution"), state);
@@ -387,6 +392,8 @@ state.addEventListener("change", (event) => {
     case "resolution":
       kick(activeSets(), false);
       break;
+    case "path":
+      break;
     default:
       return;
   }
@@ -398,6 +405,7 @@ state.addEventListener("change", (event) => {
 $("#scene-select").addEventListener("change", (event) => {
   const id = event.target.value;
   alerts.clear("link");
+  alerts.clear("link-path");
   if (id && id !== state.sceneId) openScene(id);
 });
 
@@ -426,6 +434,46 @@ setupExport({
   width: $("#export-width"),
   height: $("#export-height"),
   button: $("#save-png"),
+});
+
+const movie = setupMoviePanel({
+  state,
+  alerts,
+  el: {
+    panel: $("#movie-panel"),
+    canvas: $("#canvas-a"),
+    surface: $("#panes"),
+    add: $("#kf-add"),
+    preview: $("#movie-preview"),
+    strip: $("#kf-strip"),
+    empty: $("#kf-empty"),
+    summary: $("#movie-summary"),
+    cameraMode: $("#path-camera"),
+    paramMode: $("#path-params"),
+    save: $("#path-save"),
+    load: $("#path-load"),
+    file: $("#path-file"),
+  },
+});
+
+setupMovieJob({
+  state,
+  alerts,
+  panel: movie,
+  el: {
+    fps: $("#movie-fps"),
+    width: $("#movie-width"),
+    height: $("#movie-height"),
+    format: $("#movie-format"),
+    quality: $("#movie-quality"),
+    render: $("#movie-render"),
+    estimate: $("#movie-estimate"),
+    job: $("#movie-job"),
+    progress: $("#movie-progress"),
+    status: $("#movie-status"),
+    cancel: $("#movie-cancel"),
+    download: $("#movie-download"),
+  },
 });
 
 attachCameraInput($("#panes"), state, { onInput: (t) => stats.noteInput(t) });

@@ -1,5 +1,8 @@
-// The view state: scene, camera and parameter values (A, and B for comparison), with clamping to
-// the ranges the server declared, change notification, and (de)serialisation to the page URL.
+// The view state: scene, camera and parameter values (A, and B for comparison), the movie's camera
+// path, with clamping to the ranges the server declared, change notification, and
+// (de)serialisation to the page URL.
+
+import { emptyPath, PathError, pathFromQuery, pathToQueryEntries } from "./path.js";
 
 export const ELEVATION_LIMIT = 89.9;
 /** Zoom range, as multiples of the scene's default camera distance. */
@@ -22,7 +25,7 @@ export function roundTo(value, digits = 4) {
 }
 
 // Keys of the URL that are not parameter names.
-const RESERVED = new Set(["scene", "az", "el", "dist", "fov", "res", "cmp"]);
+const RESERVED = new Set(["scene", "az", "el", "dist", "fov", "res", "cmp", "kf", "kfi"]);
 const B_PREFIX = "b.";
 
 export class ViewState extends EventTarget {
@@ -35,6 +38,8 @@ export class ViewState extends EventTarget {
     this.paramsB = {}; // B (comparison)
     this.compare = false;
     this.resolution = 256; // long side of a full-quality frame, in pixels
+    this.path = emptyPath(); // the movie's keyframes (path.js document)
+    this.pathWarning = null; // why the path of the last applied URL was left out, or null
   }
 
   get sceneId() {
@@ -48,6 +53,12 @@ export class ViewState extends EventTarget {
       elevation: Number.isFinite(c.elevation) ? c.elevation : 20,
       distance: Number.isFinite(c.distance) && c.distance > 0 ? c.distance : 4,
     };
+  }
+
+  /** The scene's default camera as a path keyframe's fallback: azimuth, elevation, distance, fov. */
+  get sceneCamera() {
+    const fov = this.scene && this.scene.camera.fov_deg;
+    return { ...this.defaultCamera, fov: Number.isFinite(fov) ? fov : 30 };
   }
 
   get distanceRange() {
@@ -73,6 +84,8 @@ export class ViewState extends EventTarget {
     this.fovDeg = Number.isFinite(scene.camera && scene.camera.fov_deg) ? scene.camera.fov_deg : 30;
     this.params = this.defaultParams();
     this.paramsB = this.defaultParams();
+    this.path = emptyPath();
+    this.pathWarning = null;
     this.emit("scene", { interactive: false });
   }
 
@@ -86,6 +99,13 @@ export class ViewState extends EventTarget {
     const c = this.camera;
     if (next.azimuth === c.azimuth && next.elevation === c.elevation && next.distance === c.distance) return;
     this.camera = next;
+    this.emit("camera", { interactive, inputTime });
+  }
+
+  /** Change the field of view (degrees, within (0, 180)). */
+  setFov(deg, { interactive = true, inputTime } = {}) {
+    if (!Number.isFinite(deg) || deg <= 0 || deg >= 180 || deg === this.fovDeg) return;
+    this.fovDeg = deg;
     this.emit("camera", { interactive, inputTime });
   }
 
@@ -127,6 +147,12 @@ export class ViewState extends EventTarget {
     this.emit("compare", { interactive: false });
   }
 
+  /** Replace the movie's camera path (a path.js document). */
+  setPath(path) {
+    this.path = path;
+    this.emit("path", { interactive: false });
+  }
+
   setResolution(px) {
     if (!Number.isFinite(px) || px <= 0 || px === this.resolution) return;
     this.resolution = px;
@@ -163,6 +189,8 @@ export class ViewState extends EventTarget {
       for (const axis of this.scene.params) q.set(B_PREFIX + axis.name, String(roundTo(this.paramsB[axis.name], 6)));
     }
     q.set("res", String(this.resolution));
+    const names = this.scene.params.map((a) => a.name);
+    for (const [key, value] of pathToQueryEntries(this.path, names)) q.append(key, value);
     return q;
   }
 
@@ -188,6 +216,14 @@ export class ViewState extends EventTarget {
     }
     if (num("res") !== undefined && num("res") >= 16) this.resolution = Math.round(num("res"));
     this.compare = query.get("cmp") === "1";
+    this.path = emptyPath();
+    this.pathWarning = null;
+    try {
+      this.path = pathFromQuery(query, this.scene ? this.scene.params : [], this.sceneCamera) ?? emptyPath();
+    } catch (err) {
+      if (!(err instanceof PathError)) throw err;
+      this.pathWarning = err.message;
+    }
     this.emit("restore", { interactive: false });
   }
 

@@ -14,6 +14,7 @@ _COMMAND_MODULES = (
     "visnerf.commands",  # train, render, info
     "visnerf.scenes.commands",  # make-scene, scenes
     "visnerf.evaluation.commands",  # eval
+    "visnerf.animation.commands",  # animate
     "visnerf_server.commands",  # serve, submit
 )
 

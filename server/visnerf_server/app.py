@@ -24,10 +24,12 @@ from visnerf_server.dependencies import ServerState
 from visnerf_server.frame_cache import FrameCache
 from visnerf_server.metrics import Metrics
 from visnerf_server.middleware import AccessLogMiddleware
+from visnerf_server.movie_plans import MovieLimits
+from visnerf_server.movies import MovieJobs
 from visnerf_server.rate_limit import limiter_from_settings
 from visnerf_server.registry import SceneRegistry
 from visnerf_server.render_queue import RenderQueue
-from visnerf_server.routers import health, render, scenes, stream
+from visnerf_server.routers import health, movies, render, scenes, stream
 from visnerf_server.schemas import json_safe
 from visnerf_server.settings import Settings, get_settings
 from visnerf_server.uploads import remove_stale_uploads
@@ -65,7 +67,10 @@ def _lifespan(settings: Settings, metrics: Metrics):
         metrics.watch_cache(cache)
         threads = apply_threads(settings.threads)
         logger.info("rendering with %d torch thread(s)%s", threads, "" if settings.threads else " (CPU quota or cores)")
-        server = ServerState(settings, metrics, registry, queue, cache, token, limiter=limiter_from_settings(settings))
+        jobs = MovieJobs(MovieLimits.from_settings(settings), queue, registry, metrics, settings.movie_dir)
+        server = ServerState(
+            settings, metrics, registry, queue, cache, token, limiter=limiter_from_settings(settings), movies=jobs
+        )
         app.state.server = server
         stop = threading.Event()
         loader: asyncio.Task | None = None
@@ -82,8 +87,10 @@ def _lifespan(settings: Settings, metrics: Metrics):
                 loader.cancel()
                 with contextlib.suppress(asyncio.CancelledError):
                     await loader
+            jobs.close()  # before the queue: a job must not take a queued frame's slot back meanwhile
             await run_in_threadpool(queue.shutdown)
             logger.info("render queue shut down")
+            await run_in_threadpool(jobs.shutdown)
 
     return lifespan
 
@@ -128,6 +135,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(scenes.router)
     app.include_router(render.router)
     app.include_router(stream.router)
+    app.include_router(movies.router)
     app.include_router(health.metrics_router)
     add_offline_docs(app, settings.docs_assets_dir)
     if settings.client_dir is not None and settings.client_dir.is_dir():

@@ -12,6 +12,7 @@ from visnerf_server.frame_cache import FrameCache
 from visnerf_server.frames import FrameRenderer
 from visnerf_server.keyed_locks import KeyedLocks
 from visnerf_server.metrics import Metrics
+from visnerf_server.movies import MovieJobs
 from visnerf_server.rate_limit import ClientRateLimiter, client_key
 from visnerf_server.registry import SceneRegistry
 from visnerf_server.render_queue import RenderQueue
@@ -37,6 +38,8 @@ class ServerState:
     """Stream sessions open now (``Settings.ws_max_sessions`` bounds them)."""
     scene_locks: KeyedLocks = field(default_factory=KeyedLocks)
     """Serialise the uploads and deletions of one scene id."""
+    movies: MovieJobs | None = None
+    """Movie jobs (None only in a state built without them)."""
 
 
 async def get_server(connection: HTTPConnection) -> ServerState:
@@ -68,10 +71,17 @@ async def get_metrics(server: ServerDep) -> Metrics:
     return server.metrics
 
 
+async def get_movie_jobs(server: ServerDep) -> MovieJobs:
+    if server.movies is None:
+        raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, "movie jobs are not available", {"Retry-After": "1"})
+    return server.movies
+
+
 RegistryDep = Annotated[SceneRegistry, Depends(get_registry)]
 RenderQueueDep = Annotated[RenderQueue, Depends(get_render_queue)]
 FrameCacheDep = Annotated[FrameCache, Depends(get_frame_cache)]
 MetricsDep = Annotated[Metrics, Depends(get_metrics)]
+MovieJobsDep = Annotated[MovieJobs, Depends(get_movie_jobs)]
 
 
 async def get_frame_renderer(

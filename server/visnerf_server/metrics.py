@@ -57,6 +57,17 @@ class Metrics:
             ["reason"],
             registry=r,
         )
+        self.movie_jobs_started = Counter(
+            "visnerf_movie_jobs_started", "Movie jobs that began rendering", registry=r
+        )
+        self.movie_jobs_finished = Counter(
+            "visnerf_movie_jobs_finished",
+            "Movie jobs ended, by state: done, failed, cancelled (queued or running)",
+            ["state"],
+            registry=r,
+        )
+        self.movie_frames = Counter("visnerf_movie_frames", "Frames rendered for movie jobs", registry=r)
+        self.movie_jobs_active = Gauge("visnerf_movie_jobs_active", "Movie jobs queued or running", registry=r)
 
     def watch_cache(self, cache: FrameCache) -> None:
         """Report ``cache``'s entries and bytes at each scrape."""

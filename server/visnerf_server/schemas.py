@@ -5,7 +5,7 @@ import math
 from typing import Annotated, Any, Literal
 
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, field_validator
+from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, field_validator, model_validator
 
 from visnerf.data.cameras import check_rigid_c2w
 
@@ -82,6 +82,57 @@ class StreamRequest(RenderRequest):
     seq: int = Field(ge=-(2**53), le=2**53)
     format: ImageFormat = "jpeg"
 
+
+MovieFormat = Literal["mp4", "gif"]
+MOVIE_MEDIA_TYPES: dict[str, str] = {"mp4": "video/mp4", "gif": "image/gif"}
+MovieState = Literal["queued", "running", "done", "failed", "cancelled"]
+ABSOLUTE_MAX_FRAMES = 100_000
+"""Schema bound; the server's own limit (``Settings.movie_max_frames``) is checked on top."""
+
+
+class MovieRequest(BaseModel):
+    """A movie job: a camera and parameter path (the document ``visnerf animate`` reads), or
+    ``orbit`` frames circling the scene at its default camera and parameters; exactly one of them."""
+
+    model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
+
+    path: dict[str, Any] | None = None
+    """Keyframes: camera (orbit or c2w), fov, parameter values and time of each."""
+    orbit: int | None = Field(default=None, ge=1, le=ABSOLUTE_MAX_FRAMES)
+    """Instead of ``path``: this many frames of one turn around the scene."""
+    fps: int = Field(default=30, ge=1, le=120)
+    width: int = Field(default=512, ge=MIN_IMAGE_SIZE, le=ABSOLUTE_MAX_IMAGE_SIZE)
+    height: int = Field(default=512, ge=MIN_IMAGE_SIZE, le=ABSOLUTE_MAX_IMAGE_SIZE)
+    format: MovieFormat = "mp4"
+    quality: Quality = "full"
+
+    @model_validator(mode="after")
+    def _one_source(self) -> "MovieRequest":
+        if (self.path is None) == (self.orbit is None):
+            raise ValueError("give either path or orbit (a number of frames), not both or neither")
+        return self
+
+
+class MovieJobCreated(BaseModel):
+    job_id: str
+    frames: int
+    """Frames the movie will have."""
+    status_url: str
+    file_url: str
+
+
+class MovieJobStatus(BaseModel):
+    job_id: str
+    scene_id: str
+    state: MovieState
+    frames_done: int
+    frames_total: int
+    error: str | None
+    """Why the job failed (state ``failed``)."""
+    frames_per_second: float | None
+    """Rendering speed so far (null before the first frame)."""
+    seconds_left: float | None
+    """Estimated from that speed while running; 0 when done; null otherwise."""
 
 class ParamAxis(BaseModel):
     name: str

@@ -127,6 +127,29 @@ class Settings(BaseSettings):
     """Most frames the frame cache holds, whatever their size (``frame_cache_bytes`` counts each
     entry's overhead too)."""
 
+    # Movie jobs (``POST /api/scenes/{id}/movies``): rendered frame by frame in the render queue's
+    # background lane, below every interactive render. Rates as above (slowest scene, 2-core CPU).
+    movie_max_frames: int = Field(default=1800, ge=1, le=100_000)
+    """Most frames one movie job may have: one minute at 30 fps."""
+    movie_max_pixels: int = Field(default=600 * 512 * 512, ge=MIN_FRAME_PIXELS)
+    """Largest frames x width x height of one job (157 MP: 600 frames of 512x512, 20 s at 30 fps):
+    about 12 min of rendering at full quality (4.6 s/MP), 4 min as previews, on an idle server. Each
+    frame is also held to ``max_image_size`` and its quality's pixel budget, like a single render."""
+    movie_jobs_running: int = Field(default=1, ge=1, le=16)
+    """Movie jobs rendering at once. Their frames share the render workers with interactive
+    renders at the lowest priority, so a second job would only slow the first."""
+    movie_jobs_queued: int = Field(default=3, ge=0, le=1000)
+    """Movie jobs allowed to wait for a running one to finish; beyond that a new job gets 429."""
+    movie_jobs_per_client: int = Field(default=2, ge=1, le=1000)
+    """Movie jobs one client (``rate_limit.client_key``) may have queued or running at once."""
+    movie_keep_s: float = Field(default=1800.0, gt=0)
+    """How long a finished job (its file and its status) is kept: 30 minutes."""
+    movie_max_disk_bytes: int = Field(default=1024 * 1024 * 1024, ge=1)
+    """Disk the finished movie files may take together (1 GiB); the oldest are deleted first to
+    make room for a new one. They live in a temporary folder removed at shutdown."""
+    movie_dir: Path | None = None
+    """Folder in which that temporary folder is made; None: the system's temporary folder."""
+
     @field_validator("allowed_origins", mode="before")
     @classmethod
     def _split_origins(cls, value: object) -> object:
