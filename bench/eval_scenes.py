@@ -207,12 +207,11 @@ def update_readme(readme: Path, record: dict) -> None:
     """Replace (or add, before "## Layout") the README's evaluation section."""
     section = "\n".join([
         README_BEGIN, "## Evaluation of the synthetic scenes", "",
-        f"`python bench/eval_scenes.py`: {record['minutes_per_scene']:g} minutes of training per scene with "
-        "no flags, one scene at a time, "
-        f"{record['resolution']}x{record['resolution']}, {record['machine'].get('cpu', record['machine']['device'])} with "
-        f"{record['machine']['torch_threads']} threads, {record['date'][:10]}; PSNR and SSIM over each scene's "
-        "181-frame test path, beside the paper's PSNR on the real dataset the scene stands in for "
-        "(details in bench/results/eval_scenes.md):", "", *table_lines(record), README_END,
+        f"`python bench/eval_scenes.py`: {record['minutes_per_scene']:g} minutes a scene, no flags, one at a time, "
+        f"{record['resolution']}x{record['resolution']}, {record['machine'].get('cpu', record['machine']['device'])} "
+        f"with {record['machine']['torch_threads']} threads, {record['date'][:10]}; PSNR and SSIM on each scene's "
+        "181-frame test path, beside the paper's PSNR on the real counterpart "
+        "([details](bench/results/eval_scenes.md)):", "", *table_lines(record), README_END,
     ])  # fmt: skip
     text = readme.read_text()
     pattern = re.compile(re.escape(README_BEGIN) + ".*?" + re.escape(README_END), re.S)
