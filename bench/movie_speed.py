@@ -88,15 +88,17 @@ def measure(checkpoint: Path, size: int, n_frames: int, fps: float, work: Path) 
     }  # fmt: skip
 
 
-def probe_phase(server, scene_id: str, seconds: float) -> dict[str, list[Sample]]:  # noqa: ANN001
-    """The probe clients, asking only for ``scene_id``, for ``seconds``."""
+def probe_phase(server, scene_id: str, seconds: float, seed: int) -> dict[str, list[Sample]]:  # noqa: ANN001
+    """The probe clients, asking only for ``scene_id``, for ``seconds``; random views and parameter
+    values from ``seed`` (each phase its own, so that no phase reads frames another left in the
+    server's frame cache)."""
     only = [sc for sc in server.scenes if sc["id"] == scene_id]
     if not only:
         raise SystemExit(f"error: the server has no scene {scene_id!r}: {[sc['id'] for sc in server.scenes]}")
     view = type(server)(server.process, server.url, only)
     t0 = time.perf_counter()
     samples: dict[str, list[Sample]] = {name: [] for name in PROBES}
-    threads = [threading.Thread(target=frame_client, args=(view, ask, i, t0, t0 + seconds, samples[name]))
+    threads = [threading.Thread(target=frame_client, args=(view, ask, seed + i, t0, t0 + seconds, samples[name]))
                for i, (name, ask) in enumerate(PROBES.items())]
     for thread in threads:
         thread.start()
@@ -108,8 +110,8 @@ def probe_phase(server, scene_id: str, seconds: float) -> dict[str, list[Sample]
 def server_phases(scene_id: str, frames: int, seconds: float, work: Path) -> dict:
     """Interactive latency idle, then beside a movie job of ``frames`` frames; the job's speed."""
     with running_server(ROOT / "checkpoints", work / "server.log") as server:
-        probe_phase(server, scene_id, min(seconds, 10.0))  # untimed: first renders, occupancy grids
-        idle = probe_phase(server, scene_id, seconds)
+        probe_phase(server, scene_id, min(seconds, 10.0), seed=100)  # untimed: first renders
+        idle = probe_phase(server, scene_id, seconds, seed=200)
         with httpx.Client(base_url=server.url, timeout=60, transport=httpx.HTTPTransport(local_address="127.0.0.5")) as http:
             created = http.post(f"/api/scenes/{scene_id}/movies",
                                 json={"orbit": frames, "fps": 24, "width": 256, "height": 256, "format": "mp4"})
@@ -117,7 +119,7 @@ def server_phases(scene_id: str, frames: int, seconds: float, work: Path) -> dic
                 raise SystemExit(f"error: the movie job was refused: {created.status_code} {created.text}")
             job = created.json()
             t_job = time.perf_counter()
-            busy = probe_phase(server, scene_id, seconds)
+            busy = probe_phase(server, scene_id, seconds, seed=300)
             while (status := http.get(job["status_url"]).json())["state"] in ("queued", "running"):
                 time.sleep(0.5)
             job_s = time.perf_counter() - t_job
