@@ -5,6 +5,7 @@ import sys
 from dataclasses import dataclass
 
 import pytest
+import torch
 
 from visnerf.config import HoldoutConfig, TrainConfig
 from visnerf.data.holdout import split_holdout
@@ -19,6 +20,15 @@ class TinyRun:
     cfg: TrainConfig
     min_held_out_psnr: float
     """A floor, not the typical value (the run prints its final log row with `pytest -s`)."""
+
+
+@pytest.fixture
+def one_torch_thread():  # noqa: ANN201
+    """Small renders on one thread: two threads oversubscribe a shared CPU (10x slower there)."""
+    previous = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(previous)
 
 
 @pytest.fixture

@@ -12,7 +12,6 @@ from pathlib import Path
 import av
 import numpy as np
 import pytest
-import torch
 from PIL import Image
 
 from visnerf.animation import commands
@@ -33,13 +32,7 @@ PATH_DOC = {
 }
 
 
-@pytest.fixture(autouse=True)
-def one_torch_thread():
-    """The renders here are small: one thread avoids oversubscribing a shared CPU."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # small renders: one thread (conftest)
 
 
 @pytest.fixture(scope="module")

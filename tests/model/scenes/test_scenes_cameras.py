@@ -15,14 +15,7 @@ from visnerf.scenes.fields import RadialDistanceField
 from visnerf.scenes.reference_renderer import IsoVolume
 from visnerf.scenes.writer import DatasetOptions, write_scene
 
-
-@pytest.fixture(autouse=True)
-def one_torch_thread():
-    """The renders here are small: one thread avoids oversubscribing a shared CPU (10x slower there)."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # small renders: one thread (conftest)
 
 
 POINT = (0.21, -0.12, 0.17)

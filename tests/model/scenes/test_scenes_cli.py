@@ -6,21 +6,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import torch
 from PIL import Image
 
 from visnerf.scenes import commands
 from visnerf.scenes.catalog import get_scene, scene_catalog
 from visnerf.scenes.writer import DatasetOptions, write_scene
 
-
-@pytest.fixture(autouse=True)
-def one_torch_thread():
-    """The renders here are small: one thread avoids oversubscribing a shared CPU (10x slower there)."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # small renders: one thread (conftest)
 
 
 def _run(argv: list[str]) -> int:

@@ -11,14 +11,7 @@ from visnerf.scenes.fields import TangleField, VortexField
 from visnerf.scenes.reference_renderer import DvrVolume, IsoVolume, RenderConfig, render_image
 from visnerf.scenes.transfer_function import TransferFunction
 
-
-@pytest.fixture(autouse=True)
-def one_torch_thread():
-    """The renders here are small: one thread avoids oversubscribing a shared CPU (10x slower there)."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # small renders: one thread (conftest)
 
 
 def _render(volume, c2w: torch.Tensor, size: int = 17) -> torch.Tensor:

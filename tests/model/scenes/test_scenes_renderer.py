@@ -12,14 +12,7 @@ from visnerf.scenes.fields import ConstantField, LinearRampField, RadialDistance
 from visnerf.scenes.reference_renderer import DvrVolume, IsoVolume, RenderConfig, render_image, render_rays
 from visnerf.scenes.transfer_function import TransferFunction, constant_extinction_tf
 
-
-@pytest.fixture(autouse=True)
-def one_torch_thread():
-    """The renders here are small: one thread avoids oversubscribing a shared CPU (10x slower there)."""
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")  # small renders: one thread (conftest)
 
 
 def _c2w(
