@@ -54,6 +54,7 @@ async function errorFromResponse(response, what) {
   let message;
   if (response.status === 404) message = `${what}: not found${text ? ` (${text})` : ""}`;
   else if (response.status === 503) message = `Server busy${text ? `: ${text}` : ""}`;
+  else if (response.status === 429) message = `Rate limited${text ? `: ${text}` : ""}`;
   else message = `${what} failed (HTTP ${response.status})${text ? `: ${text}` : ""}`;
   return new ApiError(message, { status: response.status, detail, retryAfterS });
 }

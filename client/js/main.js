@@ -216,9 +216,12 @@ function describeView(req) {
 
 function onRenderError(set, err, req) {
   const scheduler = schedulers[set];
-  if (err.status === 503) {
+  if (err.status === 503 || err.status === 429) {
+    // 503: the render queue is full; 429: this browser asked for more pixels a second than the
+    // server grants one client. Both say when to ask again (Retry-After).
     const delay = Number.isFinite(err.retryAfterS) && err.retryAfterS !== null ? err.retryAfterS : 1;
-    alerts.set("busy", `Server busy: it asked to retry in ${roundTo(delay, 1)} s. Retrying automatically…`, "warning");
+    const why = err.status === 503 ? "Server busy" : "Rate limited (too many pixels a second from this page)";
+    alerts.set("busy", `${why}: it asked to retry in ${roundTo(delay, 1)} s. Retrying automatically…`, "warning");
     if (scheduler) scheduler.retryAfter(delay);
     return;
   }

@@ -41,8 +41,13 @@ def test_stopped_server_shows_unreachable_then_recovers(page, extra_server):
     assert page.evaluate("document.body.dataset.offline") is None
 
 
-def test_busy_server_is_retried_after_the_delay(page, base_url):
-    """The stream answers the first request with 503: the page says so and asks again by itself."""
+@pytest.mark.parametrize(("status", "detail", "said"), [
+    (503, "render queue is full", "busy"),
+    (429, "rate limit: 4000000 pixels a second per client", "rate limited"),
+])
+def test_busy_server_is_retried_after_the_delay(page, base_url, status, detail, said):
+    """The stream answers the first request with 503 (queue full) or 429 (this client over its
+    pixel rate): the page says which and asks again by itself after the delay."""
     answered = {"busy": 0}
 
     def handler(ws):
@@ -52,7 +57,7 @@ def test_busy_server_is_retried_after_the_delay(page, base_url):
             data = json.loads(message)
             if answered["busy"] == 0:
                 answered["busy"] += 1
-                reply = {"type": "error", "seq": data["seq"], "status": 503, "detail": "render queue is full"}
+                reply = {"type": "error", "seq": data["seq"], "status": status, "detail": detail, "retry_after": 0.5}
                 ws.send(json.dumps(reply))
             else:
                 server.send(message)
@@ -61,8 +66,9 @@ def test_busy_server_is_retried_after_the_delay(page, base_url):
 
     page.route_web_socket(STREAM, handler)
     page.goto(base_url + "/?scene=vortex_tf1&res=128")
-    page.wait_for_function("/busy/i.test(document.querySelector('#alert').textContent)")
-    assert "retry" in page.inner_text("#alert").lower()
+    # one look at the alert: it clears once the retry half a second later is answered
+    page.wait_for_function("said => { const t = document.querySelector('#alert').textContent.toLowerCase();"
+                           " return t.includes(said) && t.includes('retry in 0.5 s'); }", arg=said)
     wait_for_full_frame(page)
     page.locator("#alert").wait_for(state="hidden")
     assert answered["busy"] == 1
