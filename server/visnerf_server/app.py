@@ -62,7 +62,7 @@ def _lifespan(settings: Settings, metrics: Metrics):
             )
         elif removed := remove_stale_uploads(settings.checkpoints_dir):
             logger.info("removed %d stale upload temporaries", removed)
-        queue = RenderQueue(settings.render_workers, settings.render_queue_size, metrics)
+        queue = RenderQueue(settings.render_workers, settings.render_queue_size, metrics, settings.preview_workers)
         cache = FrameCache(settings.frame_cache_bytes, settings.frame_cache_entries)
         metrics.watch_cache(cache)
         threads = apply_threads(settings.threads)

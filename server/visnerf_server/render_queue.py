@@ -4,8 +4,10 @@ three lanes served in order of priority.
 When every slot is taken, ``submit`` refuses at once (the server answers 503 with Retry-After), so the
 backlog never grows without bound. A free worker takes the oldest job of the first non-empty lane:
 interactive previews, then full-quality frames, then background work (occupancy grid builds), so
-a preview never waits behind a queued full frame (it may wait for the one running). A steady
-stream of previews delays full frames; each client's share is bounded by its rate limit.
+a preview never waits behind a queued full frame. ``preview_workers`` more threads take previews
+only, so that a preview does not wait for the full frames running either: 1440x1440 frames that
+kept every general worker busy for seconds each left previews unanswered (server_load.md). A
+steady stream of previews delays full frames; each client's share is bounded by its rate limit.
 
 Each job may carry a ``threading.Event`` its work polls (a render asks it between chunks of rays,
 ``visnerf.rendering.cancel``). Callers wait with a time limit: a job still queued when the limit
@@ -70,11 +72,14 @@ class _Job:
 
 
 class RenderQueue:
-    """``workers`` render threads plus ``queue_size`` waiting slots, shared by all lanes."""
+    """``workers`` render threads for every lane, ``preview_workers`` for previews only, and
+    ``queue_size`` waiting slots shared by all lanes."""
 
-    def __init__(self, workers: int, queue_size: int, metrics: Metrics) -> None:
-        self.capacity = workers + queue_size
+    def __init__(self, workers: int, queue_size: int, metrics: Metrics, preview_workers: int = 0) -> None:
+        self.capacity = workers + preview_workers + queue_size
         self._workers = workers
+        self._preview_workers = preview_workers
+        self._preview_threads: list[threading.Thread] = []
         self._metrics = metrics
         self._cond = threading.Condition()
         self._lanes: dict[Lane, deque[_Job]] = {lane: deque() for lane in Lane}
@@ -120,7 +125,12 @@ class RenderQueue:
                 thread = threading.Thread(target=self._work, name=f"render-{len(self._threads)}", daemon=True)
                 self._threads.append(thread)
                 thread.start()
-            self._cond.notify()
+            if lane == Lane.PREVIEW and len(self._preview_threads) < self._preview_workers:
+                thread = threading.Thread(target=self._work, args=(True,), daemon=True,
+                                          name=f"render-preview-{len(self._preview_threads)}")
+                self._preview_threads.append(thread)
+                thread.start()
+            self._cond.notify_all()  # a preview-only worker woken for a full frame would leave it
         job.future.add_done_callback(lambda _: self._forget_if_dropped(job))
         return job.future
 
@@ -139,11 +149,12 @@ class RenderQueue:
         if taken_off_here:
             job.future.set_running_or_notify_cancel()  # so that concurrent.futures.wait() sees it done
 
-    def _next_job(self) -> _Job | None:
+    def _next_job(self, previews_only: bool = False) -> _Job | None:
         """The job to run next (waits for one); None once the queue is closed and empty."""
+        lanes = [self._lanes[Lane.PREVIEW]] if previews_only else list(self._lanes.values())
         with self._cond:
             while True:
-                for lane in self._lanes.values():
+                for lane in lanes:
                     while lane:
                         job = lane.popleft()
                         if job.future.set_running_or_notify_cancel():
@@ -158,8 +169,8 @@ class RenderQueue:
                     return None
                 self._cond.wait()
 
-    def _work(self) -> None:
-        while (job := self._next_job()) is not None:
+    def _work(self, previews_only: bool = False) -> None:
+        while (job := self._next_job(previews_only)) is not None:
             try:
                 result = job.fn()
             except BaseException as exc:  # noqa: BLE001 - handed to whoever waits on the future
@@ -255,5 +266,5 @@ class RenderQueue:
         """``close``, then wait for the workers to end (each finishes the job it is running,
         told to stop)."""
         self.close()
-        for thread in list(self._threads):
+        for thread in [*self._threads, *self._preview_threads]:
             thread.join()

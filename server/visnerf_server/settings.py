@@ -58,7 +58,10 @@ class Settings(BaseSettings):
     """Largest body of any other request."""
 
     render_workers: int = Field(default=1, ge=1, le=64)
-    """Renders running at once (threads)."""
+    """Renders running at once (threads), of any quality."""
+    preview_workers: int = Field(default=1, ge=0, le=8)
+    """More render threads that take previews only, so that a drag is answered while full frames
+    occupy the other workers."""
     render_queue_size: int = Field(default=8, ge=0, le=1024)
     """Renders allowed to wait for a worker; beyond that the server answers 503."""
     render_timeout_s: float = Field(default=30.0, gt=0)

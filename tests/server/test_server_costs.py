@@ -314,3 +314,31 @@ def test_a_client_that_leaves_and_a_sigterm_stop_large_renders(ckpt_dir: Path, t
         assert isinstance(answer, httpx.Response) and answer.status_code == 503, answer
         assert "shutting down" in answer.json()["detail"] and answer.headers["retry-after"] == "1"
         assert "render queue shut down" in server.log()
+
+
+def test_a_preview_worker_answers_previews_while_full_frames_hold_the_others() -> None:
+    """With the general worker held by a long full frame, a preview runs at once on the preview
+    worker; a full frame never does: it waits for the general worker."""
+    queue = RenderQueue(workers=1, queue_size=4, metrics=Metrics(), preview_workers=1)
+    release, blocker = _hold_the_worker(queue)
+    ran_on: dict[str, str] = {}
+
+    def job(name: str):  # noqa: ANN202
+        def run() -> str:
+            ran_on[name] = threading.current_thread().name
+            return name
+
+        return run
+
+    full = queue.submit(job("full"), Lane.FULL)
+    assert queue.submit(job("preview"), Lane.PREVIEW).result(timeout=5) == "preview"
+    assert ran_on["preview"].startswith("render-preview")
+    time.sleep(0.05)
+    assert not full.done() and queue.waiting == 1  # the preview worker left the full frame alone
+    with pytest.raises(QueueFullError):  # capacity: 2 workers and 4 slots, 1 + 1 taken
+        for _ in range(5):
+            queue.submit(lambda: release.wait(10), Lane.BACKGROUND)
+    release.set()
+    blocker.result(5)
+    assert full.result(timeout=5) == "full" and not ran_on["full"].startswith("render-preview")
+    queue.shutdown()
