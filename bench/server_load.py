@@ -503,7 +503,7 @@ def write_markdown(path: Path, record: dict[str, Any]) -> None:
 
 def server_defaults() -> str:
     """The defaults that shape these figures (read from the server's settings)."""
-    names = ("render_workers", "render_queue_size", "render_timeout_s", "max_image_size", "max_full_pixels",
+    names = ("render_workers", "preview_workers", "render_queue_size", "render_timeout_s", "max_image_size", "max_full_pixels",
              "max_preview_pixels", "rate_limit_pixels_per_s", "rate_limit_burst_pixels", "threads")
     fields = Settings.model_fields
     return ", ".join(f"{name} {fields[name].default}" for name in names if name in fields)
