@@ -19,6 +19,7 @@ both phases, and the job's own frames per second. Writes movie_speed.json and mo
 """
 
 import argparse
+import dataclasses
 import json
 import statistics
 import sys
@@ -32,7 +33,7 @@ import httpx
 
 from visnerf import runtime
 from visnerf.animation.interpolation import sample_frames
-from visnerf.animation.movie import MovieSettings, write_movie
+from visnerf.animation.movie import MovieSettings, render_frames, write_movie
 from visnerf.animation.presets import orbit_path
 from visnerf.inference import load_scene
 
@@ -68,9 +69,14 @@ def measure(checkpoint: Path, size: int, n_frames: int, fps: float, work: Path) 
     render_s: list[float] = []
 
     def timed_frames():  # noqa: ANN202
-        for frame in frames:
+        """``render_frames``, as `visnerf animate` renders, with the time of each frame kept."""
+        rendered = render_frames(scene, frames, settings)
+        while True:
             t0 = time.perf_counter()
-            image = scene.render(frame.c2w, frame.fov_deg, size, size, frame.params, "full")
+            try:
+                image = next(rendered)
+            except StopIteration:
+                return
             render_s.append(time.perf_counter() - t0)
             yield image
 
@@ -95,7 +101,7 @@ def probe_phase(server, scene_id: str, seconds: float, seed: int) -> dict[str, l
     only = [sc for sc in server.scenes if sc["id"] == scene_id]
     if not only:
         raise SystemExit(f"error: the server has no scene {scene_id!r}: {[sc['id'] for sc in server.scenes]}")
-    view = type(server)(server.process, server.url, only)
+    view = dataclasses.replace(server, scenes=only)
     t0 = time.perf_counter()
     samples: dict[str, list[Sample]] = {name: [] for name in PROBES}
     threads = [threading.Thread(target=frame_client, args=(view, ask, seed + i, t0, t0 + seconds, samples[name]))
