@@ -8,6 +8,7 @@
 Nothing here reaches into training code.
 """
 
+import contextlib
 import math
 import threading
 from collections.abc import Mapping
@@ -87,7 +88,8 @@ def _scene_info(meta: CheckpointMeta) -> SceneInfo:
 
 
 class SceneRenderer:
-    """A loaded scene. ``render`` is thread safe (renders are serialised by a lock)."""
+    """A loaded scene. ``render`` is thread safe: full frames are serialised by a lock, previews run
+    beside them."""
 
     def __init__(
         self,
@@ -161,7 +163,10 @@ class SceneRenderer:
         c2w_t = torch.as_tensor(m, dtype=torch.float32, device=self.device)
         normalized = [axis.normalize(v) for axis, v in zip(self.meta.param_axes, values, strict=True)]
         params_t = torch.tensor(normalized, dtype=torch.float32, device=self.device)
-        with self._lock, torch.inference_mode():
+        # Full frames are serialised (the setting grids' cache is shared state); a preview only
+        # reads the field, so it never waits behind a full frame of the same scene.
+        lock = self._lock if quality == "full" else contextlib.nullcontext()
+        with lock, torch.inference_mode():
             raise_if_cancelled(cancel)  # it may have waited for the lock
             own = None
             if quality == "full" and settings.use_occupancy:
