@@ -14,6 +14,7 @@ from PIL import Image
 
 from visnerf.data.cameras import orbit_c2w
 from visnerf.rendering.empty_space import EmptySpace
+from visnerf_server import heap
 from visnerf_server.costs import FrameLimits
 from visnerf_server.frame_cache import CachedFrame, FrameCache
 from visnerf_server.metrics import Metrics
@@ -177,6 +178,7 @@ class FrameRenderer:
             rendered = time.perf_counter()
             data = encode_image(image, job.format, self.jpeg_quality)
             done = time.perf_counter()
+            heap.after_frame(job.width * job.height)
             self.metrics.render_seconds.labels(job.quality).observe(done - started)
             frame = Frame(
                 data,
