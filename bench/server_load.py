@@ -19,14 +19,22 @@ waits for its ``Retry-After``.
   the heavy clients' answers, RSS. Targets: health median under 100 ms, previews p95 under 1 s,
   RSS flat (the last 10 s of a phase within 10 % of its first 10 s).
 
-Results go to bench/results/server_load.json and .md, with the CPU named.
+- ``replicas`` (not part of ``both``): the throughput load through nginx (the shipped
+  docker/nginx.conf, on loopback) in front of 1 and then ``--replicas`` servers sharing the
+  checkpoints folder, and once straight to one server (nginx's own cost). Through nginx the clients'
+  addresses reach the servers in X-Forwarded-For (``VISNERF_TRUSTED_PROXIES=127.0.0.1``).
+  Results go to bench/results/server_replicas.json and .md.
+
+Results go to bench/results/server_load.json and .md (``replicas``: server_replicas), with the CPU named.
 
     python bench/server_load.py --duration 30                      # both modes, bundled checkpoints
     python bench/server_load.py --mode throughput --clients 8 --duration 30
     python bench/server_load.py --tiny --mode heavy --duration 10  # tiny random models
+    python bench/server_load.py --mode replicas --replicas 2 --rounds 2 --duration 20
 """
 
 import argparse
+import dataclasses
 import math
 import os
 import random
@@ -39,13 +47,14 @@ import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from contextlib import ExitStack, contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import httpx
 from bench_common import fmt, load_average, machine_record, markdown_header, write_results
+from nginx_proxy import nginx_binary, running_nginx
 
 from visnerf_server.settings import Settings
 
@@ -159,13 +168,13 @@ def client_address(index: int) -> str:
 
 
 @contextmanager
-def running_server(checkpoints: Path, log_path: Path) -> Iterator[Server]:
-    """``visnerf serve`` with its default settings; SIGTERM on the way out."""
+def running_server(checkpoints: Path, log_path: Path, env_extra: dict[str, str] | None = None) -> Iterator[Server]:
+    """``visnerf serve`` with its default settings (``env_extra``: some changed); SIGTERM on the way out."""
     port = free_port()
     command = [sys.executable, "-m", "visnerf.cli", "serve", "--host", "127.0.0.1", "--port", str(port),
                "--checkpoints", str(checkpoints), "--no-client", "--log-level", "warning"]  # fmt: skip
     inherited = {k: v for k, v in os.environ.items() if not k.startswith("VISNERF_")}
-    env = {**inherited, "VISNERF_TOKEN": "bench-not-used"}
+    env = {**inherited, "VISNERF_TOKEN": "bench-not-used", **(env_extra or {})}
     with log_path.open("wb") as log:
         process = subprocess.Popen(command, stdout=log, stderr=subprocess.STDOUT, env=env)
     url = f"http://127.0.0.1:{port}"
@@ -405,6 +414,99 @@ def heavy_mode(args: argparse.Namespace, checkpoints: Path, work: Path) -> dict[
     }
 
 
+def replica_runs(replicas: int) -> list[dict[str, Any]]:
+    """What ``replicas`` mode measures: one server straight, then behind nginx 1 and ``replicas``
+    servers with their default threads, and ``replicas`` servers sharing the cores between them."""
+    shared_threads = max(1, (os.cpu_count() or 1) // replicas)
+    return [
+        {"label": "1 server, no proxy", "replicas": 1, "nginx": False, "threads": None},
+        {"label": "nginx + 1 server", "replicas": 1, "nginx": True, "threads": None},
+        {"label": f"nginx + {replicas} servers", "replicas": replicas, "nginx": True, "threads": None},
+        {"label": f"nginx + {replicas} servers, {shared_threads} thread(s) each", "replicas": replicas,
+         "nginx": True, "threads": shared_threads},
+    ]
+
+
+def replicas_mode(args: argparse.Namespace, checkpoints: Path, work: Path) -> dict[str, Any]:
+    """Each setup ``--rounds`` times, every other round in reverse order (drifting load on a shared
+    machine weighs on every setup alike); the report gives each setup's median."""
+    setups = replica_runs(args.replicas)
+    order = [(r, s) for r in range(args.rounds) for s in (setups if r % 2 == 0 else setups[::-1])]
+    runs = []
+    for i, (round_index, run) in enumerate(order):
+        env = {"VISNERF_TRUSTED_PROXIES": "127.0.0.1"}
+        if run["threads"] is not None:
+            env["VISNERF_THREADS"] = str(run["threads"])
+        with ExitStack() as stack:
+            servers = [stack.enter_context(running_server(checkpoints, work / f"replicas-{i}-{r}.log", env))
+                       for r in range(run["replicas"])]
+            target = servers[0]
+            if run["nginx"]:
+                upstreams = [s.url.removeprefix("http://") for s in servers]
+                url = stack.enter_context(running_nginx(upstreams, free_port(), work / f"nginx-{i}"))
+                target = dataclasses.replace(servers[0], url=url)
+            asks = [FrameAsk(args.width, args.height, args.quality, args.format, timeout_s=max(60.0, args.duration),
+                             address=client_address(c)) for c in range(args.clients)]
+            clients = [
+                lambda t0, until, out, ask=ask, seed=args.seed + c, to=target: frame_client(to, ask, seed, t0, until, out)
+                for c, ask in enumerate(asks)
+            ]
+            phase = run_phase(target, args.duration, {"frames": clients})
+        runs.append({**run, "round": round_index, "load_average_1min": load_average(),
+                     "results": latency_summary(phase.samples["frames"], phase.elapsed_s),
+                     "server_exit_codes": [s.exit_code for s in servers]})
+    return {
+        "config": {"clients": args.clients, "duration_s": args.duration, "width": args.width, "height": args.height,
+                   "quality": args.quality, "format": args.format, "replicas": args.replicas, "rounds": args.rounds},
+        "scenes": [s["id"] for s in servers[0].scenes],
+        "runs": runs,
+    }
+
+
+def replicas_markdown(path: Path, record: dict[str, Any]) -> None:
+    mode = record["replicas"]
+    c = mode["config"]
+    lines = markdown_header("Render server replicas behind nginx", record)
+    lines += [
+        "",
+        f"The throughput load ({c['clients']} clients, each from its own loopback address, {c['duration_s']} s, "
+        f"{c['width']}x{c['height']} {c['quality']} {c['format']}, random view and parameter values; scenes "
+        f"{', '.join(mode['scenes'])}) against one `visnerf serve`, then through nginx (docker/nginx.conf on "
+        f"loopback, {record['nginx']}) in front of 1 and {c['replicas']} servers sharing the checkpoints folder. "
+        "Servers, nginx and clients share the machine's cores.",
+        f"Server defaults: {record['server_defaults']}.",
+        "",
+        f"Each setup ran {c['rounds']} time(s), every other round in reverse order; medians first, then every run "
+        "in the order it ran, with the 1-min load average after it.",
+        "",
+        "| setup | frames per second, median (each run) | latency p50 / p95, median (ms) |",
+        "| --- | --- | --- |",
+    ]
+    labels = list(dict.fromkeys(run["label"] for run in mode["runs"]))
+    for label in labels:
+        runs = [run for run in mode["runs"] if run["label"] == label]
+        fps = [run["results"]["ok_per_s"] for run in runs]
+        p50 = statistics.median(run["results"]["latency_ms"]["p50"] for run in runs)
+        p95 = statistics.median(run["results"]["latency_ms"]["p95"] for run in runs)
+        lines.append(f"| {label} | {statistics.median(fps):.2f} ({', '.join(str(f) for f in fps)}) | "
+                     f"{fmt(p50)} / {fmt(p95)} |")
+    lines += [
+        "",
+        "| round | setup | frames per second | latency p50 / p95 / p99 (ms) | answers | load average after | "
+        "servers' exit status |",
+        "| --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for run in mode["runs"]:
+        r, lat = run["results"], run["results"]["latency_ms"]
+        lines.append(f"| {run['round'] + 1} | {run['label']} | {r['ok_per_s']} | {fmt(lat['p50'])} / {fmt(lat['p95'])} / "
+                     f"{fmt(lat['p99'])} | {statuses(r)} | {run['load_average_1min']} | "
+                     f"{', '.join(str(code) for code in run['server_exit_codes'])} |")
+    lines.append("")
+    if record.get("notes"):
+        lines += ["Notes:", ""] + [f"- {n}" for n in record["notes"]] + [""]
+    path.write_text("\n".join(lines))
+
+
 # --- the report --------------------------------------------------------------------------------
 
 
@@ -511,7 +613,7 @@ def server_defaults() -> str:
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--mode", choices=["throughput", "heavy", "both"], default="both")
+    parser.add_argument("--mode", choices=["throughput", "heavy", "both", "replicas"], default="both")
     parser.add_argument("--duration", type=float, default=30.0, help="seconds of each phase")
     parser.add_argument("--checkpoints", type=Path, default=ROOT / "checkpoints")
     parser.add_argument("--tiny", action="store_true", help="serve tiny random checkpoints made for the run")
@@ -523,6 +625,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--heavy-clients", type=int, default=4, help="heavy mode: clients asking for the largest frame")
     parser.add_argument("--heavy-size", type=int, default=largest_full_frame(),
                         help="side of the square frames the heavy clients ask for (default: the largest allowed)")
+    parser.add_argument("--replicas", type=int, default=2, help="replicas mode: servers behind nginx to compare with one")
+    parser.add_argument("--rounds", type=int, default=1, help="replicas mode: times each setup runs (median reported)")
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results")
     parser.add_argument("--seed", type=int, default=0)
     return parser.parse_args(argv)
@@ -549,12 +653,29 @@ def main(argv: list[str] | None = None) -> int:
             load["between"] = round(load_average(), 2)
         if args.mode in ("heavy", "both"):
             record["heavy"] = heavy_mode(args, checkpoints, work)
+        if args.mode == "replicas":
+            binary = nginx_binary()
+            if binary is None:
+                print("nginx is not installed (apt-get install nginx)", file=sys.stderr)
+                return 2
+            record["nginx"] = subprocess.run([binary, "-v"], capture_output=True, text=True).stderr.strip()
+            record["replicas"] = replicas_mode(args, checkpoints, work)
     load["after"] = round(load_average(), 2)
     record["load_average_1min"] = load
     record["notes"].append(
         "The machine record's torch threads are the load generator's; the server picks its own. Load generator "
         "and server share the machine's cores."
     )
+    if args.mode == "replicas":
+        cores = os.cpu_count() or 1
+        if max(load.values()) > cores:
+            record["notes"].append(
+                f"The 1-min load average passed the {cores} cores: other work on the machine competed with the "
+                "servers, and the runs, made one after the other, may not have met the same competition."
+            )
+        write_results(args.out, "server_replicas", record, replicas_markdown)
+        exits = [code for run in record["replicas"]["runs"] for code in run["server_exit_codes"]]
+        return 0 if all(code == 0 for code in exits) else 1
     write_results(args.out, "server_load", record, write_markdown)
     exits = [record[m]["server_exit_code"] for m in ("throughput", "heavy") if m in record]
     return 0 if all(code == 0 for code in exits) else 1

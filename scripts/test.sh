@@ -9,5 +9,8 @@ if [ ! -x .venv/bin/python ]; then python3 -m venv .venv; fi
 if [ ! -x /usr/bin/chromium ] && [ "$(id -u)" = 0 ]; then
   (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null) || echo "chromium not installed: browser tests will be skipped"
 fi
+if ! command -v nginx >/dev/null && [ ! -x /usr/sbin/nginx ] && [ "$(id -u)" = 0 ]; then
+  (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq nginx >/dev/null) || echo "nginx not installed: the replica tests will be skipped"
+fi
 .venv/bin/ruff check model server tests bench
 .venv/bin/python -m pytest "$@"

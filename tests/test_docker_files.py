@@ -370,3 +370,224 @@ def test_the_server_state_folder_is_a_volume() -> None:
     volumes = [v for args in arguments(SERVER_IMAGE, "VOLUME") for v in without_flags(args)]
     assert "/app/state" in volumes
     assert "VISNERF_STATE_DIR=/app/state" in " ".join(arguments(SERVER_IMAGE, "ENV"))
+
+
+# --- replicas behind nginx: docker/nginx.conf and docker/compose.yaml ----------------------------
+
+NGINX_CONF = REPO / "docker" / "nginx.conf"
+COMPOSE_FILE = REPO / "docker" / "compose.yaml"
+NGINX_SIZE_UNITS = {"": 1, "k": 1024, "m": 1024**2, "g": 1024**3}
+NGINX_TIME_UNITS = {"ms": 0.001, "s": 1, "m": 60, "h": 3600}
+
+
+@dataclass
+class NginxDirective:
+    name: str
+    args: list[str]
+    block: list["NginxDirective"] | None = None
+
+
+def parse_nginx(text: str) -> list[NginxDirective]:
+    """nginx's configuration syntax: directives with arguments, ending in ``;`` or a ``{ block }``."""
+    tokens = re.findall(r'"[^"]*"|[{};]|[^\s{};"]+', re.sub(r"#[^\n]*", "", text))
+    stack: list[list[NginxDirective]] = [[]]
+    words: list[str] = []
+    for token in tokens:
+        if token == ";":
+            stack[-1].append(NginxDirective(words[0], words[1:]))
+            words = []
+        elif token == "{":
+            directive = NginxDirective(words[0], words[1:], [])
+            stack[-1].append(directive)
+            stack.append(directive.block)  # type: ignore[arg-type]
+            words = []
+        elif token == "}":
+            assert not words, f"directive without ';' before '}}': {words}"
+            stack.pop()
+        else:
+            words.append(token.strip('"'))
+    assert len(stack) == 1 and not words, "unbalanced braces in nginx.conf"
+    return stack[0]
+
+
+def directives(block: list[NginxDirective], name: str) -> list[NginxDirective]:
+    return [d for d in block if d.name == name]
+
+
+def only(block: list[NginxDirective], name: str) -> NginxDirective:
+    (directive,) = directives(block, name)
+    return directive
+
+
+def nginx_size(value: str) -> int:
+    number, unit = re.fullmatch(r"(\d+)([kmg]?)", value.lower()).groups()  # type: ignore[union-attr]
+    return int(number) * NGINX_SIZE_UNITS[unit]
+
+
+def nginx_seconds(value: str) -> float:
+    number, unit = re.fullmatch(r"(\d+)(ms|s|m|h)?", value).groups()  # type: ignore[union-attr]
+    return int(number) * NGINX_TIME_UNITS[unit or "s"]
+
+
+def nginx_http() -> list[NginxDirective]:
+    return only(parse_nginx(NGINX_CONF.read_text()), "http").block  # type: ignore[return-value]
+
+
+def nginx_server() -> list[NginxDirective]:
+    return only(nginx_http(), "server").block  # type: ignore[return-value]
+
+
+def location(path: str) -> NginxDirective:
+    """The location nginx picks for ``path``: the first regular expression that matches, else ``/``."""
+    locations = directives(nginx_server(), "location")
+    for loc in locations:
+        if loc.args[0] == "~" and re.search(loc.args[1], path):
+            return loc
+    return next(loc for loc in locations if loc.args == ["/"])
+
+
+def upstream(name: str) -> list[NginxDirective]:
+    (block,) = [d.block for d in directives(nginx_http(), "upstream") if d.args == [name]]
+    return block or []
+
+
+def proxied_to(loc: NginxDirective) -> str:
+    """The upstream a location passes its requests to."""
+    (target,) = only(loc.block or [], "proxy_pass").args
+    return target.removeprefix("http://")
+
+
+def server_defaults() -> dict:
+    from visnerf_server.settings import Settings
+
+    return {name: f.default for name, f in Settings.model_fields.items()}
+
+
+def test_nginx_takes_uploads_as_large_as_the_server_does() -> None:
+    (size,) = only(nginx_server(), "client_max_body_size").args
+    assert nginx_size(size) == server_defaults()["max_upload_bytes"]
+
+
+def test_nginx_waits_for_the_servers_own_render_timeout() -> None:
+    server = nginx_server()
+    timeout = server_defaults()["render_timeout_s"]
+    for name in ("proxy_read_timeout", "proxy_send_timeout", "proxy_next_upstream_timeout"):
+        seconds = nginx_seconds(only(server, name).args[0])
+        assert timeout < seconds <= timeout + 30, f"{name} {seconds} s: the server's own 503/504 comes at {timeout} s"
+    assert nginx_seconds(only(server, "proxy_connect_timeout").args[0]) <= 5  # a stopped replica: next one, fast
+
+
+def test_nginx_balances_every_replica_round_robin_with_passive_checks() -> None:
+    rest = proxied_to(location("/api/scenes"))
+    servers = directives(upstream(rest), "server")
+    assert len(servers) >= 2
+    for server in servers:
+        assert server.args[0].endswith(":8000"), server.args  # the image's EXPOSE
+        options = {a.partition("=")[0] for a in server.args[1:]}
+        assert {"max_fails", "fail_timeout"} <= options, server.args
+    methods = {"least_conn", "ip_hash", "hash", "random"}
+    assert not [d.name for d in upstream(rest) if d.name in methods]
+    assert directives(upstream(rest), "zone")  # shared by the worker processes
+    for path in ("/api/scenes/nyx", "/api/scenes/nyx/render", "/api/scenes/nyx/stream", "/api/ready", "/"):
+        assert proxied_to(location(path)) == rest, path
+
+
+def test_nginx_sends_movie_jobs_to_one_replica_at_a_time() -> None:
+    from visnerf_server.routers.movies import router
+
+    paths = {r.path.replace("{scene_id}", "nyx").replace("{job_id}", "j1") for r in router.routes}
+    assert len(paths) == 3
+    movies = {proxied_to(location(path)) for path in paths}
+    assert len(movies) == 1, "a job's status and file live on the replica that took it"
+    servers = directives(upstream(movies.pop()), "server")
+    assert sum("backup" not in s.args for s in servers) == 1
+    rest = {s.args[0] for s in directives(upstream(proxied_to(location("/api/scenes"))), "server")}
+    assert {s.args[0] for s in servers} == rest
+
+
+def test_nginx_retries_refused_and_overloaded_requests_on_another_replica() -> None:
+    retry = set(only(nginx_server(), "proxy_next_upstream").args)
+    assert {"error", "timeout", "http_502", "http_503"} <= retry
+    assert "non_idempotent" not in retry  # a movie job's POST must not be sent twice
+    assert int(only(nginx_server(), "proxy_next_upstream_tries").args[0]) >= 2
+    render = location("/api/scenes/nyx/render")
+    assert "non_idempotent" in only(render.block, "proxy_next_upstream").args  # type: ignore[arg-type]
+    movies = location("/api/scenes/nyx/movies").block or []
+    assert not directives(movies, "proxy_next_upstream")  # the server's: no POST sent twice
+
+
+def test_nginx_passes_the_client_and_the_websocket_upgrade() -> None:
+    from visnerf_server.routers.stream import router
+
+    headers = {d.args[0].lower(): d.args[1] for d in directives(nginx_server(), "proxy_set_header")}
+    assert headers["x-forwarded-for"] == "$proxy_add_x_forwarded_for"
+    assert headers["x-forwarded-proto"] == "$scheme"
+    assert headers["upgrade"] == "$http_upgrade"
+    maps = {d.args[1]: {e.name: e.args[0] for e in d.block or []} for d in directives(nginx_http(), "map")}
+    # Host keeps the port: the stream's Origin check compares it with the page's origin.
+    assert maps[headers["host"]]["default"] == "$http_host"
+    assert maps[headers["connection"]] == {"default": "upgrade", "": ""}  # keep-alive unless upgrading
+    assert only(nginx_server(), "proxy_http_version").args == ["1.1"]
+    # A location with its own proxy_set_header would inherit none of the server's.
+    locations = directives(nginx_server(), "location")
+    assert not [loc.args for loc in locations if directives(loc.block or [], "proxy_set_header")]
+    (stream_path,) = [r.path for r in router.routes]
+    stream = location(stream_path.replace("{scene_id}", "nyx"))
+    assert stream.args[0] == "~"
+    assert nginx_seconds(only(stream.block, "proxy_read_timeout").args[0]) >= 600  # type: ignore[arg-type]
+
+
+def compose() -> dict:
+    yaml = pytest.importorskip("yaml")
+    return yaml.safe_load(COMPOSE_FILE.read_text())
+
+
+def replicas(spec: dict) -> dict[str, dict]:
+    return {name: s for name, s in spec["services"].items() if "build" in s}
+
+
+def test_compose_runs_two_replicas_of_the_server_image_on_one_store() -> None:
+    spec = compose()
+    servers = replicas(spec)
+    assert len(servers) >= 2
+    env = " ".join(arguments(SERVER_IMAGE, "ENV"))
+    checkpoints = re.search(r"VISNERF_CHECKPOINTS_DIR=(\S+)", env).group(1)  # type: ignore[union-attr]
+    stores = set()
+    for service in servers.values():
+        build = service["build"]
+        assert (COMPOSE_FILE.parent / build["context"] / build["dockerfile"]).resolve() == SERVER_IMAGE
+        mounts = [v.split(":") for v in service["volumes"]]
+        stores |= {source for source, target, *_ in mounts if target == checkpoints}
+    assert len(stores) == 1 and stores <= set(spec["volumes"]), "every replica must mount the same store"
+    for name in {d.args[0] for d in directives(nginx_http(), "upstream")}:
+        assert {d.args[0].rsplit(":", 1)[0] for d in directives(upstream(name), "server")} == set(servers)
+
+
+def test_compose_settings_are_valid_and_trust_only_nginx() -> None:
+    from visnerf_server.settings import Settings
+
+    spec = compose()
+    nginx = spec["services"]["nginx"]
+    proxy_address = nginx["networks"]["visnerf"]["ipv4_address"]
+    for service in replicas(spec).values():
+        env = service["environment"]
+        assert env["VISNERF_TRUSTED_PROXIES"] == proxy_address
+        assert service["networks"]["visnerf"]["ipv4_address"] != proxy_address
+        values = {k.removeprefix("VISNERF_").lower(): v for k, v in env.items() if k.startswith("VISNERF_")}
+        settings = Settings(**values)  # every value parses
+        assert 0 < settings.store_poll_s <= 10
+        assert env["VISNERF_TOKEN_FILE"] == f"/run/secrets/{service['secrets'][0]}"  # one token for all
+    assert set(nginx["depends_on"]) == set(replicas(spec))
+    # Started once the image's HEALTHCHECK (/api/ready) passes on every replica.
+    assert all(d["condition"] == "service_healthy" for d in nginx["depends_on"].values())
+
+
+def test_compose_pins_nginx_and_publishes_on_loopback() -> None:
+    nginx = compose()["services"]["nginx"]
+    tag = nginx["image"].partition(":")[2]
+    assert re.match(r"\d+\.\d+\.\d+", tag), f"{nginx['image']}: pin a full version"
+    assert [p for p in nginx["ports"] if p.startswith("127.0.0.1:")] == nginx["ports"]
+    listen = only(nginx_server(), "listen").args[0]
+    assert all(p.rsplit(":", 1)[1] == listen for p in nginx["ports"])
+    assert f"./{NGINX_CONF.name}:/etc/nginx/nginx.conf:ro" in nginx["volumes"]
+    assert is_excluded("docker/visnerf_token", read_dockerignore())  # the token secret stays out of builds

@@ -16,6 +16,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from fastapi.staticfiles import StaticFiles
 from starlette.concurrency import run_in_threadpool
+from uvicorn.middleware.proxy_headers import ProxyHeadersMiddleware
 
 from visnerf_server.api_docs import add_offline_docs
 from visnerf_server.auth import resolve_token
@@ -32,6 +33,7 @@ from visnerf_server.render_queue import RenderQueue
 from visnerf_server.routers import health, movies, render, scenes, stream
 from visnerf_server.schemas import json_safe
 from visnerf_server.settings import Settings, get_settings
+from visnerf_server.store_watch import JOIN_TIMEOUT_S, start_store_watcher
 from visnerf_server.uploads import remove_stale_uploads
 from visnerf_server.version import server_version
 
@@ -78,6 +80,7 @@ def _lifespan(settings: Settings, metrics: Metrics):
             loader = asyncio.create_task(_load_scenes(server, stop))
         else:
             await _load_scenes(server, stop)
+        watcher = start_store_watcher(server, stop)  # other servers' uploads to the same folder
         try:
             yield
         finally:
@@ -87,6 +90,8 @@ def _lifespan(settings: Settings, metrics: Metrics):
                 loader.cancel()
                 with contextlib.suppress(asyncio.CancelledError):
                     await loader
+            if watcher is not None:
+                await run_in_threadpool(watcher.join, JOIN_TIMEOUT_S)
             jobs.close()  # before the queue: a job must not take a queued frame's slot back meanwhile
             await run_in_threadpool(queue.shutdown)
             logger.info("render queue shut down")
@@ -146,4 +151,6 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         max_request_bytes=settings.max_request_bytes,
         log_format=settings.log_format,
     )
+    if settings.trusted_proxies:  # outermost: every layer sees the client, not the proxy
+        app.add_middleware(ProxyHeadersMiddleware, trusted_hosts=list(settings.trusted_proxies))
     return app

@@ -120,6 +120,7 @@ def serve_command(args: argparse.Namespace) -> int:
         access_log=False,
         timeout_graceful_shutdown=5,
         ws_max_size=settings.ws_max_message_bytes,  # the protocol refuses bigger frames (close 1009)
+        proxy_headers=False,  # the app believes X-Forwarded-For from ``trusted_proxies`` only
     )
     return 0 if started else 3
 

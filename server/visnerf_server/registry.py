@@ -102,6 +102,11 @@ class SceneRegistry:
         self._lock = threading.Lock()
         self.loading = True
         """True until the first ``load_all`` has finished: an unknown id may still be on its way."""
+        self.watched = False
+        """True once a store watcher (``store_watch``) follows the folder: a file there that is not
+        served yet is on its way too."""
+        self.unservable: frozenset[str] = frozenset()
+        """Ids whose file failed its checks (the watcher keeps this): not on their way."""
 
     def path_for(self, scene_id: str) -> Path:
         if not is_valid_scene_id(scene_id):
@@ -140,12 +145,16 @@ class SceneRegistry:
                 if path.exists() and scene_id not in self._scenes:  # not deleted/replaced meanwhile
                     self.install(Scene(scene_id, renderer, path, version))
             logger.info("scene %r loaded from %s", scene_id, path)
+        self.unservable = frozenset(errors)
         self.loading = False
         return errors
 
     def pending(self, scene_id: str) -> bool:
-        """Whether ``scene_id`` is unknown only because the folder has not been loaded yet."""
-        if not self.loading or scene_id in self._scenes or not is_valid_scene_id(scene_id):
+        """Whether ``scene_id`` is unknown only because its file has not been loaded yet: the
+        folder's first load is running, or the store watcher has yet to check a new file."""
+        if scene_id in self._scenes or not is_valid_scene_id(scene_id):
+            return False
+        if not (self.loading or self.watched) or scene_id in self.unservable:
             return False
         return self.path_for(scene_id).is_file()
 

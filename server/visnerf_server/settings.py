@@ -4,6 +4,7 @@
 overrides it with the settings the app was built with.
 """
 
+import ipaddress
 from functools import lru_cache
 from pathlib import Path
 from typing import Annotated, Literal
@@ -153,6 +154,17 @@ class Settings(BaseSettings):
     movie_dir: Path | None = None
     """Folder in which that temporary folder is made; None: the system's temporary folder."""
 
+    # Replicas: several servers over one checkpoints folder, behind a proxy (docker/README.md)
+    store_poll_s: float = Field(default=2.0, ge=0.0, le=3600.0)
+    """How often the checkpoints folder is compared with the scenes served (``store_watch``), so
+    that an upload or deletion through another server sharing the folder reaches this one: a new
+    file is served within two polls and its load. 0 turns the watcher off."""
+    trusted_proxies: Annotated[tuple[str, ...], NoDecode] = ()
+    """Proxies whose ``X-Forwarded-For`` and ``X-Forwarded-Proto`` are believed, as addresses or
+    networks: ``VISNERF_TRUSTED_PROXIES=127.0.0.1,10.0.0.0/8`` (``*``: any peer). Behind nginx every
+    request comes from the proxy; from a trusted one the client's address (the rate limit's key) is
+    the last one in ``X-Forwarded-For`` that is not a trusted proxy. Empty: nobody is believed."""
+
     @field_validator("allowed_origins", mode="before")
     @classmethod
     def _split_origins(cls, value: object) -> object:
@@ -161,6 +173,20 @@ class Settings(BaseSettings):
         if not isinstance(items, list | tuple):
             return value
         return tuple(normalize_origin(str(item)) for item in items if str(item).strip())
+
+    @field_validator("trusted_proxies", mode="before")
+    @classmethod
+    def _split_proxies(cls, value: object) -> object:
+        """A comma-separated string (the environment variable) or a list; each an IP address or
+        network, or ``*``."""
+        items = value.split(",") if isinstance(value, str) else value
+        if not isinstance(items, list | tuple):
+            return value
+        proxies = tuple(str(item).strip() for item in items if str(item).strip())
+        for proxy in proxies:
+            if proxy != "*":
+                ipaddress.ip_network(proxy, strict=False)  # ValueError names the bad one
+        return proxies
 
 
 @lru_cache

@@ -148,13 +148,18 @@ def _wait_ready(server: LiveServer, timeout_s: float) -> None:
 
 @contextmanager
 def serve_process(
-    ckpt_dir: Path, work_dir: Path, env: dict[str, str] | None = None, ready_timeout_s: float = 60.0
+    ckpt_dir: Path,
+    work_dir: Path,
+    env: dict[str, str] | None = None,
+    ready_timeout_s: float = 60.0,
+    port: int | None = None,
 ) -> Iterator[LiveServer]:
     """``visnerf serve --no-client`` on ``ckpt_dir`` in a subprocess, on a free loopback port, with the
     test token and its state in ``work_dir/state``; its output goes to ``work_dir/server.log``.
     Yields once ``/api/ready`` answers 200; kills the process on the way out if it still runs.
-    ``VISNERF_*`` variables of the caller's environment are not passed on; ``env`` adds some."""
-    port = free_port()
+    ``VISNERF_*`` variables of the caller's environment are not passed on; ``env`` adds some.
+    ``port``: that one instead of a free one (a server restarted where it was)."""
+    port = free_port() if port is None else port
     log_path = work_dir / "server.log"
     inherited = {k: v for k, v in os.environ.items() if not k.startswith("VISNERF_")}
     full_env = {**inherited, "VISNERF_TOKEN": TOKEN, "VISNERF_STATE_DIR": str(work_dir / "state"), **(env or {})}
