@@ -13,6 +13,7 @@ import statistics
 import sys
 import time
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
@@ -34,16 +35,51 @@ HOLDOUT_VIEWS = (5, 17, 29, 40)
 """Views (icosphere order) held out at every other setting."""
 
 
+HOLDOUT_PROTOCOLS = ("middle", "standard")
+"""The hold-outs of bench/nyx_train.py (``--holdout``): ``standard``, views and settings
+(``holdout_for``), and ``middle``, those and the middle value of one axis (``middle_holdout``)."""
+
+
 def holdout_for(scene: SceneData) -> HoldoutConfig:
-    """The hold-out of bench/nyx_train.py and bench/train_speed.py: views 5, 17, 29 and 40 at
-    every setting, plus the four whole Nyx parameter settings where the dataset has that many
+    """The standard hold-out of bench/nyx_train.py and bench/train_speed.py: views 5, 17, 29 and
+    40 at every setting, plus the four whole Nyx parameter settings where the dataset has that many
     parameters (a setting that matches no frame holds nothing out)."""
     settings = tuple(s for s in HOLDOUT_SETTINGS if len(s) == scene.n_params)
     return HoldoutConfig(views=HOLDOUT_VIEWS, settings=settings)
 
 
+def middle_value(scene: SceneData, axis: str | None = None) -> tuple[int, float]:
+    """(axis index, value): the middle sampled value of the parameter named ``axis``, or, without
+    a name, of the first axis with an odd count of values (3 or more). ValueError naming the axes
+    when the named one does not exist or has no single middle value, or when no axis has one."""
+    counts = ", ".join(f"{a.name} ({len(a.values)} values)" for a in scene.param_axes) or "none"
+    names = [a.name for a in scene.param_axes]
+    if axis is None:
+        odd = [k for k, a in enumerate(scene.param_axes) if len(a.values) % 2 == 1 and len(a.values) >= 3]
+        if not odd:
+            raise ValueError(f"no parameter axis has an odd count of 3 or more values, so none has a middle one: {counts}")
+        k = odd[0]
+    elif axis not in names:
+        raise ValueError(f"no parameter axis {axis!r}; this dataset's: {counts}")
+    else:
+        k = names.index(axis)
+    values = scene.param_axes[k].values
+    if len(values) % 2 == 0 or len(values) < 3:
+        raise ValueError(f"parameter {names[k]!r} has {len(values)} values, so no single middle one; "
+                         f"the axes: {counts}")
+    return k, values[len(values) // 2]
+
+
+def middle_holdout(scene: SceneData, axis: str | None = None) -> HoldoutConfig:
+    """The standard hold-out (``holdout_for``) and every frame at the middle value of one axis
+    (``middle_value``): training keeps only the values on either side of it, and the held-out
+    frames at it measure the model between sampled values, where the test path goes."""
+    return replace(holdout_for(scene), axis_values=(middle_value(scene, axis),))
+
+
 def nyx_split(data: str | Path) -> tuple[SceneData, SceneData]:
-    """(training, held-out) frames of the Nyx dataset at ``data``, split as bench/nyx_train.py does."""
+    """(training, held-out) frames of the Nyx dataset at ``data``, split as bench/nyx_train.py
+    --holdout standard does (its held-out frames are held out by ``--holdout middle`` too)."""
     scene = load_dataset(Path(data))
     train, val = split_holdout(scene, holdout_for(scene))
     if val is None:

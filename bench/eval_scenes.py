@@ -11,6 +11,14 @@ where the paper has a corresponding row.
     python bench/eval_scenes.py --minutes-per-scene 4              # all scenes, 4 min each, 128x128
     python bench/eval_scenes.py --scenes tangle_static --minutes-per-scene 0.5 --res 32 --test-views 8
 
+The Nyx witness: cosmo_sim (3 simulation parameters, 3 values each, DVR) has ground truth on its
+181-frame test path, where every parameter lies between training values and the paper's Nyx test
+path is not to be had; one line trains it with the product's recipe for N minutes and prints its
+test-path PSNR / SSIM, overall and by place in parameter space (at / between training values, one
+parameter moving / all moving), also in the .md and .json:
+
+    python bench/eval_scenes.py --scenes cosmo_sim --minutes-per-scene 10 --data-root data/eval --results /tmp/cosmo_witness
+
 A full run (every scene at 128x128) writes bench/results/eval_scenes.{json,md} and its table into the
 README; any other run writes eval_scenes.partial.{json,md} and leaves the README alone.
 """
@@ -110,6 +118,7 @@ def scene_row(spec: SceneSpec, summary: dict, trainer: Trainer, gen_seconds: flo
         "iterations": trainer.state.iteration, "resolution": list(trainer.field.resolution),
         "ms_per_frame": m["ms_median"], "model_mb": summary["model_mb"],
         "psnr_between_training_values": groups["between_training_values"]["psnr"],
+        "parameter_space": {name: {"n": g["n"], "psnr": g["psnr"], "ssim": g["ssim"]} for name, g in groups.items()},
         "generation_seconds": gen_seconds, "choices": trainer.recipe_choices,
         "paper": None if paper is None else {"dataset": paper[0], "psnr": paper[1]},
     }  # fmt: skip
@@ -178,6 +187,34 @@ def table_lines(record: dict) -> list[str]:
     return lines
 
 
+PLACES = {"at_training_values": "at training values", "between_training_values": "between training values",
+          "one_moving": "one parameter moving", "all_moving": "all parameters moving"}
+"""The groups of ``visnerf eval``'s split by place in parameter space that the tables show."""
+
+
+def place_cell(group: dict | None) -> str:
+    """"PSNR / SSIM (n)" of one group of test frames; "no frame" for an empty one, "-" where not recorded."""
+    if group is None:
+        return "-"
+    if not group["n"]:
+        return "no frame"
+    return f"{_f(group['psnr'], 2)} / {_f(group['ssim'], 3)} ({group['n']})"
+
+
+def place_lines(record: dict) -> list[str]:
+    """Each scene's test-path PSNR / SSIM by place in parameter space (rows recorded before the
+    split was kept have none; a static scene has no parameter to move)."""
+    rows = [r for r in record["scenes"] if r.get("parameter_space") and r["K"] > 0]
+    if not rows:
+        return []
+    lines = ["Test-path PSNR (dB) / SSIM (frames) by place in parameter space (the protocol's test path keeps "
+             "every parameter between training values; `visnerf eval`'s report of each scene gives more):", "",
+             "| scene | " + " | ".join(PLACES.values()) + " |", "|" + " --- |" * (1 + len(PLACES))]
+    for r in rows:
+        lines.append(f"| {r['scene']} | " + " | ".join(place_cell(r["parameter_space"].get(g)) for g in PLACES) + " |")
+    return [*lines, ""]
+
+
 def write_markdown(path: Path, record: dict) -> None:
     m = record["machine"]
     lines = [
@@ -195,6 +232,7 @@ def write_markdown(path: Path, record: dict) -> None:
         "",
         *table_lines(record),
         "",
+        *place_lines(record),
         "Per-scene reports (per-frame error, CIELUV difference images, render-settings sweep, training "
         f"curve): `{record['reports']}/NAME/report.md`. Training curves of all scenes: "
         f"`{record['training_figure']}`.",
@@ -287,8 +325,10 @@ def main(argv: list[str] | None = None) -> int:
             if args.bundle is not None and name in BUNDLED:
                 bundle_scene(ckpt, args.bundle)
             runs.append(read_training_log(ckpt.with_suffix(".log.csv"), name=name))
-            print(f"{name}: PSNR {_f(summary['metrics']['psnr'], 2)} dB, SSIM {_f(summary['metrics']['ssim'], 3)}",
-                  file=sys.stderr)
+            places = record["scenes"][-1]["parameter_space"]
+            print(f"{name}: PSNR {_f(summary['metrics']['psnr'], 2)} dB, SSIM {_f(summary['metrics']['ssim'], 3)} on "
+                  f"{summary['metrics']['n']} test frames; PSNR / SSIM (frames) "
+                  + "; ".join(f"{PLACES[g]} {place_cell(places[g])}" for g in PLACES if g in places), file=sys.stderr)
     finally:
         shutil.rmtree(temporary, ignore_errors=True)
     if args.replace_rows:
