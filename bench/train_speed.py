@@ -17,13 +17,29 @@ interpolation of the logged curves at the union of their validation times.
     .venv/bin/python bench/train_speed.py --data ../shared/data/nyx --minutes 10 --threads 1
 
 Writes train_speed.json, train_speed.md and train_speed.png to --out-dir (bench/results).
+
+With ``--ranks N``, training throughput (rays per second) on several processes instead
+(``training.distributed``): one process on one thread, one process on N threads and N ranks of one
+thread each under torchrun (gloo), side by side, ``--repeats`` rounds in turn, each run the product's
+recipe (``recipe_trainer``) for ``--iterations`` steps of ``--batch-rays`` rays (the global batch: each
+rank draws its share), no validation:
+
+    .venv/bin/python bench/train_speed.py --ranks 2 --data data/eval/plume_static_128
+
+Writes train_ranks.json and train_ranks.md to --out-dir.
 """
 
 import argparse
 import dataclasses
 import gc
+import json
+import os
+import socket
+import statistics
+import subprocess
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -42,11 +58,13 @@ from bench_common import (
 )
 from matplotlib.figure import Figure
 
-from visnerf.config import HoldoutConfig, RenderConfig, TrainConfig
+from visnerf.config import FieldConfig, HoldoutConfig, RenderConfig, TrainConfig
 from visnerf.data.holdout import split_holdout
 from visnerf.data.parsers.blender import load_dataset
 from visnerf.data.scene import SceneData
 from visnerf.runtime import bf16_native, configure, release_free_memory
+from visnerf.training.distributed import Launch, Ranks, leave_process_group
+from visnerf.training.recipe import recipe_trainer
 from visnerf.training.trainer import Trainer
 
 TARGET_SPEEDUP = 3.0
@@ -67,6 +85,14 @@ class Options:
     """Final voxels per axis."""
     batch_rays: int
     out_dir: Path
+    ranks: int = 0
+    """Ranks mode (``--ranks``): 0 for the plain-against-accelerated comparison."""
+    iterations: int = 60
+    """Steps of each run in ranks mode."""
+    repeats: int = 2
+    """Rounds of the ranks mode's runs, in turn."""
+    rank_worker: Path | None = None
+    """Where one internal run of the ranks mode writes its figures (``rank_worker``)."""
 
 
 @dataclass(frozen=True)
@@ -223,6 +249,138 @@ def plot(path: Path, runs: list[RunResult]) -> None:
     save_figure(fig, path)
 
 
+RANK_VARIANTS = (("1 process, 1 thread", 1, 1), ("1 process, {n} threads", 1, None), ("{n} ranks, 1 thread each", None, 1))
+"""(name, processes, threads per process) of the ranks mode; None stands for ``--ranks``."""
+
+
+def timed(fn: Callable, spent: list[float]) -> Callable:
+    """``fn``, appending the seconds of each call to ``spent``."""
+    def call(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        t0 = time.perf_counter()
+        out = fn(*args, **kwargs)
+        spent.append(time.perf_counter() - t0)
+        return out
+    return call
+
+
+def rank_worker(opts: Options, out: Path) -> int:
+    """One run of the ranks mode (alone, or as one rank under torchrun): rank 0 writes its figures
+    to ``out``. Threads come from VISNERF_THREADS."""
+    ranks = Ranks.start(Launch.from_environment(), torch.device("cpu"))
+    try:
+        train = load_dataset(opts.data, "train")
+        cfg = TrainConfig(iterations=opts.iterations, batch_rays=opts.batch_rays, seed=opts.seed)
+        trainer = recipe_trainer(train, None, cfg, FieldConfig(), ranks.device, None,
+                                 frozenset({"iterations", "batch_rays", "seed"}))
+        trainer.distribute(ranks)
+        steps: list[float] = []
+        reduces: list[float] = []
+        trainer.train_step = timed(trainer.train_step, steps)  # type: ignore[method-assign]
+        ranks.average_gradients = timed(ranks.average_gradients, reduces)  # type: ignore[method-assign]
+        t0, cpu0 = time.perf_counter(), time.process_time()
+        trainer.run(progress_bar=False)
+        loop = time.perf_counter() - t0
+        cpu = torch.tensor([time.process_time() - cpu0], dtype=torch.float64)
+        if ranks.world_size > 1:
+            torch.distributed.all_reduce(cpu)  # CPU seconds of all ranks
+    finally:
+        leave_process_group()
+    if ranks.is_main:
+        late = steps[len(steps) // 2 :]  # at the final resolution (the schedule upsamples in its first quarter)
+        write_json(out, {
+            "processes": ranks.world_size, "threads": torch.get_num_threads(), "iterations": trainer.state.iteration,
+            "batch_rays": opts.batch_rays, "resolution": list(trainer.field.resolution),
+            "setup_seconds": trainer.setup_seconds, "loop_seconds": loop,
+            "rays_per_second": trainer.state.iteration * opts.batch_rays / loop,
+            "cpu_seconds": float(cpu), "rays_per_cpu_second": trainer.state.iteration * opts.batch_rays / float(cpu),
+            "late_step_ms": 1000 * statistics.median(late),
+            "late_rays_per_second": opts.batch_rays / statistics.median(late),
+            "late_all_reduce_ms": 1000 * statistics.median(reduces[len(reduces) // 2 :]) if ranks.world_size > 1 else 0.0,
+        })
+    return 0
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def run_ranks_variant(opts: Options, processes: int, threads: int, out: Path) -> dict:
+    """One run of the ranks mode in a fresh process (or ``processes`` under torchrun)."""
+    worker = [str(Path(__file__).resolve()), "--rank-worker", str(out), "--data", str(opts.data),
+              "--iterations", str(opts.iterations), "--batch-rays", str(opts.batch_rays), "--seed", str(opts.seed)]
+    launcher = [sys.executable] if processes == 1 else [
+        sys.executable, "-m", "torch.distributed.run", "--nproc-per-node", str(processes),
+        "--master-addr", "127.0.0.1", "--master-port", str(free_port())]
+    env = {**os.environ, "VISNERF_THREADS": str(threads), "OMP_NUM_THREADS": str(threads)}
+    subprocess.run([*launcher, *worker], check=True, env=env)
+    return json.loads(out.read_text())
+
+
+def ranks_main(opts: Options) -> int:
+    n = opts.ranks
+    variants = [(name.format(n=n), p or n, t or n) for name, p, t in RANK_VARIANTS]
+    record: dict = {"command": "python bench/train_speed.py " + " ".join(sys.argv[1:]), **machine_record(),
+                    "data": str(opts.data), "iterations": opts.iterations, "batch_rays": opts.batch_rays,
+                    "seed": opts.seed, "repeats": opts.repeats}
+    loads = [load_average()]
+    runs: dict[str, list[dict]] = {name: [] for name, _, _ in variants}
+    opts.out_dir.mkdir(parents=True, exist_ok=True)
+    for round_ in range(opts.repeats):
+        for name, processes, threads in variants:
+            print(f"round {round_ + 1}: {name}", flush=True)
+            result = run_ranks_variant(opts, processes, threads, opts.out_dir / "train_ranks_run.json")
+            runs[name].append({**result, "load_average_1min": load_average()})
+            print(f"  {result['rays_per_second']:.0f} rays/s, {result['late_step_ms']:.0f} ms per late step", flush=True)
+    (opts.out_dir / "train_ranks_run.json").unlink(missing_ok=True)
+    loads.append(load_average())
+    summary = []
+    for name, processes, threads in variants:
+        rs = runs[name]
+        summary.append({"name": name, "processes": processes, "threads": threads,
+                        **{key: statistics.median(r[key] for r in rs) for key in
+                           ("rays_per_second", "rays_per_cpu_second", "late_rays_per_second", "late_step_ms",
+                            "late_all_reduce_ms")}})
+    base = summary[0]["rays_per_second"]
+    for row in summary:
+        row["speedup"] = row["rays_per_second"] / base
+    record.update({"load_average_1min": {"before": loads[0], "after": loads[-1]}, "summary": summary, "runs": runs})
+    write_json(opts.out_dir / "train_ranks.json", record)
+    write_ranks_markdown(opts.out_dir / "train_ranks.md", record)
+    print(f"wrote {opts.out_dir / 'train_ranks.json'} and .md")
+    return 0
+
+
+def write_ranks_markdown(path: Path, record: dict) -> None:
+    first = next(iter(record["runs"].values()))[0]
+    lines = [
+        *markdown_header("Training throughput on several processes", record),
+        "",
+        f"Data: `{record['data']}` (the recipe's grid: {first['resolution']}), {record['iterations']} steps of "
+        f"{record['batch_rays']} rays (the global batch) per run, seed {record['seed']}, no validation; "
+        f"{record['repeats']} rounds of the three runs in turn, medians over the rounds. Rays per second: "
+        "steps times the batch over the loop's wall time (upsampling and occupancy milestones included); "
+        "late: the median step of the second half of the run, at the final resolution. All-reduce: the "
+        "median time rank 0 spends in averaging gradients (waiting for the slower rank included). Rays per "
+        "CPU second: the same rays over the CPU time of all the run's processes in the loop, a measure of the "
+        "work each way costs that other jobs on the machine disturb less than wall time.",
+        "",
+        "| run | processes x threads | rays/s | rays per CPU s | late rays/s | late ms per step | of which all-reduce ms "
+        "| rays/s against 1 x 1 |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for r in record["summary"]:
+        lines.append(f"| {r['name']} | {r['processes']} x {r['threads']} | {fmt(r['rays_per_second'], 0)} | "
+                     f"{fmt(r['rays_per_cpu_second'], 0)} | "
+                     f"{fmt(r['late_rays_per_second'], 0)} | {fmt(r['late_step_ms'], 0)} | "
+                     f"{fmt(r['late_all_reduce_ms'], 1)} | {fmt(r['speedup'], 2)}x |")
+    lines += ["", "Each round's runs (rays/s, 1-min load average after the run):", ""]
+    for name, rs in record["runs"].items():
+        lines.append(f"- {name}: " + ", ".join(f"{r['rays_per_second']:.0f} (load {r['load_average_1min']})" for r in rs))
+    path.write_text("\n".join(lines) + "\n")
+
+
 def parse_args(argv: list[str] | None = None) -> Options:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--data", default=str(ROOT / "data" / "vortex_tf1"), help="dataset folder (default data/vortex_tf1)")
@@ -237,15 +395,27 @@ def parse_args(argv: list[str] | None = None) -> Options:
     ap.add_argument("--batch-rays", type=int, default=TrainConfig.batch_rays,
                     help=f"rays per iteration (default {TrainConfig.batch_rays})")
     ap.add_argument("--out-dir", default=str(RESULTS), help="results folder (default bench/results)")
+    ap.add_argument("--ranks", type=int, default=0, metavar="N",
+                    help="ranks mode: 1 process x 1 thread, 1 x N threads and N ranks x 1 thread (torchrun)")
+    ap.add_argument("--iterations", type=int, default=60, help="steps of each run in ranks mode (default 60)")
+    ap.add_argument("--repeats", type=int, default=2, help="rounds of the ranks mode's runs (default 2)")
+    ap.add_argument("--rank-worker", default=None, metavar="OUT.json", help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
     if a.minutes <= 0 or a.validate_every <= 0 or a.val_images < 1:
         ap.error("--minutes and --validate-every must be positive, --val-images at least 1")
+    if a.ranks < 0 or a.ranks == 1 or a.iterations < 1 or a.repeats < 1:
+        ap.error("--ranks must be 2 or more, --iterations and --repeats at least 1")
     return Options(Path(a.data), a.minutes, a.validate_every, a.val_images, a.seed, a.threads, a.resolution,
-                   a.batch_rays, Path(a.out_dir))
+                   a.batch_rays, Path(a.out_dir), a.ranks, a.iterations, a.repeats,
+                   None if a.rank_worker is None else Path(a.rank_worker))
 
 
 def main(argv: list[str] | None = None) -> int:
     opts = parse_args(argv)
+    if opts.rank_worker is not None:
+        return rank_worker(opts, opts.rank_worker)
+    if opts.ranks:
+        return ranks_main(opts)
     configure(opts.threads)
     train, val, holdout = load_split(opts.data)
     record: dict = {"command": "python bench/train_speed.py " + " ".join(sys.argv[1:]), **machine_record(),

@@ -32,6 +32,29 @@ def parse_settings(text: str) -> tuple[tuple[float, ...], ...]:
         raise argparse.ArgumentTypeError(f"cannot read parameter settings {text!r}: use 'a,b,c;d,e,f'") from None
 
 
+def parse_axis_value(text: str) -> tuple[str, float]:
+    """``"OmM=0.1375"`` or ``"0=0.1375"`` -> (axis name or index, value), for ``--holdout-value``
+    (the axis is resolved against the dataset once it is loaded: ``holdout_config``)."""
+    axis, sep, value = text.partition("=")
+    axis = axis.strip()
+    if not sep or not axis:
+        raise argparse.ArgumentTypeError(f"cannot read held-out axis value {text!r}: use AXIS=VALUE, the axis "
+                                         "by its name or its index among the varying parameters (OmM=0.1375, 0=0.1375)")
+    number = _number(value)
+    if not math.isfinite(number):
+        raise argparse.ArgumentTypeError(f"held-out axis value {text!r}: {value.strip()!r} is not a finite number")
+    return axis, number
+
+
+def holdout_config(scene: "SceneData", args: argparse.Namespace) -> HoldoutConfig:
+    """The hold-out that ``--holdout-views``, ``--holdout-params`` and ``--holdout-value`` name, the
+    axes of ``--holdout-value`` resolved against ``scene`` (ValueError naming an unknown axis)."""
+    from visnerf.data.holdout import axis_index
+
+    values = tuple((axis_index(scene, axis), value) for axis, value in getattr(args, "holdout_value", ()))
+    return HoldoutConfig(views=args.holdout_views, settings=args.holdout_params, axis_values=values)
+
+
 def parse_views(text: str) -> tuple[int, ...]:
     try:
         return tuple(int(v) for v in text.split(",") if v.strip())
@@ -114,8 +137,20 @@ def with_bbox(scene: "SceneData", box: tuple[tuple[float, ...], tuple[float, ...
 
 
 def _train(args: argparse.Namespace) -> int:
+    """``visnerf train``: one process, or one of the ranks a launcher started (torchrun, srun),
+    which train one model together and leave their process group at the end."""
+    from visnerf.training.distributed import leave_process_group
+
+    try:
+        return _train_as_rank(args)
+    finally:
+        leave_process_group()
+
+
+def _train_as_rank(args: argparse.Namespace) -> int:
     from visnerf.data.holdout import split_holdout
     from visnerf.data.parsers.blender import DatasetError, load_dataset
+    from visnerf.training.distributed import Launch, Ranks
     from visnerf.training.run_state import RUN_STATE_SUFFIX, RunStateError, run_state_path
     from visnerf.training.stop_signals import StopRequested, StopSignals
     from visnerf.training.trainer import Trainer, write_log
@@ -154,18 +189,25 @@ def _train(args: argparse.Namespace) -> int:
         print(f"error: {', '.join('--' + k.replace('_', '-') for k in shape_given)} would change the field of "
               f"{resume}; a resumed run keeps it", file=sys.stderr)
         return 2
-    device = pick_device(args.device)
+    try:  # several processes (torchrun, srun): each draws its share of every batch; rank 0 writes
+        ranks = Ranks.start(Launch.from_environment(), pick_device(args.device))
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    device, main = ranks.device, ranks.is_main
     try:
         scene = load_dataset(args.data, "train")
         scene = with_bbox(scene, args.bbox)
-        train, val = split_holdout(scene, HoldoutConfig(views=args.holdout_views, settings=args.holdout_params))
+        train, val = split_holdout(scene, holdout_config(scene, args))
         if val is None and (Path(args.data) / "transforms_val.json").exists():
             val = load_dataset(args.data, "val")
     except (DatasetError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    print(f"training on {train.n_frames} frames ({val.n_frames if val else 0} held out), "
-          f"K={train.n_params}, {train.intrinsics.width}x{train.intrinsics.height}, device {device}", file=sys.stderr)
+    if main:
+        print(f"training on {train.n_frames} frames ({val.n_frames if val else 0} held out), "
+              f"K={train.n_params}, {train.intrinsics.width}x{train.intrinsics.height}, device {device}"
+              + (f", {ranks.world_size} ranks" if ranks.world_size > 1 else ""), file=sys.stderr)
     try:
         if resume is None:
             from visnerf.training.recipe import recipe_trainer
@@ -174,12 +216,13 @@ def _train(args: argparse.Namespace) -> int:
             if {"density_scale", "density_shift"} & set(field_given):
                 fixed.add("density_scale")
             trainer = recipe_trainer(train, val, cfg, field_cfg, device, render_cfg, frozenset(fixed))
-            for choice in trainer.recipe_choices:
+            for choice in trainer.recipe_choices if main else ():
                 print(f"  {choice['name']} = {choice['value']}: {choice['reason']}", file=sys.stderr)
         elif resume.suffix == RUN_STATE_SUFFIX:
             trainer = Trainer.from_run_state(resume, train, val, device, train_given, render_given)
-            print(f"resuming {resume} at iteration {trainer.state.iteration} "
-                  f"({trainer.state.train_seconds / 60:.1f} min trained)", file=sys.stderr)
+            if main:
+                print(f"resuming {resume} at iteration {trainer.state.iteration} "
+                      f"({trainer.state.train_seconds / 60:.1f} min trained)", file=sys.stderr)
         else:
             trainer = _trainer_from_checkpoint(resume, train, val, device, train_given, render_given, field_given)
     except (CheckpointError, RunStateError) as exc:
@@ -187,13 +230,17 @@ def _train(args: argparse.Namespace) -> int:
         return 2
     if "factor_storage" in field_given:  # storage, not shape: a resumed field may change it
         trainer.field.cfg = dataclasses.replace(trainer.field.cfg, factor_storage=field_given["factor_storage"])
+    trainer.distribute(ranks)
 
     def report(row: dict) -> None:
         print("  " + json.dumps(row), file=sys.stderr)
 
     with StopSignals() as stop:
         try:
-            trainer.run(progress_bar=not args.quiet, on_validate=report, state_path=state_path, stop=stop)
+            trainer.run(progress_bar=not args.quiet and main, on_validate=report,
+                        state_path=state_path if main else None, stop=stop)
+            if not main:  # rank 0 writes the checkpoint, its log and the run state
+                return stop.exit_status if trainer.stopped else 0
             if not trainer.stopped:
                 path = trainer.save(out, dataset=str(args.data))
         except StopRequested:  # in the final steps: the state written when the loop ended is whole
@@ -304,16 +351,16 @@ def _calibrate(args: argparse.Namespace) -> int:
     device = pick_device(args.device)
     try:
         field, meta = load_checkpoint(args.checkpoint, device)
-        if args.holdout_views or args.holdout_params:
+        if args.holdout_views or args.holdout_params or args.holdout_value:
             scene = load_dataset(args.data, "train")
-            _, frames = split_holdout(scene, HoldoutConfig(views=args.holdout_views, settings=args.holdout_params))
+            _, frames = split_holdout(scene, holdout_config(scene, args))
             if frames is None:
                 raise ValueError("the hold-out matches no frame of transforms_train.json")
         elif (Path(args.data) / "transforms_val.json").is_file():
             frames = load_dataset(args.data, "val")
         else:
             raise ValueError(f"{args.data} has no transforms_val.json: name the frames the checkpoint was not "
-                             "trained on with --holdout-views / --holdout-params")
+                             "trained on with --holdout-views / --holdout-params / --holdout-value")
         frames = frames_in_checkpoint_axes(frames, meta.param_axes)
         choice = choose_full_spacing(field, frames, meta.render, args.frames, args.tolerance)
     except (CheckpointError, DatasetError, ValueError) as exc:
@@ -352,6 +399,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="view indices held out for validation at every parameter setting")
     p.add_argument("--holdout-params", type=parse_settings, default=(), metavar="A,B;C,D",
                    help="parameter settings held out for validation (all their views)")
+    p.add_argument("--holdout-value", type=parse_axis_value, action="append", default=[], metavar="AXIS=VALUE",
+                   help="hold out for validation every frame where parameter AXIS (its name, or its index among "
+                        "the varying parameters) has VALUE, e.g. an axis' middle value to validate between "
+                        "sampled values; repeatable")
     p.add_argument("--bbox", type=parse_bbox, default=None, metavar="X0,Y0,Z0,X1,Y1,Z1",
                    help="world box that holds the content (write --bbox=-1,... for negative numbers); "
                         "default: the dataset's bbox, else a box every camera sees, carved from the images")
@@ -387,6 +438,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="the views held out in training (frames of transforms_train.json)")
     c.add_argument("--holdout-params", type=parse_settings, default=(), metavar="A,B;C,D",
                    help="the parameter settings held out in training")
+    c.add_argument("--holdout-value", type=parse_axis_value, action="append", default=[], metavar="AXIS=VALUE",
+                   help="the axis values held out in training (repeatable)")
     c.add_argument("--frames", type=int, default=16, help="frames to measure on (evenly chosen, default 16)")
     c.add_argument("--tolerance", type=float, default=0.05, metavar="DB",
                    help="PSNR the full-quality frames may lose against exhaustive ones (default 0.05)")

@@ -49,6 +49,7 @@ from visnerf.rendering.renderer import (
 from visnerf.representation.field import VisNerfField
 from visnerf.representation.vm_taps import table_gradients_in_place
 from visnerf.runtime import bf16_native, keep_freed_blocks, release_free_memory
+from visnerf.training.distributed import Ranks
 from visnerf.training.ray_batches import RayBatchSampler
 from visnerf.training.regularizers import RegularizerWeights, backward_regularization
 from visnerf.training.run_state import (
@@ -202,6 +203,22 @@ class Trainer:
         """Moving average of the batches' squared error (the progress bar's PSNR)."""
         self.stopped = False
         """Whether the last ``run`` returned early on a stop request (its run state is written)."""
+        self.ranks = Ranks.solo(device)
+        """The processes training this field together (``distribute``); one by default."""
+
+    def distribute(self, ranks: Ranks) -> None:
+        """Train as one of ``ranks`` (``training.distributed``): from rank 0's field, drawing this
+        rank's share of each batch from its own random stream. Only rank 0 validates (the others
+        drop their validation frames) and finishes the run after the loop. One process: nothing
+        changes (its random stream goes on as it was, as a resumed run needs)."""
+        self.ranks = ranks
+        if ranks.world_size == 1:
+            return
+        ranks.broadcast_field(self.field)
+        self.sampler.set_aabb(self.field.aabb)
+        self.generator.manual_seed(ranks.stream_seed(self.cfg.seed, self.state.iteration))
+        if not ranks.is_main:
+            self.val_scene = None
 
     def progress(self) -> float:
         p = self.state.iteration / max(1, self.cfg.iterations)
@@ -292,6 +309,13 @@ class Trainer:
             self.field.set_occupancy(grid)
 
     def _milestones(self) -> None:
+        done = (self.state.upsamples_done, self.state.occupancy_done, self.state.refines_done)
+        self._schedule_milestones()
+        if (self.state.upsamples_done, self.state.occupancy_done, self.state.refines_done) != done:
+            self.ranks.broadcast_field(self.field)  # the ranks' grids stay identical
+            self.sampler.set_aabb(self.field.aabb)
+
+    def _schedule_milestones(self) -> None:
         p = self.progress()
         targets = upsample_resolutions(self.cfg)
         while self.state.upsamples_done < len(self.cfg.upsample_at) and p >= self.cfg.upsample_at[self.state.upsamples_done]:
@@ -333,8 +357,8 @@ class Trainer:
         scale = self.lr_scale()
         for group in self.optimizer.param_groups:
             group["lr"] = group["base_lr"] * scale
-        batch = self.sampler.sample(cfg.batch_rays)
-        n = batch.rgb.shape[0]
+        rays, n = self.ranks.batch_share(cfg.batch_rays)  # one process: all of them, their count
+        batch = self.sampler.sample(rays)
         if cfg.random_background:
             bg = torch.rand(batch.rgb.shape, generator=self.generator).to(self.device)
         else:
@@ -374,6 +398,7 @@ class Trainer:
         reg_value = sum(backward_regularization(self.field, self._weights()).values())
         if not math.isfinite(reg_value):  # before the step: the factors stay as they were
             raise FloatingPointError(f"non-finite regularization at iteration {self.state.iteration}")
+        (sq_error,) = self.ranks.average_gradients(self.field.parameters(), sq_error)
         self.optimizer.step()
         return {"mse": sq_error, "loss": sq_error + reg_value, "samples": float(per_ray.sum())}
 
@@ -402,10 +427,7 @@ class Trainer:
         bar = tqdm(total=round(cfg.time_budget_s) if timed else cfg.iterations,
                    initial=min(round(self.state.train_seconds), round(cfg.time_budget_s)) if timed else self.state.iteration,
                    unit="s" if timed else "it", disable=not progress_bar, dynamic_ncols=True, desc="train")
-        while self.progress() < 1.0:
-            if stop is not None and stop.requested():
-                self.stopped = True
-                break
+        while self._go_on(stop):
             t0 = time.perf_counter()  # milestones (upsampling, occupancy grids) are training time
             self._milestones()
             stats = self.train_step()
@@ -433,7 +455,7 @@ class Trainer:
         bar.close()
         if state_path is not None and (self.stopped or cfg.checkpoint_every_s > 0):
             self.write_run_state(state_path)  # a stop during the final steps resumes from here
-        if self.stopped:
+        if self.stopped or not self.ranks.is_main:
             return self.state.log
         if stop is not None:
             stop.loop_ended()
@@ -447,6 +469,16 @@ class Trainer:
                 tqdm.write(self.spacing_note)
         self._record(mse_to_psnr(self.ema_mse) if self.ema_mse else float("nan"), wall0, on_validate, compared)
         return self.state.log
+
+    def _go_on(self, stop: StopRequest | None) -> bool:
+        """Whether to take another step: progress is left and no stop was asked for (which sets
+        ``stopped``). Ranks agree on both: rank 0's training clock, any rank's stop request."""
+        asked = stop is not None and stop.requested()
+        self.state.train_seconds, asked = self.ranks.agree(self.state.train_seconds, asked)
+        if self.progress() >= 1.0:
+            return False
+        self.stopped = asked
+        return not asked
 
     def write_run_state(self, path: Path) -> Path:
         """Write everything this run needs to go on (``run_state.py``); the time it takes counts
@@ -625,7 +657,7 @@ class Trainer:
                         "run_states": {"written": self.state.states_written,
                                        "seconds": round(self.state.state_seconds, 2)},
                         "recipe": self.cfg.to_dict(),  # the whole TrainConfig (visnerf info shows it)
-                        "choices": self.recipe_choices},
+                        "choices": self.recipe_choices, **self.ranks.provenance()},
         )
         save_checkpoint(self.field, meta, path)
         write_log(self.state.log, path.with_suffix(".log.csv"))
