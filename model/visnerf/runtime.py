@@ -67,10 +67,22 @@ def keep_freed_blocks() -> bool:
 
 
 def default_threads() -> int:
-    """Threads for torch: the cores this process may use (``VISNERF_THREADS`` overrides)."""
-    env = os.environ.get("VISNERF_THREADS")
-    if env:
-        return max(1, int(env))
+    """Threads for torch: ``VISNERF_THREADS``, else ``OMP_NUM_THREADS`` (the convention torch and
+    OpenMP programs follow: a job started with it set to 1 beside another must not take two
+    threads; two 2-thread trainings on 2 busy cores made a tenth of their 1-thread steps), else the
+    cores this process may use."""
+    for name in ("VISNERF_THREADS", "OMP_NUM_THREADS"):
+        env = os.environ.get(name, "").strip()
+        if env:
+            try:
+                return max(1, int(env))
+            except ValueError:
+                raise ValueError(f"{name} must be a whole number of threads, got {env!r}") from None
+    return available_cores()
+
+
+def available_cores() -> int:
+    """The cores this process may run on (its CPU affinity)."""
     try:
         return max(1, len(os.sched_getaffinity(0)))
     except AttributeError:

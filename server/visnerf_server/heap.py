@@ -9,38 +9,15 @@ arena back; it takes milliseconds, so it runs only after frames of at least ``TR
 Elsewhere than glibc (musl, macOS) it does nothing.
 """
 
-import ctypes
-import ctypes.util
-import functools
 import logging
+
+from visnerf.runtime import release_free_memory
 
 log = logging.getLogger(__name__)
 
 TRIM_AFTER_PIXELS = 512 * 512
 """Frames of at least this many pixels give their memory back when done: a 512x512 full frame
 allocates about 100 MB; smaller frames reuse the same blocks frame after frame."""
-
-
-@functools.cache
-def _malloc_trim() -> "ctypes._NamedFuncPointer | None":
-    name = ctypes.util.find_library("c")
-    if name is None:
-        return None
-    try:
-        trim = ctypes.CDLL(name).malloc_trim
-    except (OSError, AttributeError):
-        return None
-    trim.argtypes, trim.restype = [ctypes.c_size_t], ctypes.c_int
-    return trim
-
-
-def release_free_memory() -> bool:
-    """Return the C heap's free pages to the system; False where the C library cannot."""
-    trim = _malloc_trim()
-    if trim is None:
-        return False
-    trim(0)
-    return True
 
 
 def after_frame(pixels: int) -> None:

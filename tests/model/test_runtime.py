@@ -43,3 +43,28 @@ def test_keep_freed_blocks_applies_both_settings() -> None:
         pytest.skip("glibc only")
     assert runtime.keep_freed_blocks()
     assert runtime.KEEP_BLOCKS_BELOW <= 32 << 20
+
+
+@pytest.mark.parametrize(("visnerf", "omp", "want"), [("3", "1", 3), (None, "1", 1), (None, " 4 ", 4), ("0", None, 1)])
+def test_the_default_takes_visnerf_threads_then_omp_num_threads(monkeypatch, visnerf, omp, want) -> None:  # noqa: ANN001
+    for name, value in (("VISNERF_THREADS", visnerf), ("OMP_NUM_THREADS", omp)):
+        if value is None:
+            monkeypatch.delenv(name, raising=False)
+        else:
+            monkeypatch.setenv(name, value)
+    assert runtime.default_threads() == want
+
+
+def test_without_either_variable_the_default_is_the_cores_this_process_may_use(monkeypatch) -> None:
+    import os
+
+    monkeypatch.delenv("VISNERF_THREADS", raising=False)
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    assert runtime.default_threads() == len(os.sched_getaffinity(0))
+
+
+def test_a_thread_variable_that_is_no_number_is_refused_by_name(monkeypatch) -> None:
+    monkeypatch.delenv("VISNERF_THREADS", raising=False)
+    monkeypatch.setenv("OMP_NUM_THREADS", "two")
+    with pytest.raises(ValueError, match="OMP_NUM_THREADS must be a whole number"):
+        runtime.default_threads()

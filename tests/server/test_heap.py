@@ -21,7 +21,7 @@ def test_trimming_returns_the_free_pages_of_a_fragmented_heap() -> None:
     kept = blocks[::10]  # one block in ten stays: the heap's top cannot shrink past them
     del blocks
     before = _rss_mb()
-    assert heap.release_free_memory()
+    assert heap.release_free_memory()  # the model's runtime.release_free_memory
     after = _rss_mb()
     assert before - after > 100.0, f"RSS {before:.0f} MB -> {after:.0f} MB"
     assert len(kept) == 200

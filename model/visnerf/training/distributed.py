@@ -25,7 +25,7 @@ import torch
 import torch.distributed as dist
 from torch import nn
 
-from visnerf.runtime import configure, default_threads
+from visnerf.runtime import available_cores, configure
 
 DEFAULT_PORT = 29500
 """``MASTER_PORT`` where the launcher sets none (srun does not): torchrun's default."""
@@ -103,7 +103,8 @@ class Ranks:
     def start(cls, launch: Launch, device: torch.device) -> "Ranks":
         """Join the process group ``launch`` describes on ``device`` (see ``Launch.device_for``);
         a one-process launch starts none. On CPU, ranks that share a node's cores get an equal
-        share of its threads unless ``VISNERF_THREADS`` says otherwise."""
+        share of them unless ``VISNERF_THREADS`` says otherwise (torchrun's own ``OMP_NUM_THREADS=1``
+        for each of several ranks would leave most cores of a larger node idle)."""
         device = launch.device_for(device)
         if launch.world_size == 1:
             return cls(launch, device)
@@ -112,7 +113,7 @@ class Ranks:
         if device.type == "cuda":
             torch.cuda.set_device(device)
         elif "VISNERF_THREADS" not in os.environ and launch.local_world_size > 1:
-            configure(max(1, default_threads() // launch.local_world_size))
+            configure(max(1, available_cores() // launch.local_world_size))
         os.environ.setdefault("MASTER_ADDR", launch.master_addr)
         os.environ.setdefault("MASTER_PORT", str(launch.master_port))
         dist.init_process_group(BACKENDS[device.type], init_method="env://", rank=launch.rank,
