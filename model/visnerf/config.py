@@ -137,6 +137,11 @@ class FieldConfig:
     """Frequencies of the positional encoding of x fed to the density decoder."""
     sh_degree: int = 3
     """Spherical-harmonics degree (0..3) of the view-direction encoding."""
+    facing_vectors: int = 0
+    """Unit vectors the field learns per point (a linear map of its appearance features) whose
+    cosines with the view direction the colour decoder also reads: a surface lit by a light at the
+    camera (a headlight) shades as a function of the cosine between its normal and the view, too
+    sharp in direction for spherical harmonics. 0: none."""
     density_shift: float = -2.0
     """Added to the raw density before softplus, so that a fresh field is a faint fog (0.13 per world
     unit at a ``density_scale`` of 1): at TensoRF's -10 the photometric gradient behind the density
@@ -166,6 +171,7 @@ class FieldConfig:
             self.n_appearance_components % self.n_param_components
         ):
             raise ValueError("component counts must be multiples of n_param_components")
+        _check_at_least(self, 0, "facing_vectors")
         if not 0 <= self.sh_degree <= 3:
             raise ValueError(f"sh_degree must be 0..3, got {self.sh_degree}")
         if self.factor_storage not in FACTOR_STORAGE_DTYPES:

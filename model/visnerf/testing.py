@@ -1,5 +1,6 @@
 """Small helpers for tests and demos: a tiny, valid, randomly initialised checkpoint."""
 
+import dataclasses
 import math
 from pathlib import Path
 
@@ -14,9 +15,10 @@ from visnerf.representation.field import VisNerfField
 
 
 def make_tiny_field(
-    param_axes: list[tuple[str, list[float]]], seed: int = 0, resolution: int = 8
+    param_axes: list[tuple[str, list[float]]], seed: int = 0, resolution: int = 8, **field_options: object
 ) -> tuple[VisNerfField, tuple[ParamAxis, ...]]:
-    """A small random field whose density is high enough to show something."""
+    """A small random field whose density is high enough to show something (``field_options``
+    override its ``FieldConfig``)."""
     generator_state = torch.random.get_rng_state()
     torch.manual_seed(seed)
     try:
@@ -30,6 +32,7 @@ def make_tiny_field(
             init_scale=0.5,
             factor_storage="float16",
         )
+        cfg = dataclasses.replace(cfg, **field_options)  # type: ignore[arg-type]
         field = VisNerfField(cfg, torch.tensor([[-0.5, -0.5, -0.5], [0.5, 0.5, 0.5]]))
         axes = []
         knots = []
@@ -54,10 +57,11 @@ def make_tiny_checkpoint(
     kind: str = "dvr",
     title: str = "Tiny",
     seed: int = 0,
+    **field_options: object,
 ) -> Path:
     """Write a small valid checkpoint (about 50 kB) with the given parameter axes."""
     axes_spec = [("a", [0.0, 1.0])] if param_axes is None else param_axes
-    field, axes = make_tiny_field(axes_spec, seed)
+    field, axes = make_tiny_field(axes_spec, seed, **field_options)
     meta = CheckpointMeta(
         field=field.cfg,
         render=RenderConfig(step_ratio=0.5),

@@ -62,11 +62,12 @@ def test_given_options_round_trip_through_the_checkpoint(tangle, tmp_path) -> No
     assert recipe.upsample_at == (0.1, 0.2) and recipe.betas == (0.8, 0.95)
     chosen = {c["name"]: c["reason"] for c in meta.provenance["choices"]}
     assert chosen["density_scale"] == "set by the user"  # the recipe keeps a given density scale
+    assert meta.field.facing_vectors > 0 and "opaque" in chosen["facing_vectors"]  # and chooses the rest
     # Whole configurations: every field of each, as given or as the recipe and the run set them.
     assert meta.render == dataclasses.replace(RenderConfig(max_samples=512, full_weight_threshold=0.001),
                                               full_step_ratio=meta.render.full_step_ratio)
     expected_field = FieldConfig(hidden_width=32, sh_degree=1, density_scale=40.0, param_lengths=(),
-                                 resolution=meta.field.resolution)
+                                 resolution=meta.field.resolution, facing_vectors=meta.field.facing_vectors)
     assert meta.field == expected_field
     assert recipe == TrainConfig(iterations=3, l1_weight_rest=2e-5, mixed_precision=False, upsample_at=(0.1, 0.2),
                                  betas=(0.8, 0.95), stop_eps=1e-3, resolution_final=recipe.resolution_final,

@@ -31,6 +31,19 @@ def modulate(spatial: Float[Tensor, "n f"], param_feats: Float[Tensor, "n c"]) -
     return spatial * param_feats.repeat(1, repeats)
 
 
+def facing_cosines(vectors: Float[Tensor, "n v"], directions: Float[Tensor, "n 3"]) -> Float[Tensor, "n m"]:
+    """Cosine between each of the ``m = v / 3`` learnt vectors of a point and its unit view
+    direction (float32; a vector of length zero gives 0)."""
+    n = vectors.shape[0]
+    u = vectors.float().view(n, -1, 3)  # [n, m, 3]
+    length = torch.sqrt(u.pow(2).sum(-1) + FACING_EPS)  # [n, m], never 0
+    return (u * directions.float()[:, None, :]).sum(-1) / length
+
+
+FACING_EPS = 1e-12
+"""Added to a learnt vector's squared length before its root (a guarded division)."""
+
+
 class VisNerfField(nn.Module):
     """Density and colour of a parameterised scene. Buffers: ``aabb`` [2, 3] (world box)."""
 
@@ -51,8 +64,11 @@ class VisNerfField(nn.Module):
             1,
         )
         self.color_decoder = Decoder(
-            3 * cfg.n_appearance_components + pc + sh_dim(cfg.sh_degree), cfg.hidden_width, 3
+            3 * cfg.n_appearance_components + pc + sh_dim(cfg.sh_degree) + cfg.facing_vectors, cfg.hidden_width, 3
         )
+        self.facing: nn.Linear | None = None
+        if cfg.facing_vectors > 0:
+            self.facing = nn.Linear(3 * cfg.n_appearance_components, 3 * cfg.facing_vectors, bias=False)
 
     @property
     def device(self) -> torch.device:
@@ -105,7 +121,11 @@ class VisNerfField(nn.Module):
         coords = self.to_grid(points)
         spatial = self.appearance_grid.sample(coords)
         sh = encode_sh(directions, self.cfg.sh_degree)
-        raw = self.color_decoder(torch.cat([modulate(spatial, q_appearance), q_appearance, sh], dim=-1))
+        feats = modulate(spatial, q_appearance)
+        parts = [feats, q_appearance, sh]
+        if self.facing is not None:
+            parts.append(facing_cosines(self.facing(feats), directions))
+        raw = self.color_decoder(torch.cat(parts, dim=-1))
         return torch.sigmoid(raw)
 
     @torch.no_grad()

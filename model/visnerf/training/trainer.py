@@ -106,6 +106,8 @@ def make_optimizer(field_: VisNerfField, cfg: TrainConfig, scale: float) -> torc
     factors = [*field_.density_grid.parameters(), *field_.appearance_grid.parameters(),
                *field_.density_params.parameters(), *field_.appearance_params.parameters()]
     networks = [*field_.density_decoder.parameters(), *field_.color_decoder.parameters()]
+    if field_.facing is not None:
+        networks += list(field_.facing.parameters())
     return torch.optim.Adam(
         [{"params": factors, "lr": cfg.lr_factors * scale, "base_lr": cfg.lr_factors},
          {"params": networks, "lr": cfg.lr_networks * scale, "base_lr": cfg.lr_networks}],

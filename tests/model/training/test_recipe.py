@@ -10,6 +10,7 @@ import torch
 from visnerf.config import FieldConfig, TrainConfig
 from visnerf.training.recipe import (
     CARVE_FRAMED_FRACTION,
+    FACING_VECTORS,
     VOXEL_PER_PIXEL,
     choose_recipe,
     content_box,
@@ -38,6 +39,10 @@ def test_opaque_surfaces_get_a_surface_density_and_volumes_do_not(surface_scene,
     got = torch.nn.functional.softplus(torch.tensor(surface.field.density_shift)).item() * surface.field.density_scale
     assert got == pytest.approx(fog, rel=1e-5)
     assert "opaque" in next(c.reason for c in surface.choices if c.name == "density_scale")
+    # Only opaque content reads the facing cosines (a headlight's shading); a volume keeps none.
+    assert surface.field.facing_vectors == FACING_VECTORS > 0 and volume.field.facing_vectors == 0
+    assert "opaque" in next(c.reason for c in surface.choices if c.name == "facing_vectors")
+    assert "translucent" in next(c.reason for c in volume.choices if c.name == "facing_vectors")
     # Only opaque content drops occluded samples from a training step.
     assert surface.train.stop_eps == TrainConfig().stop_eps > 0 and "stop_eps" not in choices_of(surface)
     assert volume.train.stop_eps == 0.0 and "translucent" in next(c.reason for c in volume.choices
@@ -86,11 +91,11 @@ def test_parameter_factors_are_left_out_only_without_parameters(surface_scene, v
 
 def test_settings_the_user_gave_are_kept(surface_scene):
     base = TrainConfig(resolution_final=40, carve_min_seen_fraction=0.1)
-    field = FieldConfig(density_scale=3.0)
+    field = FieldConfig(density_scale=3.0, facing_vectors=0)
     recipe = choose_recipe(surface_scene, base, field,
-                           frozenset({"resolution_final", "carve_min_seen_fraction", "density_scale"}))
+                           frozenset({"resolution_final", "carve_min_seen_fraction", "density_scale", "facing_vectors"}))
     assert recipe.train.resolution_final == 40 and recipe.train.carve_min_seen_fraction == 0.1
-    assert recipe.field.density_scale == 3.0
+    assert recipe.field.density_scale == 3.0 and recipe.field.facing_vectors == 0
     assert all(c.reason == "set by the user" for c in recipe.choices if c.name != "parameter_axes")
 
 
