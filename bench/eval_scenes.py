@@ -181,9 +181,12 @@ def table_lines(record: dict) -> list[str]:
         lines.append(f"| {name} | {r['kind']} | {r['K']} | {_f(r['psnr'], 2)} | {_f(r['ssim'], 3)} | "
                      f"{r.get('iterations', 'n/a')} | {grid} | {_f(r['ms_per_frame'], 0)} | {_f(r['model_mb'], 2)} | "
                      f"{'-' if not paper else paper['dataset'] + ', ' + str(paper['psnr'])} |")
+    by_run: dict[tuple[str, str, str], list[str]] = {}  # scenes rerun together share one note
     for r in reruns:
-        lines.append(f"\n\\* {r['scene']}: rerun {r['rerun']['date'][:10]} on {r['rerun']['cpu']} by "
-                     f"`{r['rerun']['command']}` after a change that concerns it; the other rows are the record's.")
+        by_run.setdefault((r["rerun"]["date"][:10], r["rerun"]["cpu"], r["rerun"]["command"]), []).append(r["scene"])
+    for (date, cpu, command), scenes in by_run.items():
+        lines.append(f"\n\\* {', '.join(scenes)}: rerun {date} on {cpu} by `{command}` after a change that "
+                     "concerns them; the other rows are the record's.")
     return lines
 
 

@@ -164,6 +164,12 @@ class FrameRenderer:
 
     def _work(self, job: FrameJob, submitted: float, cancel: threading.Event):
         def run() -> Frame:
+            try:
+                return render_and_encode()
+            finally:  # a frame cancelled at its deadline allocated as much as a finished one
+                heap.after_frame(job.width * job.height)
+
+        def render_and_encode() -> Frame:
             started = time.perf_counter()
             image = job.scene.renderer.render(
                 job.c2w,
@@ -178,7 +184,6 @@ class FrameRenderer:
             rendered = time.perf_counter()
             data = encode_image(image, job.format, self.jpeg_quality)
             done = time.perf_counter()
-            heap.after_frame(job.width * job.height)
             self.metrics.render_seconds.labels(job.quality).observe(done - started)
             frame = Frame(
                 data,

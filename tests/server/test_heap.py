@@ -44,3 +44,17 @@ def test_the_frame_renderer_hands_each_frame_size_to_the_heap(client, monkeypatc
         response = client.get("/api/scenes/tiny/render", params={"width": width, "height": height})
         assert response.status_code == 200
     assert sizes == [1200, 4096]
+
+
+def test_a_frame_that_stops_early_gives_its_memory_back_too(client, monkeypatch) -> None:  # noqa: ANN001
+    from visnerf.inference import RenderCancelled, SceneRenderer
+
+    def cancelled(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202 - as a render stopped at its deadline
+        raise RenderCancelled("deadline passed")
+
+    sizes: list[int] = []
+    monkeypatch.setattr(heap, "after_frame", sizes.append)
+    monkeypatch.setattr(SceneRenderer, "render", cancelled)
+    response = client.get("/api/scenes/tiny/render", params={"width": 48, "height": 40})
+    assert response.status_code != 200
+    assert sizes == [48 * 40]
