@@ -25,6 +25,7 @@ from visnerf.rendering.cancel import CancelCheck, RenderCancelled, raise_if_canc
 from visnerf.rendering.renderer import RenderSettings, render_image_scaled
 from visnerf.rendering.setting_occupancy import BackgroundRunner, SettingOccupancy, SettingOccupancyConfig
 from visnerf.representation.field import VisNerfField
+from visnerf.runtime import release_free_memory
 
 Quality = Literal["preview", "full"]
 
@@ -85,6 +86,15 @@ def _scene_info(meta: CheckpointMeta) -> SceneInfo:
         background=tuple(meta.background),  # type: ignore[arg-type]
         training=dict(meta.provenance),
     )
+
+
+TRIM_AFTER_PIXELS = 512 * 512
+"""Frames of at least this many pixels give their freed memory back to the system when done
+(``runtime.release_free_memory``). A large frame allocates hundreds of megabytes in many blocks, on
+the calling thread and the chunk threads, each served from a glibc arena of its own; freed, they
+stayed resident: the render server beside four clients asking for 1440x1440 frames grew from 1160
+to 1331 MB in 30 s, and stayed within 10 % with the trim (bench/results/server_load.md). Trimming
+takes milliseconds; smaller frames reuse the same blocks frame after frame."""
 
 
 class SceneRenderer:
@@ -166,15 +176,18 @@ class SceneRenderer:
         # Full frames are serialised (the setting grids' cache is shared state); a preview only
         # reads the field, so it never waits behind a full frame of the same scene.
         lock = self._lock if quality == "full" else contextlib.nullcontext()
-        with lock, torch.inference_mode():
-            raise_if_cancelled(cancel)  # it may have waited for the lock
-            own = None
-            if quality == "full" and settings.use_occupancy:
-                step = self.field.voxel_size() * settings.step_ratio
-                own = self.setting_occupancy.lookup(params_t, step, background)
-            rgb = render_image_scaled(self.field, c2w_t, intrinsics, params_t, settings, own, cancel)  # [h, w, 3]
-            out = (rgb.clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
-        return out
+        try:
+            with lock, torch.inference_mode():
+                raise_if_cancelled(cancel)  # it may have waited for the lock
+                own = None
+                if quality == "full" and settings.use_occupancy:
+                    step = self.field.voxel_size() * settings.step_ratio
+                    own = self.setting_occupancy.lookup(params_t, step, background)
+                rgb = render_image_scaled(self.field, c2w_t, intrinsics, params_t, settings, own, cancel)  # [h, w, 3]
+                return (rgb.clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
+        finally:  # a frame stopped early allocated as much as a finished one
+            if width * height >= TRIM_AFTER_PIXELS:
+                release_free_memory()
 
 
 def load_scene(path: str | Path, device: torch.device | None = None) -> SceneRenderer:

@@ -14,7 +14,6 @@ from PIL import Image
 
 from visnerf.data.cameras import orbit_c2w
 from visnerf.rendering.empty_space import EmptySpace
-from visnerf_server import heap
 from visnerf_server.costs import FrameLimits
 from visnerf_server.frame_cache import CachedFrame, FrameCache
 from visnerf_server.metrics import Metrics
@@ -164,12 +163,6 @@ class FrameRenderer:
 
     def _work(self, job: FrameJob, submitted: float, cancel: threading.Event):
         def run() -> Frame:
-            try:
-                return render_and_encode()
-            finally:  # a frame cancelled at its deadline allocated as much as a finished one
-                heap.after_frame(job.width * job.height)
-
-        def render_and_encode() -> Frame:
             started = time.perf_counter()
             image = job.scene.renderer.render(
                 job.c2w,
