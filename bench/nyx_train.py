@@ -71,7 +71,7 @@ from bench_common import (
     write_json,
 )
 
-from visnerf.commands import positive_float, positive_int
+from visnerf.arg_types import positive_float, positive_int
 from visnerf.config import FieldConfig, HoldoutConfig, TrainConfig
 from visnerf.data.holdout import HELD_OUT_KINDS, held_out_kind, split_holdout
 from visnerf.data.parsers.blender import load_dataset

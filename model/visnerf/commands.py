@@ -11,6 +11,8 @@ from typing import TYPE_CHECKING
 
 import torch
 
+from visnerf.arg_types import number as parse_number
+from visnerf.arg_types import positive_float
 from visnerf.checkpoint import CheckpointError, read_checkpoint
 from visnerf.config import FieldConfig, HoldoutConfig, RenderConfig, TrainConfig
 from visnerf.config_options import add_config_options, given_options
@@ -40,7 +42,7 @@ def parse_axis_value(text: str) -> tuple[str, float]:
     if not sep or not axis:
         raise argparse.ArgumentTypeError(f"cannot read held-out axis value {text!r}: use AXIS=VALUE, the axis "
                                          "by its name or its index among the varying parameters (OmM=0.1375, 0=0.1375)")
-    number = _number(value)
+    number = parse_number(value)
     if not math.isfinite(number):
         raise argparse.ArgumentTypeError(f"held-out axis value {text!r}: {value.strip()!r} is not a finite number")
     return axis, number
@@ -60,59 +62,6 @@ def parse_views(text: str) -> tuple[int, ...]:
         return tuple(int(v) for v in text.split(",") if v.strip())
     except ValueError:
         raise argparse.ArgumentTypeError(f"cannot read view indices {text!r}: use '0,7,21'") from None
-
-
-def _number(text: str) -> float:
-    """``text`` as a float, NaN when it is not a number (the callers' range checks reject NaN)."""
-    try:
-        return float(text)
-    except ValueError:
-        return float("nan")
-
-
-def positive_float(text: str) -> float:
-    """A finite number above zero."""
-    value = _number(text)
-    if not (math.isfinite(value) and value > 0):
-        raise argparse.ArgumentTypeError(f"expected a finite number above 0, got {text!r}")
-    return value
-
-
-def non_negative_float(text: str) -> float:
-    """A finite number of at least zero."""
-    value = _number(text)
-    if not (math.isfinite(value) and value >= 0):
-        raise argparse.ArgumentTypeError(f"expected a finite number of at least 0, got {text!r}")
-    return value
-
-
-def unit_fraction(text: str) -> float:
-    """A number in [0, 1]."""
-    value = _number(text)
-    if not 0.0 <= value <= 1.0:
-        raise argparse.ArgumentTypeError(f"expected a fraction in [0, 1], got {text!r}")
-    return value
-
-
-def _whole_number(text: str, least: int, words: str) -> int:
-    """``text`` as a whole number of at least ``least``; ``words`` names the range in the error."""
-    try:
-        value = int(text)
-    except ValueError:
-        value = least - 1
-    if value < least:
-        raise argparse.ArgumentTypeError(f"expected a whole number {words}, got {text!r}")
-    return value
-
-
-def positive_int(text: str) -> int:
-    """A whole number, 1 or more."""
-    return _whole_number(text, 1, "above 0")
-
-
-def non_negative_int(text: str) -> int:
-    """A whole number, 0 or more."""
-    return _whole_number(text, 0, ">= 0")
 
 
 def parse_bbox(text: str) -> tuple[tuple[float, float, float], tuple[float, float, float]]:

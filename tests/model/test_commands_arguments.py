@@ -5,7 +5,7 @@ import re
 
 import pytest
 
-from visnerf.commands import non_negative_float, non_negative_int, positive_float, positive_int, unit_fraction
+from visnerf.arg_types import non_negative_float, non_negative_int, positive_float, positive_int, unit_fraction
 
 
 @pytest.mark.parametrize(

@@ -11,9 +11,11 @@ import argparse
 import json
 import math
 import sys
-from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING
+
+from visnerf.arg_types import number as parse_number
+from visnerf.arg_types import whole_number_at_least
 
 if TYPE_CHECKING:
     from visnerf.animation.movie import MovieSettings
@@ -116,10 +118,7 @@ def _params(items: list[str], scene: "SceneRenderer") -> dict[str, float]:
     out = {}
     for item in items:
         name, sep, value = item.partition("=")
-        try:
-            number = float(value) if sep else math.nan
-        except ValueError:
-            number = math.nan
+        number = parse_number(value) if sep else math.nan
         if not math.isfinite(number):
             raise _InputError(f"--param {item!r} must be NAME=NUMBER")
         if name not in axes:
@@ -149,24 +148,8 @@ def _build_path(args: argparse.Namespace, scene: "SceneRenderer", path_doc: obje
                       params)
 
 
-def _whole_number(least: int) -> Callable[[str], int]:
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            value = least - 1
-        if value < least:
-            raise argparse.ArgumentTypeError(f"expected a whole number of at least {least}, got {text!r}")
-        return value
-
-    return parse
-
-
 def _fps(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        value = math.nan
+    value = parse_number(text)
     if not (math.isfinite(value) and 0.0 < value <= 120.0):
         raise argparse.ArgumentTypeError(f"expected frames per second in (0, 120], got {text!r}")
     return value
@@ -180,12 +163,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     a.add_argument("checkpoint")
     what = a.add_mutually_exclusive_group(required=True)
     what.add_argument("--path", default=None, metavar="PATH.json", help="keyframed path document (version 1)")
-    what.add_argument("--orbit", type=_whole_number(1), default=None, metavar="N",
+    what.add_argument("--orbit", type=whole_number_at_least(1), default=None, metavar="N",
                       help="one turn in azimuth in N frames (the last does not repeat the first)")
     what.add_argument("--sweep", default=None, metavar="AXIS", help="sweep one parameter from its min to its max")
-    what.add_argument("--test-path", type=_whole_number(2), nargs="?", const=DEFAULT_TEST_VIEWS, default=None,
+    what.add_argument("--test-path", type=whole_number_at_least(2), nargs="?", const=DEFAULT_TEST_VIEWS, default=None,
                       metavar="N", help=f"the evaluation protocol's test path in N views (default {DEFAULT_TEST_VIEWS})")
-    a.add_argument("--frames", type=_whole_number(2), default=DEFAULT_SWEEP_FRAMES,
+    a.add_argument("--frames", type=whole_number_at_least(2), default=DEFAULT_SWEEP_FRAMES,
                    help=f"frames of a --sweep (default {DEFAULT_SWEEP_FRAMES})")
     a.add_argument("--fps", type=_fps, default=30.0, help="frames per second (default 30)")
     a.add_argument("--size", default="512x512", metavar="WxH", help="frame size (even for .mp4; default 512x512)")
