@@ -198,8 +198,10 @@ class FrameField:
         sh = encode_sh(directions, self.field.cfg.sh_degree)
         if self._facing is None:
             return sh.to(self.dtype)
-        # the direction itself follows for the facing cosines, kept in float32: a highlight as
-        # sharp as a cosine to the 40th moves by 8 % of its height per bf16 rounding of the cosine
+        # the direction itself follows for the facing cosines, kept in float32 so that it adds no
+        # rounding of its own (a cosine to the 40th moves by 8 % of its height per bf16 rounding of
+        # the cosine); the learnt vectors come from the features in the compute dtype, as every
+        # decoder input does
         return torch.cat([sh, directions.float()], dim=-1)
 
     def color_at(self, taps: VMTaps, ray_terms: Float[Tensor, "m e"]) -> Float[Tensor, "m 3"]:
