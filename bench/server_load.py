@@ -427,7 +427,7 @@ def replica_runs(replicas: int) -> list[dict[str, Any]]:
     ]
 
 
-def replicas_mode(args: argparse.Namespace, checkpoints: Path, work: Path) -> dict[str, Any]:
+def replicas_mode(args: argparse.Namespace, checkpoints: Path, work: Path, nginx: str) -> dict[str, Any]:
     """Each setup ``--rounds`` times, every other round in reverse order (drifting load on a shared
     machine weighs on every setup alike); the report gives each setup's median."""
     setups = replica_runs(args.replicas)
@@ -443,7 +443,7 @@ def replicas_mode(args: argparse.Namespace, checkpoints: Path, work: Path) -> di
             target = servers[0]
             if run["nginx"]:
                 upstreams = [s.url.removeprefix("http://") for s in servers]
-                url = stack.enter_context(running_nginx(upstreams, free_port(), work / f"nginx-{i}"))
+                url = stack.enter_context(running_nginx(nginx, upstreams, free_port(), work / f"nginx-{i}"))
                 target = dataclasses.replace(servers[0], url=url)
             asks = [FrameAsk(args.width, args.height, args.quality, args.format, timeout_s=max(60.0, args.duration),
                              address=client_address(c)) for c in range(args.clients)]
@@ -659,7 +659,7 @@ def main(argv: list[str] | None = None) -> int:
                 print("nginx is not installed (apt-get install nginx)", file=sys.stderr)
                 return 2
             record["nginx"] = subprocess.run([binary, "-v"], capture_output=True, text=True).stderr.strip()
-            record["replicas"] = replicas_mode(args, checkpoints, work)
+            record["replicas"] = replicas_mode(args, checkpoints, work, binary)
     load["after"] = round(load_average(), 2)
     record["load_average_1min"] = load
     record["notes"].append(
