@@ -232,10 +232,16 @@ class RenderConfig:
     """Alpha below which an occupancy cell counts as empty."""
     weight_threshold: float = 1e-4
     """Training samples whose compositing weight is below this skip colour decoding."""
-    full_weight_threshold: float = 3e-3
+    full_weight_threshold_per_voxel: float = 2e-3
     """Full-quality and preview frames decode colour only for samples whose compositing weight
-    exceeds this; the weight of the others takes the mean colour of the ray's decoded samples
-    (``renderer._unshaded_gain``): against 1e-4, frames 2 to 17 % faster, within 0.005 dB."""
+    exceeds this times the sample spacing in voxels; the weight of the others takes the mean colour
+    of the ray's decoded samples (``renderer._unshaded_gain``). A sample's weight in a translucent
+    medium grows with the spacing, so a threshold per sample skipped more of the medium the finer
+    the frame was sampled: 3e-3 a sample cost the bundled cosmo_sim 0.6 dB at half a voxel and
+    nothing at 1.5, and made the spacing calibration's fallback its worst setting. Per voxel, 2e-3
+    is within 0.1 dB of the exhaustive frames at 0.5 to 1.5 voxel on the bundled DVR scenes
+    (bench/results/render_speed.md). Checkpoints from before store ``full_weight_threshold``, a
+    threshold per sample, which is not read: they take this default."""
     early_stop_eps: float = 1e-4
     """Rays stop once transmittance falls below this (inference)."""
     preview_scale: float = 0.5
@@ -247,7 +253,7 @@ class RenderConfig:
         _check_types(type(self), self.__dict__)
         _check_positive(self, "step_ratio", "full_step_ratio", "preview_step_factor")
         _check_at_least(self, 1, "max_samples")
-        _check_below_one(self, "occupancy_threshold", "weight_threshold", "full_weight_threshold", "early_stop_eps")
+        _check_below_one(self, "occupancy_threshold", "weight_threshold", "full_weight_threshold_per_voxel", "early_stop_eps")
         _require(0.0 < self.preview_scale <= 1.0, f"preview_scale must be in (0, 1], got {self.preview_scale!r}")
         _check_whole_in(self, 1, MAX_SAMPLES_LIMIT, "max_samples")
         _check_number_in(self, *STEP_RATIO_RANGE, "step_ratio", "full_step_ratio", "preview_step_factor")

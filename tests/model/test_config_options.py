@@ -52,11 +52,11 @@ def test_given_options_round_trip_through_the_checkpoint(tangle, tmp_path) -> No
     out = tmp_path / "m.safetensors"
     run = train(tangle, out, "--hidden-width", "32", "--sh-degree", "1", "--density-scale", "40",
                 "--l1-weight-rest", "2e-5", "--no-mixed-precision", "--upsample-at", "0.1,0.2", "--betas", "0.8,0.95",
-                "--max-samples", "512", "--full-weight-threshold", "0.001", "--stop-eps", "1e-3")
+                "--max-samples", "512", "--full-weight-threshold-per-voxel", "0.001", "--stop-eps", "1e-3")
     assert run.returncode == 0, run.stderr
     meta, _ = read_checkpoint(out)
     assert (meta.field.hidden_width, meta.field.sh_degree, meta.field.density_scale) == (32, 1, 40.0)
-    assert (meta.render.max_samples, meta.render.full_weight_threshold) == (512, 0.001)
+    assert (meta.render.max_samples, meta.render.full_weight_threshold_per_voxel) == (512, 0.001)
     recipe = TrainConfig.from_dict(meta.provenance["recipe"])
     assert recipe.l1_weight_rest == 2e-5 and recipe.mixed_precision is False and recipe.stop_eps == 1e-3
     assert recipe.upsample_at == (0.1, 0.2) and recipe.betas == (0.8, 0.95)
@@ -64,7 +64,7 @@ def test_given_options_round_trip_through_the_checkpoint(tangle, tmp_path) -> No
     assert chosen["density_scale"] == "set by the user"  # the recipe keeps a given density scale
     assert meta.field.facing_vectors > 0 and "opaque" in chosen["facing_vectors"]  # and chooses the rest
     # Whole configurations: every field of each, as given or as the recipe and the run set them.
-    assert meta.render == dataclasses.replace(RenderConfig(max_samples=512, full_weight_threshold=0.001),
+    assert meta.render == dataclasses.replace(RenderConfig(max_samples=512, full_weight_threshold_per_voxel=0.001),
                                               full_step_ratio=meta.render.full_step_ratio)
     expected_field = FieldConfig(hidden_width=32, sh_degree=1, density_scale=40.0, param_lengths=(),
                                  resolution=meta.field.resolution, facing_vectors=meta.field.facing_vectors)

@@ -59,7 +59,9 @@ class RenderSettings:
 
     step_ratio: float = 0.5
     max_samples: int = 1024
-    weight_threshold: float = 1e-4
+    weight_threshold_per_voxel: float = 1e-4
+    """Samples whose compositing weight is at most this times ``step_ratio`` skip colour decoding
+    (``RenderConfig.full_weight_threshold_per_voxel``); 0 decodes every sample."""
     early_stop_eps: float = 1e-4
     chunk_rays: int = 4096
     """Rays per chunk of a frame (inference); chunks are marched one per thread on the CPU."""
@@ -92,14 +94,14 @@ class RenderSettings:
         settings = cls(
             step_ratio=cfg.full_step_ratio,
             max_samples=cfg.max_samples,
-            weight_threshold=cfg.full_weight_threshold,
+            weight_threshold_per_voxel=cfg.full_weight_threshold_per_voxel,
             early_stop_eps=cfg.early_stop_eps,
             background=background,
             bf16=cfg.bf16,
         )
         if quality == "exhaustive":
             settings = replace(settings, step_ratio=exhaustive_step_ratio(cfg), use_occupancy=False,
-                               early_termination=False, weight_threshold=0.0, bf16=False,
+                               early_termination=False, weight_threshold_per_voxel=0.0, bf16=False,
                                chunk_rays=EXHAUSTIVE_CHUNK_RAYS)
         elif quality == "preview":
             settings = replace(
@@ -510,6 +512,7 @@ def march_rays(
     seg = min(seg_max, settings.first_segment_samples) if settings.early_termination else longest
     ray_terms = frame.direction_terms(rays_d)  # [n, h], once per ray
     tau_stop = -math.log(settings.early_stop_eps) if settings.early_termination else math.inf
+    weight_threshold = settings.weight_threshold_per_voxel * settings.step_ratio  # per sample at this spacing
     all_offsets = torch.arange(seg_max, device=rays_o.device)
     s0 = 0
     while s0 < longest:
@@ -524,7 +527,7 @@ def march_rays(
             valid = torch.zeros_like(valid).view(-1).index_copy_(
                 0, flat, empty_space.occupied_at(points.view(-1, 3).index_select(0, flat))).view_as(valid)
         tau_active += _shade_frame_samples(
-            frame, ray_terms, active, points, step, valid, tau_active, settings.weight_threshold, rgbw,
+            frame, ray_terms, active, points, step, valid, tau_active, weight_threshold, rgbw,
         )
         keep = ((tau_active < tau_stop) & (idx[:, -1] < last)).nonzero()[:, 0]
         if keep.numel() < active.numel():
@@ -539,7 +542,7 @@ def march_rays(
         tau_total.index_copy_(0, active, tau_active)
     opacity = -torch.expm1(-tau_total)
     rgb = rgbw[:, :3]
-    if settings.weight_threshold > 0.0:
+    if weight_threshold > 0.0:
         rgb = rgb * _unshaded_gain(opacity, rgbw[:, 3])[:, None]
     return rgb + background[None] * (1.0 - opacity)[:, None]
 

@@ -59,9 +59,34 @@ def test_the_coarsest_spacing_within_the_tolerance_is_chosen(stub_render, tolera
     # The exhaustive reference takes every sample, within the model's grid; the candidates are
     # full-quality frames.
     ref = stub_render[0]
-    assert ref.use_occupancy and ref.weight_threshold == 0.0 and not ref.early_termination and not ref.bf16
+    assert ref.use_occupancy and ref.weight_threshold_per_voxel == 0.0 and not ref.early_termination and not ref.bf16
     assert all(s.use_occupancy and s.early_termination for s in stub_render[3:])
     assert field.training  # left in the mode it was found in
+
+
+def test_with_none_within_the_tolerance_the_coarsest_near_the_best_measured_is_served(monkeypatch) -> None:
+    """No spacing is within 0.1 dB of the exhaustive frames (full quality loses 0.17 to 0.42 dB at
+    every spacing here): the coarsest within 0.1 dB of the best full-quality frames is served, 1.25
+    voxel (0.04 dB below one voxel's), not the unmeasured fallback; a candidate far from the
+    exhaustive frames (1.5) never counts."""
+    errors = {"reference": 0.01, 0.5: 0.0105, 0.75: 0.0103, 1.0: 0.0102, 1.25: 0.01025, 1.5: 0.08}
+
+    def render_image(field, c2w, intrinsics, params, settings, empty_space=None):
+        key = "reference" if settings.weight_threshold_per_voxel == 0.0 else settings.step_ratio
+        return torch.full((intrinsics.height, intrinsics.width, 3), 128 / 255 + errors[key])
+
+    monkeypatch.setattr(spacing, "render_image", render_image)
+    field, _ = make_tiny_field([("a", [0.0, 1.0])])
+    choice = spacing.choose_full_spacing(field, _scene(), RenderConfig(step_ratio=0.5), tolerance_db=0.1)
+    assert set(choice.candidate_psnr) == {1.5, 1.25, 1.0, 0.75, 0.5}
+    assert choice.candidate_psnr[0.5] == pytest.approx(40.0 - 20 * math.log10(1.05), abs=1e-3)
+    assert choice.candidate_psnr[1.5] > choice.candidate_psnr[0.5] - 20  # measured, and far off
+    assert choice.candidate_psnr[1.0] - choice.candidate_psnr[1.25] == pytest.approx(20 * math.log10(1.025 / 1.02), abs=1e-3)
+    assert choice.ratio == 1.25
+    # With no candidate close to the exhaustive frames, the exhaustive spacing is served.
+    choice = spacing.choose_full_spacing(field, _scene(), RenderConfig(step_ratio=0.5), tolerance_db=0.1,
+                                         min_agreement_db=80.0)
+    assert choice.ratio == 0.5
 
 
 def test_the_reference_renders_only_within_the_models_grid() -> None:

@@ -374,7 +374,7 @@ def test_training_shading(case: str, shading: str, monkeypatch: pytest.MonkeyPat
 
 MARCH_SETTINGS = {
     "exhaustive": RenderSettings(step_ratio=1.0, use_occupancy=False, early_termination=False,
-                                 weight_threshold=0.0, threaded_chunks=False),
+                                 weight_threshold_per_voxel=0.0, threaded_chunks=False),
     "fast": RenderSettings(step_ratio=1.0, use_occupancy=False, threaded_chunks=False),
 }
 
@@ -402,7 +402,7 @@ def test_inference_march(case: str, settings: str, monkeypatch: pytest.MonkeyPat
     if settings == "exhaustive":
         _close(rgb, ref["rgb"], colour_atol(ref["weights"].shape[1]), "colour")
     else:
-        bound = colour_atol(s) + cfg.early_stop_eps + _skippable_weight(ref, cfg.weight_threshold)[:, None]
+        bound = colour_atol(s) + cfg.early_stop_eps + _skippable_weight(ref, cfg.weight_threshold_per_voxel)[:, None]
         assert bool(((rgb.double() - ref["rgb"]).abs() <= bound).all())
 
 
@@ -577,7 +577,7 @@ def test_geometry_inference(rays: str, density: str) -> None:
     field, rays_o, rays_d, sigma = _geometry_setup(rays, density)
     bg = torch.tensor(GEOMETRY_BACKGROUND)
     fast = RenderSettings(background=GEOMETRY_BACKGROUND, threaded_chunks=False)
-    exhaustive = replace(fast, use_occupancy=False, early_termination=False, weight_threshold=0.0)
+    exhaustive = replace(fast, use_occupancy=False, early_termination=False, weight_threshold_per_voxel=0.0)
     step = field.voxel_size() * fast.step_ratio
     expected = _expected_range(field, rays_o, rays_d, step, jittered=False)
     if density == "empty_grid":
@@ -639,7 +639,7 @@ def test_render_image_cameras(camera: str, settings: str) -> None:
     field.set_occupancy(torch.ones(8, 8, 8, dtype=torch.bool))
     fast = RenderSettings(background=GEOMETRY_BACKGROUND)
     cfg = fast if settings == "fast" else replace(fast, use_occupancy=False, early_termination=False,
-                                                  weight_threshold=0.0)
+                                                  weight_threshold_per_voxel=0.0)
     intr = Intrinsics.from_fov(12, 12, math.radians(60.0))
     c2w = torch.from_numpy(c2w).float()
     with torch.inference_mode():
@@ -689,10 +689,10 @@ def test_parameters_at_range_ends(param_field: VisNerfField, param: str) -> None
     value, end = PARAMS[param]
     value32 = float(torch.tensor(value, dtype=torch.float32))
     assert value32 != end or param.startswith("end")  # the hair survives float32
-    exhaustive = RenderSettings(use_occupancy=False, early_termination=False, weight_threshold=0.0,
+    exhaustive = RenderSettings(use_occupancy=False, early_termination=False, weight_threshold_per_voxel=0.0,
                                 threaded_chunks=False)
     for settings in (exhaustive, replace(exhaustive, use_occupancy=True, early_termination=True,
-                                         weight_threshold=1e-4)):
+                                         weight_threshold_per_voxel=1e-4)):
         rgb = _param_frame(param_field, value, settings)
         assert torch.isfinite(rgb).all() and float(rgb.min()) >= 0.0 and float(rgb.max()) <= 1.0 + RANGE_SLACK
         if settings is exhaustive:

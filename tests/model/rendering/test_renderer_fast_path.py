@@ -64,9 +64,9 @@ def test_fast_frames_match_the_exhaustive_frames_on_a_thin_opaque_shell(
     shell_field, azimuth: float, first_segment: int, segment: int
 ) -> None:
     """Segments of one length, and segments growing from 3 samples (3, 6, 12, ... 64)."""
-    exhaustive = RenderSettings(use_occupancy=False, early_termination=False, weight_threshold=0.0,
+    exhaustive = RenderSettings(use_occupancy=False, early_termination=False, weight_threshold_per_voxel=0.0,
                                 step_ratio=0.25)
-    fast = replace(exhaustive, use_occupancy=True, early_termination=True, weight_threshold=1e-4,
+    fast = replace(exhaustive, use_occupancy=True, early_termination=True, weight_threshold_per_voxel=1e-4,
                    early_stop_eps=1e-4, segment_samples=segment, first_segment_samples=first_segment)
     shell_field.set_occupancy(_occupancy(shell_field, shell_field.voxel_size() * 0.25))
     intr = Intrinsics.from_fov(40, 40, math.radians(35.0))
@@ -101,8 +101,8 @@ def test_rays_grazing_the_box_match_the_exhaustive_march(shell_field) -> None:
     q_d, q_a = shell_field.param_features(torch.tensor([[0.0]]))
     frame = FrameField(shell_field, q_d, q_a)
     bg = torch.ones(3)
-    exhaustive = RenderSettings(use_occupancy=False, early_termination=False, weight_threshold=0.0)
-    fast = replace(exhaustive, early_termination=True, weight_threshold=1e-4, segment_samples=8)
+    exhaustive = RenderSettings(use_occupancy=False, early_termination=False, weight_threshold_per_voxel=0.0)
+    fast = replace(exhaustive, early_termination=True, weight_threshold_per_voxel=1e-4, segment_samples=8)
     with torch.inference_mode():
         a = march_rays(shell_field, rays_o, rays_d, frame, bg, exhaustive, None)
         b = march_rays(shell_field, rays_o, rays_d, frame, bg, fast, EmptySpace.of(shell_field.occupancy, shell_field.aabb))
@@ -131,8 +131,8 @@ def test_unshaded_weight_takes_the_mean_colour_of_the_shaded_samples(shell_field
     intr = Intrinsics.from_fov(24, 24, math.radians(35.0))
     c2w = torch.from_numpy(orbit_c2w(20.0, 15.0, 2.0)).float()
     params = torch.tensor([0.3])
-    exhaustive = RenderSettings(use_occupancy=False, early_termination=False, weight_threshold=0.0, step_ratio=0.25)
-    skipping = replace(exhaustive, weight_threshold=5e-3)
+    exhaustive = RenderSettings(use_occupancy=False, early_termination=False, weight_threshold_per_voxel=0.0, step_ratio=0.25)
+    skipping = replace(exhaustive, weight_threshold_per_voxel=2e-2)  # 5e-3 a sample
     with torch.inference_mode():
         a = render_image(shell_field, c2w, intr, params, exhaustive)
         b = render_image(shell_field, c2w, intr, params, skipping)

@@ -110,7 +110,7 @@ def test_a_setting_grid_is_inside_the_union_and_narrower(field) -> None:
 
 
 def test_frames_with_a_setting_grid_match_frames_with_the_union(field) -> None:
-    settings = RenderSettings(step_ratio=STEP_RATIO, early_stop_eps=1e-4, weight_threshold=1e-4, first_segment_samples=4)
+    settings = RenderSettings(step_ratio=STEP_RATIO, early_stop_eps=1e-4, weight_threshold_per_voxel=1e-4, first_segment_samples=4)
     intr = Intrinsics.from_fov(32, 32, math.radians(40.0))
     step = field.voxel_size() * STEP_RATIO
     for value, azimuth in ((-1.0, 10.0), (0.4, 75.0), (1.0, -120.0)):

@@ -87,7 +87,7 @@ def _both_renders(field, settings: RenderSettings, size: int = 24):
 
 
 def test_exhaustive_settings_reproduce_the_training_renderer(field) -> None:
-    settings = RenderSettings(use_occupancy=False, early_termination=False, weight_threshold=0.0, chunk_rays=97)
+    settings = RenderSettings(use_occupancy=False, early_termination=False, weight_threshold_per_voxel=0.0, chunk_rays=97)
     fast, slow = _both_renders(field, settings)
     assert torch.allclose(fast, slow, atol=2e-5)
 
@@ -98,8 +98,8 @@ def test_early_termination_error_is_bounded_by_its_threshold(field, density_scal
     with torch.no_grad():
         field.density_decoder.out.bias.add_(math.log(density_scale))
     try:
-        base = RenderSettings(use_occupancy=False, early_termination=False, weight_threshold=0.0, segment_samples=4)
-        fast_settings = replace(base, early_termination=True, early_stop_eps=1e-4, weight_threshold=1e-5)
+        base = RenderSettings(use_occupancy=False, early_termination=False, weight_threshold_per_voxel=0.0, segment_samples=4)
+        fast_settings = replace(base, early_termination=True, early_stop_eps=1e-4, weight_threshold_per_voxel=1e-5)
         exhaustive, _ = _both_renders(field, base)
         fast, _ = _both_renders(field, fast_settings)
         assert torch.isfinite(fast).all()
@@ -151,7 +151,7 @@ def test_bf16_decoders_differ_from_float32_only_by_rounding(field, params) -> No
 
 
 def test_bf16_frames_stay_close_to_the_exhaustive_float32_frames(field) -> None:
-    base = RenderSettings(use_occupancy=False, early_termination=False, weight_threshold=0.0)
+    base = RenderSettings(use_occupancy=False, early_termination=False, weight_threshold_per_voxel=0.0)
     exact, _ = _both_renders(field, base)
     rounded, _ = _both_renders(field, replace(base, bf16=True))
     mse = float(((rounded - exact) ** 2).mean())
@@ -167,7 +167,7 @@ def test_qualities_derive_from_the_checkpoint_render_config() -> None:
     preview = RenderSettings.from_config(cfg, (1.0, 1.0, 1.0), "preview")
     assert (full.step_ratio, full.use_occupancy, full.early_termination, full.bf16) == (1.0, True, True, True)
     assert (plain.step_ratio, plain.use_occupancy, plain.early_termination, plain.bf16) == (0.5, False, False, False)
-    assert plain.weight_threshold == 0.0
+    assert plain.weight_threshold_per_voxel == 0.0
     assert (preview.step_ratio, preview.resolution_scale) == (1.0, 0.5)
     with pytest.raises(ValueError, match="quality must be"):
         RenderSettings.from_config(cfg, (1.0, 1.0, 1.0), "fast")
@@ -224,19 +224,19 @@ def test_position_encoding_written_in_place_equals_the_reference(n_freqs) -> Non
 # frame is 59 dB from the exhaustive one (the faint one shades no sample: nothing to correct).
 @pytest.mark.parametrize(("density_scale", "min_db"), [(1e-2, 45.0), (1.0, 90.0), (30.0, 80.0)])
 def test_full_quality_thresholds_stay_close_to_the_exhaustive_frame(field, density_scale, min_db) -> None:
-    """The shipped full-quality thresholds (early stop 1e-4, colour above a weight of 3e-3 with
+    """The shipped full-quality thresholds (early stop 1e-4, colour above a weight of 2e-3 a voxel with
     the unshaded weight given the ray's mean colour) at the exhaustive spacing, on a faint, a
     typical and a dense medium: what they drop is bounded by the weight they skip."""
     cfg = RenderConfig()
     full = RenderSettings.from_config(cfg, (1.0, 1.0, 1.0), "full")
-    assert full.weight_threshold == cfg.full_weight_threshold == 3e-3
+    assert full.weight_threshold_per_voxel == cfg.full_weight_threshold_per_voxel == 2e-3
     with torch.no_grad():
         field.density_decoder.out.bias.add_(math.log(density_scale))
     try:
-        base = RenderSettings(use_occupancy=False, early_termination=False, weight_threshold=0.0)
+        base = RenderSettings(use_occupancy=False, early_termination=False, weight_threshold_per_voxel=0.0)
         exhaustive, _ = _both_renders(field, base)
         fast, _ = _both_renders(field, replace(base, early_termination=True, early_stop_eps=full.early_stop_eps,
-                                               weight_threshold=full.weight_threshold))
+                                               weight_threshold_per_voxel=full.weight_threshold_per_voxel))
     finally:
         with torch.no_grad():
             field.density_decoder.out.bias.sub_(math.log(density_scale))
