@@ -7,19 +7,10 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from visnerf.arg_types import positive_int
 from visnerf_server.registry import SCENE_ID_PATTERN, is_valid_scene_id
 
 LOOPBACK_HOSTS = {"127.0.0.1", "::1", "localhost"}
-
-
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
-    return value
 
 
 def register(subparsers: Any) -> None:
@@ -39,7 +30,7 @@ def register(subparsers: Any) -> None:
     serve.add_argument("--no-client", action="store_true", help="serve the API only, not the web client")
     serve.add_argument(
         "--threads",
-        type=_positive_int,
+        type=positive_int,
         default=None,
         metavar="N",
         help="torch threads for rendering (default: $VISNERF_THREADS, else the CPU quota of the cgroup, "
