@@ -51,3 +51,18 @@ def test_an_older_checkpoints_partial_recipe_reads_with_defaults() -> None:
         batch_rays=4096, occupancy_refine_at=(0.25,))
     with pytest.raises(ValueError, match="unknown training configuration keys"):
         TrainConfig.from_dict({"error_sampling_tile": 4})
+
+
+def test_an_older_checkpoints_colour_threshold_per_sample_is_not_read_as_one_per_voxel() -> None:
+    """Checkpoints from before stored ``full_weight_threshold``, a weight per sample at whatever
+    spacing: read as a weight per voxel it would mean another threshold at every spacing, so it is
+    dropped and the per-voxel default applies."""
+    from visnerf.config import RenderConfig
+    from visnerf.rendering.renderer import RenderSettings
+
+    old = {**RenderConfig().to_dict(), "full_weight_threshold": 3e-3, "full_step_ratio": 0.5}
+    del old["full_weight_threshold_per_voxel"]
+    cfg = RenderConfig.from_dict(old)
+    assert cfg.full_weight_threshold_per_voxel == RenderConfig.full_weight_threshold_per_voxel == 2e-3
+    full = RenderSettings.from_config(cfg, (1.0, 1.0, 1.0), "full")
+    assert (full.step_ratio, full.weight_threshold_per_voxel) == (0.5, 2e-3)  # 1e-3 a sample at half a voxel

@@ -147,6 +147,38 @@ def test_unshaded_weight_takes_the_mean_colour_of_the_shaded_samples(shell_field
     assert float((a - b).abs().max()) <= float((a - black).abs().max()) + 1e-6
 
 
+def test_the_colour_threshold_skips_the_same_part_of_a_medium_at_any_spacing(shell_field, monkeypatch) -> None:
+    """A uniform translucent ball (optical depth 3 across): a sample's weight grows with the
+    spacing, so a threshold per voxel of spacing skips the same stretch of the medium at a quarter
+    and at half a voxel, where one per sample skipped four times less at the coarser spacing. The
+    unshaded weight is read from frames with the gain off (it then shows as black)."""
+    colour = torch.tensor([0.2, 0.6, 0.9])
+    sigma = 3.0 / 0.8
+    monkeypatch.setattr(FrameField, "density_at", lambda self, samples: sigma * (samples.points.norm(dim=-1) < 0.4).float())
+    monkeypatch.setattr(FrameField, "color_at", lambda self, taps, ray_terms: colour.expand(len(taps), 3))
+    import visnerf.rendering.renderer as renderer
+
+    monkeypatch.setattr(renderer, "_unshaded_gain", lambda opacity, shaded: torch.ones_like(opacity))
+    intr = Intrinsics.from_fov(8, 8, math.radians(10.0))
+    c2w = torch.from_numpy(orbit_c2w(20.0, 15.0, 2.0)).float()
+    params = torch.tensor([0.3])
+
+    def unshaded(ratio: float, per_voxel: float) -> torch.Tensor:
+        base = RenderSettings(use_occupancy=False, early_termination=False, step_ratio=ratio, threaded_chunks=False)
+        with torch.inference_mode():
+            every = render_image(shell_field, c2w, intr, params, replace(base, weight_threshold_per_voxel=0.0))
+            skipping = render_image(shell_field, c2w, intr, params, replace(base, weight_threshold_per_voxel=per_voxel))
+        opacity = (1.0 - every[..., 2]) / (1.0 - colour[2])  # white background
+        shaded = (skipping[..., 2] - (1.0 - opacity)) / colour[2]
+        return (opacity - shaded)[3:5, 3:5]  # the rays through the middle of the ball
+
+    fine, coarse = unshaded(0.25, 0.04), unshaded(0.5, 0.04)
+    assert float(fine.min()) > 0.05 and float(coarse.min()) > 0.05
+    assert float((fine - coarse).abs().max()) < 0.02
+    per_sample = unshaded(0.5, 0.04 * 0.25 / 0.5)  # the fine spacing's threshold, taken per sample
+    assert float(per_sample.max()) < 0.5 * float(fine.min())
+
+
 def test_unshaded_gain_is_guarded() -> None:
     from visnerf.rendering.renderer import _unshaded_gain
 
