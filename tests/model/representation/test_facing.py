@@ -97,3 +97,36 @@ def test_the_facing_map_is_trained_with_the_networks(facing_field) -> None:
 def test_a_negative_count_is_refused() -> None:
     with pytest.raises(ValueError, match="facing_vectors"):
         FieldConfig(facing_vectors=-1)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
+def test_every_colour_product_runs_on_padded_rows(facing_field, dtype, monkeypatch) -> None:
+    """oneDNN builds and caches a kernel for every new row count of a bf16 product: each of the
+    folded colour path's products, the facing map's included, takes one of ``padded_rows``'s
+    counts whatever the number of samples (the facing map once took the count itself, and the
+    cache grew a render server by 1.2 MB a frame). The colour is the one of the field still."""
+    import visnerf.representation.frame_field as frame_field_module
+    from visnerf.representation.decoders import padded_rows
+
+    rows: list[int] = []
+    linear = torch.nn.functional.linear
+
+    def recording_linear(x, *args):  # noqa: ANN001, ANN002, ANN202
+        rows.append(x.shape[0])
+        return linear(x, *args)
+
+    q_d, q_a = facing_field.param_features(torch.tensor([[0.4]]))
+    g = torch.Generator().manual_seed(4)
+    cases = []
+    for n in (1, 37, 130, 1500):
+        points = torch.rand(n, 3, generator=g) - 0.5
+        dirs = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1)
+        with torch.no_grad():
+            cases.append((points, dirs, facing_field.color(points, dirs, q_a.expand(n, -1))))
+    frame = FrameField(facing_field, q_d, q_a, dtype)
+    monkeypatch.setattr(frame_field_module.F, "linear", recording_linear)  # torch's own, from here on
+    for points, dirs, want in cases:
+        with torch.no_grad():
+            got = frame.color(points, frame.direction_terms(dirs))
+        torch.testing.assert_close(got, want, atol=2e-2 if dtype == torch.bfloat16 else 1e-5, rtol=0)
+    assert len(rows) >= 8 and all(r == padded_rows(r) for r in rows), rows
