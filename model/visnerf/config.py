@@ -237,10 +237,10 @@ class RenderConfig:
     exceeds this times the sample spacing in voxels; the weight of the others takes the mean colour
     of the ray's decoded samples (``renderer._unshaded_gain``). A sample's weight in a translucent
     medium grows with the spacing, so a threshold per sample skipped more of the medium the finer
-    the frame was sampled: 3e-3 a sample cost the bundled cosmo_sim 0.6 dB at half a voxel and
+    the frame was sampled: 3e-3 a sample cost the bundled cosmo_sim 0.73 dB at half a voxel and
     nothing at 1.5, and made the spacing calibration's fallback its worst setting. Per voxel, 2e-3
-    is within 0.1 dB of the exhaustive frames at 0.5 to 1.5 voxel on the bundled DVR scenes
-    (bench/results/render_speed.md). Checkpoints from before store ``full_weight_threshold``, a
+    is within 0.13 dB of the exhaustive frames at 0.5 to 1.5 voxel on the bundled DVR scenes' test
+    paths (bench/results/full_quality_threshold.md). Checkpoints from before store ``full_weight_threshold``, a
     threshold per sample, which is not read: they take this default."""
     early_stop_eps: float = 1e-4
     """Rays stop once transmittance falls below this (inference)."""
