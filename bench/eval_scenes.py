@@ -181,12 +181,16 @@ def table_lines(record: dict) -> list[str]:
         lines.append(f"| {name} | {r['kind']} | {r['K']} | {_f(r['psnr'], 2)} | {_f(r['ssim'], 3)} | "
                      f"{r.get('iterations', 'n/a')} | {grid} | {_f(r['ms_per_frame'], 0)} | {_f(r['model_mb'], 2)} | "
                      f"{'-' if not paper else paper['dataset'] + ', ' + str(paper['psnr'])} |")
-    by_run: dict[tuple[str, str, str], list[str]] = {}  # scenes rerun together share one note
+    # One note per day and CPU, naming each rerun's scenes and command; the CPU only where it is
+    # not the record's.
+    by_day: dict[tuple[str, str], dict[str, list[str]]] = {}
     for r in reruns:
-        by_run.setdefault((r["rerun"]["date"][:10], r["rerun"]["cpu"], r["rerun"]["command"]), []).append(r["scene"])
-    for (date, cpu, command), scenes in by_run.items():
-        lines.append(f"\n\\* {', '.join(scenes)}: rerun {date} on {cpu} by `{command}` after a change that "
-                     "concerns them; the other rows are the record's.")
+        runs = by_day.setdefault((r["rerun"]["date"][:10], r["rerun"]["cpu"]), {})
+        runs.setdefault(r["rerun"]["command"], []).append(r["scene"])
+    for (date, cpu), runs in by_day.items():
+        where = "" if cpu == record["machine"].get("cpu", "") else f" on {cpu}"
+        each = "; ".join(f"{', '.join(scenes)} by `{command}`" for command, scenes in runs.items())
+        lines.append(f"\n\\* Rerun {date}{where} after a change that concerns them: {each}. The other rows are the record's.")
     return lines
 
 
