@@ -119,12 +119,7 @@ class VisNerfField(nn.Module):
     ) -> Float[Tensor, "n 3"]:
         """RGB in [0, 1] at world points seen along unit ``directions``. Differentiable."""
         coords = self.to_grid(points)
-        return self.color_from_features(self.appearance_grid.sample(coords), directions, q_appearance)
-
-    def color_from_features(
-        self, spatial: Float[Tensor, "n f"], directions: Float[Tensor, "n 3"], q_appearance: Float[Tensor, "n c"]
-    ) -> Float[Tensor, "n 3"]:
-        """RGB in [0, 1] from the appearance grid's features at the points. Differentiable."""
+        spatial = self.appearance_grid.sample(coords)
         sh = encode_sh(directions, self.cfg.sh_degree)
         feats = modulate(spatial, q_appearance)
         parts = [feats, q_appearance, sh]
