@@ -109,18 +109,23 @@ def train_scene(data: Path, ckpt: Path, minutes: float, device: torch.device) ->
     return trainer
 
 
-def scene_row(spec: SceneSpec, summary: dict, trainer: Trainer, gen_seconds: float) -> dict:
+def evaluation_fields(summary: dict) -> dict:
+    """A row's figures from the evaluation of its checkpoint (``write_report``'s summary)."""
     m, groups = summary["metrics"], summary["parameter_space"]["groups"]
+    return {
+        "frames": m["n"], "psnr": m["psnr"], "ssim": m["ssim"], "lpips": m["lpips"], "ms_per_frame": m["ms_median"],
+        "model_mb": summary["model_mb"], "psnr_between_training_values": groups["between_training_values"]["psnr"],
+        "parameter_space": {name: {"n": g["n"], "psnr": g["psnr"], "ssim": g["ssim"]} for name, g in groups.items()},
+    }  # fmt: skip
+
+
+def scene_row(spec: SceneSpec, summary: dict, trainer: Trainer, gen_seconds: float) -> dict:
     paper = PAPER_PSNR.get(spec.name) if spec.axes else PAPER_STATIC
     return {
-        "scene": spec.name, "kind": spec.kind, "K": len(spec.axes), "frames": m["n"],
-        "psnr": m["psnr"], "ssim": m["ssim"], "lpips": m["lpips"], "train_minutes": trainer.state.train_seconds / 60.0,
-        "iterations": trainer.state.iteration, "resolution": list(trainer.field.resolution),
-        "ms_per_frame": m["ms_median"], "model_mb": summary["model_mb"],
-        "psnr_between_training_values": groups["between_training_values"]["psnr"],
-        "parameter_space": {name: {"n": g["n"], "psnr": g["psnr"], "ssim": g["ssim"]} for name, g in groups.items()},
-        "generation_seconds": gen_seconds, "choices": trainer.recipe_choices,
-        "paper": None if paper is None else {"dataset": paper[0], "psnr": paper[1]},
+        "scene": spec.name, "kind": spec.kind, "K": len(spec.axes), **evaluation_fields(summary),
+        "train_minutes": trainer.state.train_seconds / 60.0, "iterations": trainer.state.iteration,
+        "resolution": list(trainer.field.resolution), "generation_seconds": gen_seconds,
+        "choices": trainer.recipe_choices, "paper": None if paper is None else {"dataset": paper[0], "psnr": paper[1]},
     }  # fmt: skip
 
 
@@ -190,7 +195,10 @@ def table_lines(record: dict) -> list[str]:
     for (date, cpu), runs in by_day.items():
         where = "" if cpu == record["machine"].get("cpu", "") else f" on {cpu}"
         each = "; ".join(f"{', '.join(scenes)} by `{command}`" for command, scenes in runs.items())
-        lines.append(f"\n\\* Rerun {date}{where} after a change that concerns them: {each}. The other rows are the record's.")
+        rescored = " (`--rescore`: the record's checkpoints evaluated again, not retrained)" if any(
+            "--rescore" in command for command in runs) else ""
+        lines.append(f"\n\\* Rerun {date}{where} after a change that concerns them: {each}{rescored}. "
+                     "The other rows are the record's.")
     return lines
 
 
@@ -290,7 +298,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--replace-rows", action="store_true",
                         help="rerun the named scenes the record's way and replace their rows and reports in "
                              "RESULTS/eval_scenes.json and .md and the README, each marked with its date and command")
+    parser.add_argument("--rescore", action="store_true",
+                        help="with --replace-rows and --work-dir: evaluate the record's checkpoints of the named "
+                             "scenes in the work folder again with the current renderer, without training (their "
+                             "training figures stay the record's); for a change that concerns rendering only")
     args = parser.parse_args(argv)
+    if args.rescore and not (args.replace_rows and args.work_dir):
+        parser.error("--rescore needs --replace-rows and --work-dir (the folder of the record's checkpoints)")
     if args.minutes_per_scene <= 0 or args.res < 8 or args.test_views < 2:
         parser.error("--minutes-per-scene must be positive, --res at least 8, --test-views at least 2")
     runtime.configure(args.threads)
@@ -324,11 +338,19 @@ def main(argv: list[str] | None = None) -> int:
             spec = catalog[name]
             data, gen_seconds = dataset_for(spec, data_root, options, args.workers)
             ckpt = work / f"{name}.safetensors"
-            print(f"{name}: training {args.minutes_per_scene:g} min on {data}", file=sys.stderr)
-            trainer = train_scene(data, ckpt, args.minutes_per_scene, device)
-            summary = write_report(evaluate_checkpoint(ckpt, data, eval_cfg, device), eval_cfg, reports / name)
-            record["scenes"].append(scene_row(spec, summary, trainer, gen_seconds))
-            del trainer
+            if args.rescore:
+                row = next((r for r in kept["scenes"] if r["scene"] == name), None)
+                if row is None or not ckpt.exists():
+                    parser.error(f"--rescore: {name} has no row in the record or no checkpoint {ckpt}")
+                print(f"{name}: evaluating {ckpt} again", file=sys.stderr)
+                summary = write_report(evaluate_checkpoint(ckpt, data, eval_cfg, device), eval_cfg, reports / name)
+                record["scenes"].append({**row, **evaluation_fields(summary)})
+            else:
+                print(f"{name}: training {args.minutes_per_scene:g} min on {data}", file=sys.stderr)
+                trainer = train_scene(data, ckpt, args.minutes_per_scene, device)
+                summary = write_report(evaluate_checkpoint(ckpt, data, eval_cfg, device), eval_cfg, reports / name)
+                record["scenes"].append(scene_row(spec, summary, trainer, gen_seconds))
+                del trainer
             if args.bundle is not None and name in BUNDLED:
                 bundle_scene(ckpt, args.bundle)
             runs.append(read_training_log(ckpt.with_suffix(".log.csv"), name=name))
@@ -340,7 +362,8 @@ def main(argv: list[str] | None = None) -> int:
         shutil.rmtree(temporary, ignore_errors=True)
     if args.replace_rows:
         replaced = {r["scene"]: {**r, "rerun": {"date": record["date"], "command": record["command"],
-                                                "cpu": record["machine"].get("cpu", "")}} for r in record["scenes"]}
+                                                "cpu": record["machine"].get("cpu", ""), "rescored": args.rescore}}
+                    for r in record["scenes"]}
         record = {**kept, "scenes": [replaced.get(r["scene"], r) for r in kept["scenes"]]}
         write_json(args.results / f"{stem}.json", record)
         write_markdown(args.results / f"{stem}.md", record)

@@ -1,16 +1,84 @@
-"""Parameter axes: interpolation between knots, and vectors of ones leave features unchanged."""
+"""Parameter axes: the monotone cubic between knots (against SciPy's PCHIP), its gradients, and
+vectors of ones leaving features unchanged."""
 
+import numpy as np
+import pytest
 import torch
+from scipy.interpolate import PchipInterpolator
 
-from visnerf.representation.param_axes import ParamAxes, interpolate_knots
+from visnerf.representation.param_axes import ParamAxes, interpolate_knots, pchip_slopes
 
 
-def test_param_interpolation_ends_and_between():
+def test_knot_rows_exactly_and_ends_held():
     table = torch.tensor([[1.0], [3.0], [7.0]])
     knots = torch.tensor([-1.0, 0.0, 1.0])
-    x = torch.tensor([-1.0, -0.5, 0.0, 0.25, 1.0, 2.0])
-    out = interpolate_knots(table, knots, x)[:, 0]
-    assert torch.allclose(out, torch.tensor([1.0, 2.0, 3.0, 4.0, 7.0, 7.0]))
+    x = torch.tensor([-3.0, -1.0, 0.0, 1.0, 2.0])
+    assert torch.equal(interpolate_knots(table, knots, x)[:, 0], torch.tensor([1.0, 1.0, 3.0, 7.0, 7.0]))
+
+
+def test_rows_on_a_line_stay_on_it():
+    knots = torch.tensor([-1.0, -0.2, 0.1, 1.0], dtype=torch.float64)
+    table = torch.stack([2.0 * knots - 1.0, -0.5 * knots + 3.0], dim=1)  # [4, 2], linear in the knot
+    x = torch.linspace(-1.0, 1.0, 101, dtype=torch.float64)
+    expected = torch.stack([2.0 * x - 1.0, -0.5 * x + 3.0], dim=1)
+    assert torch.allclose(interpolate_knots(table, knots, x), expected, atol=1e-12)
+
+
+def test_two_knots_interpolate_linearly():
+    table = torch.tensor([[1.0, -2.0], [3.0, 4.0]], dtype=torch.float64)
+    knots = torch.tensor([-0.5, 0.5], dtype=torch.float64)
+    x = torch.tensor([-0.5, -0.25, 0.0, 0.3, 0.5], dtype=torch.float64)
+    s = (x + 0.5)[:, None]
+    assert torch.allclose(interpolate_knots(table, knots, x), table[0] * (1 - s) + table[1] * s, atol=1e-14)
+
+
+@pytest.mark.parametrize("m", [3, 4, 5, 9])
+def test_matches_scipy_pchip(m):
+    gen = torch.Generator().manual_seed(m)
+    knots = torch.sort(torch.rand(m, generator=gen, dtype=torch.float64) * 2 - 1).values
+    table = torch.randn(m, 8, generator=gen, dtype=torch.float64)
+    table[1, 0] = table[2, 0]  # a flat secant
+    table[:, 1] = torch.linspace(0.0, 1.0, m, dtype=torch.float64) ** 3  # monotone and curved
+    x = torch.linspace(float(knots[0]), float(knots[-1]), 401, dtype=torch.float64)
+    expected = PchipInterpolator(knots.numpy(), table.numpy(), axis=0)(x.numpy())
+    np.testing.assert_allclose(interpolate_knots(table, knots, x).numpy(), expected, atol=1e-12)
+
+
+def test_each_piece_stays_between_its_knot_rows():
+    gen = torch.Generator().manual_seed(1)
+    knots = torch.tensor([-1.0, -0.6, 0.1, 0.2, 1.0])
+    table = torch.randn(5, 16, generator=gen)
+    x = torch.linspace(-1.0, 1.0, 1001)
+    out = interpolate_knots(table, knots, x)  # [n, 16]
+    hi = torch.searchsorted(knots, x).clamp(1, 4)
+    low = torch.minimum(table[hi - 1], table[hi])
+    high = torch.maximum(table[hi - 1], table[hi])
+    assert bool(((out >= low - 1e-6) & (out <= high + 1e-6)).all())
+
+
+def test_gradients_in_the_table_match_finite_differences():
+    gen = torch.Generator().manual_seed(2)
+    knots = torch.tensor([-1.0, -0.3, 0.4, 1.0], dtype=torch.float64)
+    table = torch.randn(4, 3, generator=gen, dtype=torch.float64)
+    table[:, 2] = torch.tensor([0.0, 1.0, 0.2, -0.5], dtype=torch.float64)  # turns at a knot
+    # (a flat secant is a kink of the slopes, where finite differences do not apply; see below)
+    x = torch.tensor([-0.8, -0.31, 0.05, 0.7, 0.99], dtype=torch.float64)
+    table.requires_grad_(True)
+    assert torch.autograd.gradcheck(lambda t: interpolate_knots(t, knots, x), (table,))
+
+
+def test_gradients_finite_where_every_secant_is_flat():
+    table = torch.ones(5, 4, requires_grad=True)  # a fresh field's tables
+    out = interpolate_knots(table, torch.linspace(-1.0, 1.0, 5), torch.rand(32) * 2 - 1)
+    out.sum().backward()
+    assert torch.isfinite(table.grad).all()
+    assert torch.equal(out, torch.ones(32, 4))
+
+
+def test_slopes_are_zero_where_a_column_turns():
+    knots = torch.tensor([0.0, 1.0, 2.0])
+    table = torch.tensor([[0.0], [1.0], [0.0]])
+    assert float(pchip_slopes(table, knots)[1, 0]) == 0.0
 
 
 def test_param_axes_of_ones_leave_features_unchanged():
