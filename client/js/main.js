@@ -45,8 +45,12 @@ async function boot() {
   try {
     sceneList = await api.listScenes();
   } catch (err) {
-    alerts.set("scenes", `${err.message}. Retrying in 3 s…`);
-    setTimeout(boot, 3000);
+    // 503: the server is still loading its scenes (it says when to ask again).
+    const starting = err.status === 503;
+    const waitS = starting && err.retryAfterS ? err.retryAfterS : 3;
+    alerts.set("scenes", starting ? "Server starting: loading its scenes…" : `${err.message}. Retrying in 3 s…`,
+      starting ? "warning" : undefined);
+    setTimeout(boot, waitS * 1000);
     return;
   }
   alerts.clear("scenes");

@@ -50,6 +50,10 @@ def test_ready_is_503_until_scenes_are_loaded(settings: Settings, monkeypatch: p
         health = client.get("/api/health")
         assert health.status_code == 200  # alive while loading
         assert health.json()["ready"] is False
+        # The list too: a partial one would look final.
+        listing = client.get("/api/scenes")
+        assert listing.status_code == 503 and listing.headers["retry-after"] == "1"
+        assert "still loading" in listing.json()["detail"]
         # A scene whose file is there but not loaded yet: 503 with Retry-After, not 404.
         loading = client.get("/api/scenes/tiny")
         assert loading.status_code == 503 and loading.headers["retry-after"] == "1"
@@ -68,6 +72,7 @@ def test_ready_is_503_until_scenes_are_loaded(settings: Settings, monkeypatch: p
                 break
             time.sleep(0.02)
         assert client.get("/api/ready").json() == {"ready": True, "scenes": 2, "failed": {}}
+        assert len(client.get("/api/scenes").json()) == 2
 
 
 def test_list_scenes(client: TestClient) -> None:

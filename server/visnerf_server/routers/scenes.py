@@ -65,8 +65,13 @@ def scene_detail(scene: Scene) -> SceneDetail:
     )
 
 
-@router.get("", response_model=list[SceneSummary])
+@router.get("", response_model=list[SceneSummary], responses={503: {"model": ErrorDetail}})
 def list_scenes(registry: RegistryDep) -> list[SceneSummary]:
+    """Every scene served; 503 with Retry-After while the folder's first load runs (a partial list
+    would look final: a client would miss the scenes still on their way, and a proxy would not
+    retry another replica)."""
+    if registry.loading:
+        raise HTTPException(503, "scenes are still loading", {"Retry-After": str(LOADING_RETRY_S)})
     return [scene_summary(scene) for scene in registry.list()]
 
 
