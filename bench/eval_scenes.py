@@ -172,8 +172,10 @@ def _f(value: object, digits: int) -> str:
     return f"{value:.{digits}f}" if isinstance(value, float) else ("n/a" if value is None else str(value))
 
 
-def table_lines(record: dict) -> list[str]:
-    """The results table, with the paper's PSNR on the real dataset each scene stands in for."""
+def table_lines(record: dict, commands: bool = True) -> list[str]:
+    """The results table, with the paper's PSNR on the real dataset each scene stands in for, and
+    a note on the rows rerun since the record (with their commands unless ``commands`` is False:
+    the README's copy names the scenes and links the details)."""
     lines = [
         "| scene | kind | K | PSNR (dB) | SSIM | iterations | grid | ms per frame | model MB | paper: real counterpart, PSNR |",
         "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
@@ -194,11 +196,12 @@ def table_lines(record: dict) -> list[str]:
         runs.setdefault(r["rerun"]["command"], []).append(r["scene"])
     for (date, cpu), runs in by_day.items():
         where = "" if cpu == record["machine"].get("cpu", "") else f" on {cpu}"
-        each = "; ".join(f"{', '.join(scenes)} by `{command}`" for command, scenes in runs.items())
-        rescored = " (`--rescore`: the record's checkpoints evaluated again, not retrained)" if any(
-            "--rescore" in command for command in runs) else ""
-        lines.append(f"\n\\* Rerun {date}{where} after a change that concerns them: {each}{rescored}. "
-                     "The other rows are the record's.")
+        each = "; ".join(", ".join(scenes) + (f" by `{command}`" if commands else "")
+                         + (" (evaluated again, not retrained)" if "--rescore" in command else "")
+                         for command, scenes in runs.items())
+        lines.append(f"\n\\* Rerun {date}{where} after a change that concerns them: {each}.")
+    if by_day:
+        lines.append("\nThe other rows are the record's.")
     return lines
 
 
@@ -264,7 +267,7 @@ def update_readme(readme: Path, record: dict) -> None:
         f"{record['resolution']}x{record['resolution']}, {record['machine'].get('cpu', record['machine']['device'])} "
         f"with {record['machine']['torch_threads']} threads, {record['date'][:10]}; PSNR and SSIM on each scene's "
         "181-frame test path, beside the paper's PSNR on the real counterpart "
-        "([details](bench/results/eval_scenes.md)):", "", *table_lines(record), README_END,
+        "([details](bench/results/eval_scenes.md)):", "", *table_lines(record, commands=False), README_END,
     ])  # fmt: skip
     text = readme.read_text()
     pattern = re.compile(re.escape(README_BEGIN) + ".*?" + re.escape(README_END), re.S)

@@ -101,10 +101,19 @@ def _sweep(result: EvalResult, out: Path) -> dict:
     return {"points": rows, "figure": figure, "data": _write_csv(out / "render_sweep.csv", rows).name}
 
 
+def _remove_earlier_examples(out: Path) -> None:
+    """Delete the difference examples a report written earlier into ``out`` left (their frames
+    are chosen by this evaluation's errors, so another run names other files); only files of the
+    names this writer gives them."""
+    for path in [*(out / "figures").glob("difference_frame_*.png"), *(out / "images").glob("frame_*_*.png")]:
+        path.unlink()
+
+
 def build_summary(result: EvalResult, cfg: EvalConfig, out: Path) -> dict:
     """Write the data files and figures; return the summary document."""
     (out / "figures").mkdir(parents=True, exist_ok=True)
     (out / "images").mkdir(parents=True, exist_ok=True)
+    _remove_earlier_examples(out)
     meta = result.meta
     frames = list(result.frames)
     k = len(meta.param_axes)

@@ -145,3 +145,20 @@ def test_bad_checkpoint_is_a_clear_error(tiny_eval, tmp_path, capsys):
     bad = tmp_path / "bad.safetensors"
     bad.write_bytes(b"not a checkpoint")
     assert "safetensors" in _eval_fails(capsys, bad, data, tmp_path / "out")
+
+
+def test_a_report_written_again_keeps_only_its_own_examples(tiny_eval, tmp_path):
+    ckpt, data = tiny_eval
+    out = tmp_path / "report"
+    (out / "figures").mkdir(parents=True)
+    (out / "images").mkdir()
+    earlier = [out / "figures" / "difference_frame_9999.png", out / "images" / "frame_9999_synth.png"]
+    kept = [out / "figures" / "notes.png", out / "own.txt"]  # not names the writer gives
+    for path in earlier + kept:
+        path.write_bytes(b"x")
+    assert main(["eval", str(ckpt), str(data), "--out", str(out), "--device", "cpu", "--no-sweep"]) == 0
+    assert not any(path.exists() for path in earlier)
+    assert all(path.exists() for path in kept)
+    text = (out / "report.md").read_text()
+    examples = [*(out / "figures").glob("difference_frame_*.png"), *(out / "images").glob("frame_*_*.png")]
+    assert examples and all(path.relative_to(out).as_posix() in text for path in examples)
