@@ -1,14 +1,17 @@
 """Interpolation primitives for animation paths: slerp and a spherical Catmull-Rom for view
 directions, a monotone cubic (PCHIP) for scalars, and the minimal rotation between two directions.
 
-Nothing here knows about cameras or keyframes; all functions are plain numpy in float64.
+Nothing here knows about cameras or keyframes; all functions take and return numpy in float64.
 """
 
 import math
 from collections.abc import Callable
 
 import numpy as np
+import torch
 from jaxtyping import Float
+
+from visnerf.representation import param_axes
 
 Mix = Callable[[np.ndarray, np.ndarray, float], np.ndarray]
 """``mix(a, b, u)``: the point a fraction ``u`` (any real: outside [0, 1] extrapolates) from a to b."""
@@ -73,33 +76,13 @@ def catmull_rom(
 
 
 def pchip_slopes(x: Float[np.ndarray, " n"], y: Float[np.ndarray, " n"]) -> Float[np.ndarray, " n"]:
-    """Derivatives at the knots of the monotone piecewise cubic Hermite interpolant (Fritsch and
-    Butland's weighted harmonic mean, with the three-point shape-preserving ends: the scheme of
-    ``scipy.interpolate.PchipInterpolator``). A knot where the data turn gets slope 0, so each
-    piece stays between its two knot values: no overshoot."""
-    h = np.diff(x)  # [n-1]
-    m = np.diff(y) / h  # [n-1] secant slopes
-    if len(x) == 2:
-        return np.array([m[0], m[0]])
-    d = np.zeros_like(y)
-    w1 = 2.0 * h[1:] + h[:-1]
-    w2 = h[1:] + 2.0 * h[:-1]
-    flat = (np.sign(m[1:]) != np.sign(m[:-1])) | (m[1:] == 0) | (m[:-1] == 0)  # [n-2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        harmonic = (w1 + w2) / (w1 / m[:-1] + w2 / m[1:])
-    d[1:-1] = np.where(flat, 0.0, harmonic)
-    d[0] = _pchip_end(h[0], h[1], m[0], m[1])
-    d[-1] = _pchip_end(h[-1], h[-2], m[-1], m[-2])
-    return d
-
-
-def _pchip_end(h0: float, h1: float, m0: float, m1: float) -> float:
-    d = ((2.0 * h0 + h1) * m0 - h0 * m1) / (h0 + h1)
-    if np.sign(d) != np.sign(m0):
-        return 0.0
-    if np.sign(m0) != np.sign(m1) and abs(d) > 3.0 * abs(m0):
-        return 3.0 * m0
-    return float(d)
+    """Derivatives at the knots of the monotone piecewise cubic Hermite interpolant (the scheme of
+    ``scipy.interpolate.PchipInterpolator``): those the parameter tables use between training
+    values (``representation.param_axes.pchip_slopes``), in float64. A knot where the data turn
+    gets slope 0, so each piece stays between its two knot values: no overshoot."""
+    slopes = param_axes.pchip_slopes(torch.as_tensor(np.asarray(y, dtype=np.float64))[:, None],
+                                     torch.as_tensor(np.asarray(x, dtype=np.float64)))
+    return slopes[:, 0].numpy()
 
 
 def pchip(x: Float[np.ndarray, " n"], y: Float[np.ndarray, " n"], t: float) -> float:
