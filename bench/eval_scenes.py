@@ -190,15 +190,15 @@ def table_lines(record: dict, commands: bool = True) -> list[str]:
                      f"{'-' if not paper else paper['dataset'] + ', ' + str(paper['psnr'])} |")
     # One note per day and CPU, naming each rerun's scenes and command; the CPU only where it is
     # not the record's.
-    by_day: dict[tuple[str, str], dict[str, list[str]]] = {}
+    by_day: dict[tuple[str, str], dict[tuple[str, bool], list[str]]] = {}
     for r in reruns:
         runs = by_day.setdefault((r["rerun"]["date"][:10], r["rerun"]["cpu"]), {})
-        runs.setdefault(r["rerun"]["command"], []).append(r["scene"])
+        runs.setdefault((r["rerun"]["command"], r["rerun"].get("rescored", False)), []).append(r["scene"])
     for (date, cpu), runs in by_day.items():
         where = "" if cpu == record["machine"].get("cpu", "") else f" on {cpu}"
         each = "; ".join(", ".join(scenes) + (f" by `{command}`" if commands else "")
-                         + (" (evaluated again, not retrained)" if "--rescore" in command else "")
-                         for command, scenes in runs.items())
+                         + (" (evaluated again, not retrained)" if rescored else "")
+                         for (command, rescored), scenes in runs.items())
         lines.append(f"\n\\* Rerun {date}{where} after a change that concerns them: {each}.")
     if by_day:
         lines.append("\nThe other rows are the record's.")
@@ -346,12 +346,13 @@ def main(argv: list[str] | None = None) -> int:
                 if row is None or not ckpt.exists():
                     parser.error(f"--rescore: {name} has no row in the record or no checkpoint {ckpt}")
                 print(f"{name}: evaluating {ckpt} again", file=sys.stderr)
-                summary = write_report(evaluate_checkpoint(ckpt, data, eval_cfg, device), eval_cfg, reports / name)
-                record["scenes"].append({**row, **evaluation_fields(summary)})
             else:
                 print(f"{name}: training {args.minutes_per_scene:g} min on {data}", file=sys.stderr)
                 trainer = train_scene(data, ckpt, args.minutes_per_scene, device)
-                summary = write_report(evaluate_checkpoint(ckpt, data, eval_cfg, device), eval_cfg, reports / name)
+            summary = write_report(evaluate_checkpoint(ckpt, data, eval_cfg, device), eval_cfg, reports / name)
+            if args.rescore:
+                record["scenes"].append({**row, **evaluation_fields(summary)})
+            else:
                 record["scenes"].append(scene_row(spec, summary, trainer, gen_seconds))
                 del trainer
             if args.bundle is not None and name in BUNDLED:
