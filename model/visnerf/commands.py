@@ -161,8 +161,8 @@ def _train_as_rank(args: argparse.Namespace) -> int:
         if resume is None:
             from visnerf.training.recipe import recipe_trainer
 
-            fixed = set(train_given)
-            if {"density_scale", "density_shift"} & set(field_given):
+            fixed = set(train_given) | set(field_given)
+            if "density_shift" in field_given:
                 fixed.add("density_scale")
             trainer = recipe_trainer(train, val, cfg, field_cfg, device, render_cfg, frozenset(fixed))
             for choice in trainer.recipe_choices if main else ():

@@ -142,6 +142,11 @@ class FieldConfig:
     cosines with the view direction the colour decoder also reads: a surface lit by a light at the
     camera (a headlight) shades as a function of the cosine between its normal and the view, too
     sharp in direction for spherical harmonics. 0: none."""
+    level_set_axis: int = -1
+    """The parameter axis whose values are isovalues of one scalar field (``param_axes.LevelAxis``):
+    the density branch takes no parameter factors along it and subtracts a learnt level of the
+    value instead, so every isovalue's surface is a level set of one field and values between the
+    training values give the surfaces between. -1: none (every axis scales the features)."""
     density_shift: float = -2.0
     """Added to the raw density before softplus, so that a fresh field is a faint fog (0.13 per world
     unit at a ``density_scale`` of 1): at TensoRF's -10 the photometric gradient behind the density
@@ -172,6 +177,11 @@ class FieldConfig:
         ):
             raise ValueError("component counts must be multiples of n_param_components")
         _check_at_least(self, 0, "facing_vectors")
+        # a configuration made before the data are read has no axes yet; the field checks the axis against them
+        _require(isinstance(self.level_set_axis, int) and self.level_set_axis >= -1
+                 and (not self.param_lengths or self.level_set_axis < len(self.param_lengths)),
+                 f"level_set_axis must be -1 (none) or one of the {len(self.param_lengths)} parameter axes "
+                 f"(0..{len(self.param_lengths) - 1}), got {self.level_set_axis!r}")
         if not 0 <= self.sh_degree <= 3:
             raise ValueError(f"sh_degree must be 0..3, got {self.sh_degree}")
         if self.factor_storage not in FACTOR_STORAGE_DTYPES:

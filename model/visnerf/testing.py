@@ -45,6 +45,9 @@ def make_tiny_field(
             with torch.no_grad():  # make the parameters matter, so renders differ along each axis
                 for table in (*field.density_params.tables, *field.appearance_params.tables):
                     table.copy_(1.0 + 0.9 * torch.randn_like(table))
+        if field.levels is not None:  # increasing levels: surfaces that shrink as the value grows
+            with torch.no_grad():
+                field.levels.table.copy_(torch.linspace(-1.0, 1.0, field.levels.table.shape[0])[:, None])
         field.set_param_knots(knots)
     finally:
         torch.random.set_rng_state(generator_state)

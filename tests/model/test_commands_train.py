@@ -97,3 +97,27 @@ def test_bad_training_options_are_refused(plume, tmp_path, option, value, messag
     run = _visnerf("train", str(plume), "--out", str(out), option, value, "--quiet")
     assert run.returncode == 2 and message in run.stderr, run.stderr
     assert not out.exists()
+
+
+def test_an_isovalue_sweep_trains_with_a_level_axis_unless_the_user_says(tmp_path) -> None:
+    data = tmp_path / "iso"
+    made = _visnerf("make-scene", "tangle_iso", "--out", str(data), "--res", "16", "--views", "12",
+                    "--test-views", "2", "--quiet")
+    assert made.returncode == 0, made.stderr
+    chosen = tmp_path / "chosen.safetensors"
+    run = _visnerf("train", str(data), "--out", str(chosen), "--iterations", "3", "--device", "cpu", "--quiet")
+    assert run.returncode == 0, run.stderr
+    meta, tensors = read_checkpoint(chosen)
+    assert meta.field.level_set_axis == 0 and meta.field.facing_vectors > 0 and "levels.table" in tensors
+    reasons = {c["name"]: c["reason"] for c in meta.provenance["choices"]}
+    assert "nested along 'isovalue'" in reasons["level_set_axis"]
+    # Field options given on the command line are kept, not chosen again (the facing vectors were
+    # overridden by the recipe before).
+    given = tmp_path / "given.safetensors"
+    run = _visnerf("train", str(data), "--out", str(given), "--iterations", "3", "--level-set-axis", "-1",
+                   "--facing-vectors", "0", "--device", "cpu", "--quiet")
+    assert run.returncode == 0, run.stderr
+    meta, tensors = read_checkpoint(given)
+    assert meta.field.level_set_axis == -1 and meta.field.facing_vectors == 0 and "levels.table" not in tensors
+    reasons = {c["name"]: c["reason"] for c in meta.provenance["choices"]}
+    assert reasons["level_set_axis"] == reasons["facing_vectors"] == "set by the user"

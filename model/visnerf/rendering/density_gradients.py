@@ -23,7 +23,7 @@ from torch import Tensor
 
 from visnerf.rendering.sampling import uniform_noise
 
-DensityFn = Callable[[Float[Tensor, "m 3"], Float[Tensor, "m c"]], Float[Tensor, " m"]]
+DensityFn = Callable[[Float[Tensor, "m 3"], Float[Tensor, "m d"]], Float[Tensor, " m"]]
 
 
 @dataclass(frozen=True)
@@ -43,7 +43,7 @@ class DensityGradientSampling:
 def density_with_sampled_gradients(
     density: DensityFn,
     points: Float[Tensor, "m 3"],
-    q_density: Float[Tensor, "m c"],
+    q_density: Float[Tensor, "m d"],
     deltas: Float[Tensor, " m"],
     sampling: DensityGradientSampling,
     known: Float[Tensor, " m"] | None = None,

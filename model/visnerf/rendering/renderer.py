@@ -122,7 +122,7 @@ def _shade_samples(
     points: Float[Tensor, "n s 3"],
     deltas: Float[Tensor, "n s"],
     valid: Bool[Tensor, "n s"],
-    q_density: Float[Tensor, "n c"],
+    q_density: Float[Tensor, "n d"],
     q_appearance: Float[Tensor, "n c"],
     tau_before: Float[Tensor, " n"],
     weight_threshold: float,
@@ -160,7 +160,8 @@ def _shade_samples(
     if shade.numel() > 0:
         shade_rays = torch.div(shade, s, rounding_mode="floor")
         colors = field.color(flat_points.index_select(0, shade), rays_d.index_select(0, shade_rays),
-                             q_appearance.index_select(0, shade_rays))  # [k, 3]
+                             q_appearance.index_select(0, shade_rays),
+                             q_density.index_select(0, shade_rays) if field.levels is not None else None)  # [k, 3]
         rgb = rgb.index_add(0, shade_rays, weights.reshape(-1).index_select(0, shade)[:, None] * colors)
     return rgb, tau.sum(dim=-1), weights
 
@@ -196,7 +197,7 @@ def _shade_frame_samples(
     shade = (valid_weights > weight_threshold).nonzero()[:, 0]  # into the valid samples
     if shade.numel() > 0:
         ray_idx = rays.index_select(0, flat.index_select(0, shade) // s)
-        colors = frame.color_at(samples.taps.select(shade), ray_terms.index_select(0, ray_idx))  # [k, 3]
+        colors = frame.color_at(samples.select(shade), ray_terms.index_select(0, ray_idx))  # [k, 3]
         shaded = valid_weights.index_select(0, shade)[:, None]  # [k, 1]
         rgbw.index_add_(0, ray_idx, torch.cat([shaded * colors, shaded], dim=1))
     return tau.sum(dim=-1)

@@ -21,7 +21,7 @@ from visnerf.representation.decoders import (
     positional_encoding_dim,
     sh_dim,
 )
-from visnerf.representation.param_axes import ParamAxes
+from visnerf.representation.param_axes import LevelAxis, ParamAxes
 from visnerf.representation.vm import VMGrid
 
 
@@ -42,6 +42,29 @@ def facing_cosines(vectors: Float[Tensor, "n v"], directions: Float[Tensor, "n 3
 
 FACING_EPS = 1e-12
 """Added to a learnt vector's squared length before its root (a guarded division)."""
+LEVEL_NORMAL_STEP = 0.5
+"""Distance, in voxels along each axis, of the probes that give a level field's normal."""
+TETRAHEDRON = ((1.0, 1.0, 1.0), (1.0, -1.0, -1.0), (-1.0, 1.0, -1.0), (-1.0, -1.0, 1.0))
+"""Probe directions of the gradient: ``sum_i v_i g(x + h v_i) / 4h`` is the gradient to second
+order in ``h``, like central differences, from four values of ``g`` instead of six."""
+N_PROBES = len(TETRAHEDRON)
+
+
+def level_cosines(raw_probes: Float[Tensor, "n 4"], directions: Float[Tensor, "n 3"]) -> Float[Tensor, "n 1"]:
+    """Cosine between the gradient of the level field ``g`` and the unit view direction, from ``g``
+    at the probes of ``probe_points``. ``g`` grows inwards, so the cosine is that of the outward
+    normal with the direction to the eye: positive on the side of a surface facing the camera. A
+    flat ``g`` gives 0 (guarded division)."""
+    vertices = torch.tensor(TETRAHEDRON, device=raw_probes.device)  # [4, 3]
+    grad = raw_probes.float() @ vertices  # [n, 3], 4h times the gradient
+    length = torch.sqrt(grad.pow(2).sum(-1, keepdim=True) + FACING_EPS)
+    return (grad * directions.float()).sum(-1, keepdim=True) / length
+
+
+def probe_points(points: Float[Tensor, "n 3"], step: float) -> Float[Tensor, "n4 3"]:
+    """``x + h v_i`` for the ``TETRAHEDRON`` directions ``v_i``: ``[4n, 3]``, four rows a point."""
+    offsets = step * torch.tensor(TETRAHEDRON, dtype=points.dtype, device=points.device)  # [4, 3]
+    return (points[:, None, :] + offsets).reshape(-1, 3)
 
 
 class VisNerfField(nn.Module):
@@ -55,7 +78,12 @@ class VisNerfField(nn.Module):
         self.register_buffer("occupancy", None)  # bool [x, y, z] over aabb, set after training warm-up
         self.density_grid = VMGrid(cfg.n_density_components, cfg.resolution, cfg.init_scale)
         self.appearance_grid = VMGrid(cfg.n_appearance_components, cfg.resolution, cfg.init_scale)
-        self.density_params = ParamAxes(cfg.param_lengths, cfg.n_param_components)
+        axis = cfg.level_set_axis
+        if axis >= cfg.n_params:
+            raise ValueError(f"level_set_axis {axis} names no parameter axis: the field has {cfg.n_params}")
+        density_lengths = tuple(n for k, n in enumerate(cfg.param_lengths) if k != axis)
+        self.density_params = ParamAxes(density_lengths, cfg.n_param_components)
+        self.levels: LevelAxis | None = None if axis < 0 else LevelAxis(cfg.param_lengths[axis])
         self.appearance_params = ParamAxes(cfg.param_lengths, cfg.n_param_components)
         pc = cfg.n_param_components
         self.density_decoder = Decoder(
@@ -64,7 +92,8 @@ class VisNerfField(nn.Module):
             1,
         )
         self.color_decoder = Decoder(
-            3 * cfg.n_appearance_components + pc + sh_dim(cfg.sh_degree) + cfg.facing_vectors, cfg.hidden_width, 3
+            3 * cfg.n_appearance_components + pc + sh_dim(cfg.sh_degree) + cfg.facing_vectors
+            + (1 if self.levels is not None else 0), cfg.hidden_width, 3
         )
         self.facing: nn.Linear | None = None
         if cfg.facing_vectors > 0:
@@ -95,29 +124,67 @@ class VisNerfField(nn.Module):
 
     def param_features(
         self, params: Float[Tensor, "n k"]
-    ) -> tuple[Float[Tensor, "n c"], Float[Tensor, "n c"]]:
-        """(density, appearance) parameter features at normalised parameter values."""
-        return self.density_params.sample(params), self.appearance_params.sample(params)
+    ) -> tuple[Float[Tensor, "n d"], Float[Tensor, "n c"]]:
+        """(density, appearance) parameter features at normalised parameter values. With a level
+        axis the density features carry the level as a last column (``split_density_features``)."""
+        axis = self.cfg.level_set_axis
+        if self.levels is None:
+            return self.density_params.sample(params), self.appearance_params.sample(params)
+        others = torch.cat([params[:, :axis], params[:, axis + 1:]], dim=1)  # [n, k-1]
+        q_density = torch.cat([self.density_params.sample(others), self.levels.sample(params[:, axis])[:, None]], dim=1)
+        return q_density, self.appearance_params.sample(params)
 
-    def density_from_features(
+    def split_density_features(
+        self, q: Float[Tensor, "n d"]
+    ) -> tuple[Float[Tensor, "n c"], Float[Tensor, " n"] | None]:
+        """Density features ``q`` as (the factors' features, the level or None)."""
+        if self.levels is None:
+            return q, None
+        return q[:, :-1], q[:, -1]
+
+    def raw_density(
         self, coords: Float[Tensor, "n 3"], spatial: Float[Tensor, "n f"], q: Float[Tensor, "n c"]
     ) -> Float[Tensor, " n"]:
+        """The density decoder's output at the factors' features ``q`` (a level axis's ``g``)."""
         pe = encode_position(coords, self.cfg.pos_encoding_freqs)
-        raw = self.density_decoder(torch.cat([modulate(spatial, q), q, pe], dim=-1))[:, 0]
+        return self.density_decoder(torch.cat([modulate(spatial, q), q, pe], dim=-1))[:, 0]
+
+    def density_from_features(
+        self, coords: Float[Tensor, "n 3"], spatial: Float[Tensor, "n f"], q: Float[Tensor, "n d"]
+    ) -> Float[Tensor, " n"]:
+        q, level = self.split_density_features(q)
+        raw = self.raw_density(coords, spatial, q)
+        if level is not None and self.levels is not None:
+            raw = (raw - level) * self.levels.sharpness()
         return F.softplus(raw + self.cfg.density_shift) * self.cfg.density_scale
 
-    def density(self, points: Float[Tensor, "n 3"], q_density: Float[Tensor, "n c"]) -> Float[Tensor, " n"]:
+    def density(self, points: Float[Tensor, "n 3"], q_density: Float[Tensor, "n d"]) -> Float[Tensor, " n"]:
         """Non-negative density (per world unit) at world points. Differentiable."""
         coords = self.to_grid(points)
         return self.density_from_features(coords, self.density_grid.sample(coords), q_density)
+
+    @torch.no_grad()
+    def level_normal_cosines(
+        self, points: Float[Tensor, "n 3"], directions: Float[Tensor, "n 3"], q_density: Float[Tensor, "n d"]
+    ) -> Float[Tensor, "n 1"]:
+        """``level_cosines`` of the level field ``g`` at ``points`` (probes ``LEVEL_NORMAL_STEP``
+        voxels away along each axis). No gradient: the shading reads the shape, it does not move it."""
+        q, _ = self.split_density_features(q_density)
+        probes = probe_points(points, LEVEL_NORMAL_STEP * self.voxel_size())  # [4n, 3]
+        coords = self.to_grid(probes)
+        raw = self.raw_density(coords, self.density_grid.sample(coords), q.repeat_interleave(N_PROBES, dim=0))
+        return level_cosines(raw.view(-1, N_PROBES), directions)
 
     def color(
         self,
         points: Float[Tensor, "n 3"],
         directions: Float[Tensor, "n 3"],
         q_appearance: Float[Tensor, "n c"],
+        q_density: Float[Tensor, "n d"] | None = None,
     ) -> Float[Tensor, "n 3"]:
-        """RGB in [0, 1] at world points seen along unit ``directions``. Differentiable."""
+        """RGB in [0, 1] at world points seen along unit ``directions``. Differentiable. A field
+        with a level axis also reads the cosine of its level field's normal with the view, for
+        which it needs the density features ``q_density`` of the points."""
         coords = self.to_grid(points)
         spatial = self.appearance_grid.sample(coords)
         sh = encode_sh(directions, self.cfg.sh_degree)
@@ -125,6 +192,10 @@ class VisNerfField(nn.Module):
         parts = [feats, q_appearance, sh]
         if self.facing is not None:
             parts.append(facing_cosines(self.facing(feats), directions))
+        if self.levels is not None:
+            if q_density is None:
+                raise ValueError("a field with a level axis needs the density features for its colour")
+            parts.append(self.level_normal_cosines(points, directions, q_density).to(feats.dtype))
         raw = self.color_decoder(torch.cat(parts, dim=-1))
         return torch.sigmoid(raw)
 
@@ -136,9 +207,13 @@ class VisNerfField(nn.Module):
     @torch.no_grad()
     def set_param_knots(self, knots: list[Tensor]) -> None:
         """Place both branches' parameter vectors at the normalised training values."""
+        axis = self.cfg.level_set_axis
         for k, kn in enumerate(knots):
-            self.density_params.set_knots(k, kn.to(self.device))
             self.appearance_params.set_knots(k, kn.to(self.device))
+            if k == axis and self.levels is not None:
+                self.levels.set_knots(kn.to(self.device))
+            else:
+                self.density_params.set_knots(k if axis < 0 or k < axis else k - 1, kn.to(self.device))
 
     @torch.no_grad()
     def resample(self, resolution: tuple[int, int, int], new_aabb: Tensor | None = None) -> None:

@@ -34,7 +34,14 @@ from jaxtyping import Float, Int
 from torch import Tensor
 
 from visnerf.representation.decoders import Decoder, encode_position_into, encode_sh, padded_rows
-from visnerf.representation.field import VisNerfField, facing_cosines
+from visnerf.representation.field import (
+    LEVEL_NORMAL_STEP,
+    N_PROBES,
+    VisNerfField,
+    facing_cosines,
+    level_cosines,
+    probe_points,
+)
 from visnerf.representation.linear_relu import linear_relu
 from visnerf.representation.vm import VMGrid
 from visnerf.representation.vm_taps import TapLayout, VMTaps, lookup_modes, take_rows
@@ -135,14 +142,19 @@ class FrameField:
     def __init__(
         self,
         field: VisNerfField,
-        q_density: Float[Tensor, "1 c"],
+        q_density: Float[Tensor, "1 d"],
         q_appearance: Float[Tensor, "1 c"],
         dtype: torch.dtype = torch.float32,
     ) -> None:
         self.field = field
         self.dtype = dtype
         cfg = field.cfg
-        self.density_layer = fold_first_layer(field.density_decoder, q_density[0], cfg.n_density_components, dtype)
+        q_factors, level = field.split_density_features(q_density)
+        self.density_layer = fold_first_layer(field.density_decoder, q_factors[0], cfg.n_density_components, dtype)
+        # a level axis's level is constant within the frame: it joins the shift before the softplus,
+        # and its sharpness scales the decoder's output layer
+        sharpness = 1.0 if field.levels is None else float(field.levels.sharpness().detach())
+        self._density_shift = cfg.density_shift - (0.0 if level is None else sharpness * float(level[0].detach()))
         self.color_layer = fold_first_layer(field.color_decoder, q_appearance[0], cfg.n_appearance_components, dtype)
         self.density_tables = ModeTables.of(field.density_grid, dtype)
         self.appearance_tables = ModeTables.of(field.appearance_grid, dtype)
@@ -156,8 +168,10 @@ class FrameField:
             scaled = field.facing.weight.detach() * q_appearance[0].repeat(n_spatial // c)[None]  # [3m, f]
             self._facing = scaled.to(dtype).contiguous()
         dd, cd = field.density_decoder.out, field.color_decoder.out
-        self._density_out = (dd.weight.detach().to(dtype), dd.bias.detach().to(dtype))
+        self._density_out = ((dd.weight.detach() * sharpness).to(dtype), (dd.bias.detach() * sharpness).to(dtype))
         self._color_out = (cd.weight.detach().to(dtype), cd.bias.detach().to(dtype))
+        self._level_step = None if field.levels is None else LEVEL_NORMAL_STEP * field.voxel_size()
+        self._with_directions = self._facing is not None or self._level_step is not None
 
     def lookup(self, points: Float[Tensor, "m 3"]) -> SampleTaps:
         """Grid coordinates and VM taps of ``points``, shared by density and colour."""
@@ -169,7 +183,7 @@ class FrameField:
 
     def color(self, points: Float[Tensor, "m 3"], ray_terms: Float[Tensor, "m e"]) -> Float[Tensor, "m 3"]:
         """RGB at ``points``; ``ray_terms`` is ``direction_terms`` of each sample's ray."""
-        return self.color_at(self.lookup(points).taps, ray_terms)
+        return self.color_at(self.lookup(points), ray_terms)
 
     def density_at(self, samples: SampleTaps) -> Float[Tensor, " m"]:
         out = torch.empty(len(samples), dtype=samples.points.dtype, device=samples.points.device)
@@ -179,6 +193,10 @@ class FrameField:
         return out
 
     def _density(self, coords: Float[Tensor, "m 3"], taps: VMTaps) -> Float[Tensor, " m"]:
+        return F.softplus(self._raw_density(coords, taps) + self._density_shift) * self.field.cfg.density_scale
+
+    def _raw_density(self, coords: Float[Tensor, "m 3"], taps: VMTaps) -> Float[Tensor, " m"]:
+        """The density decoder's output (a level axis's ``g`` times its sharpness), float32."""
         cfg = self.field.cfg
         m = coords.shape[0]
         n_spatial = 3 * self.density_tables.n_components
@@ -187,8 +205,7 @@ class FrameField:
         self.density_tables.features_into(taps, x[:m])
         encode_position_into(coords, cfg.pos_encoding_freqs, x[:m, n_spatial:])
         hidden = linear_relu(x, self.density_layer.weight, self.density_layer.bias)  # [padded, h]
-        raw = F.linear(hidden, *self._density_out)[:m, 0].to(coords.dtype)
-        return F.softplus(raw + cfg.density_shift) * cfg.density_scale
+        return F.linear(hidden, *self._density_out)[:m, 0].to(coords.dtype)
 
     def direction_terms(self, directions: Float[Tensor, "a 3"]) -> Float[Tensor, "a e"]:
         """The view direction's spherical harmonics per ray, in the compute dtype: encoded once
@@ -196,7 +213,7 @@ class FrameField:
         degree 3; gathering the per-ray product with the first layer instead moved 128 columns
         per sample and cost more than the product it saved)."""
         sh = encode_sh(directions, self.field.cfg.sh_degree)
-        if self._facing is None:
+        if not self._with_directions:
             return sh.to(self.dtype)
         # the direction itself follows for the facing cosines, kept in float32 so that it adds no
         # rounding of its own (a cosine to the 40th moves by 8 % of its height per bf16 rounding of
@@ -204,30 +221,48 @@ class FrameField:
         # decoder input does
         return torch.cat([sh, directions.float()], dim=-1)
 
-    def color_at(self, taps: VMTaps, ray_terms: Float[Tensor, "m e"]) -> Float[Tensor, "m 3"]:
-        """RGB at samples with VM taps ``taps`` (``lookup(points).taps``); ``ray_terms`` is
-        ``direction_terms`` of each sample's ray."""
-        out = torch.empty(len(taps), 3, dtype=torch.float32, device=ray_terms.device)
-        for start in range(0, len(taps), SUB_CHUNK):
+    def color_at(self, samples: SampleTaps, ray_terms: Float[Tensor, "m e"]) -> Float[Tensor, "m 3"]:
+        """RGB at ``samples`` (``lookup(points)``); ``ray_terms`` is ``direction_terms`` of each
+        sample's ray."""
+        out = torch.empty(len(samples), 3, dtype=torch.float32, device=ray_terms.device)
+        for start in range(0, len(samples), SUB_CHUNK):
             sl = slice(start, start + SUB_CHUNK)
-            out[sl] = self._color(taps.select(sl), ray_terms[sl])
+            out[sl] = self._color(samples.select(sl), ray_terms[sl])
         return out
 
-    def _color(self, taps: VMTaps, ray_terms: Float[Tensor, "m e"]) -> Float[Tensor, "m 3"]:
+    def _level_cosines(self, points: Float[Tensor, "m 3"], directions: Float[Tensor, "m 3"]) -> Float[Tensor, "m 1"]:
+        """``level_cosines`` of the level field at ``points``, as ``VisNerfField.level_normal_cosines``."""
+        assert self._level_step is not None
+        probes = self.lookup(probe_points(points, self._level_step))  # N_PROBES rows a point
+        raw = torch.empty(len(probes), dtype=points.dtype, device=points.device)
+        for start in range(0, len(probes), SUB_CHUNK):
+            sl = slice(start, start + SUB_CHUNK)
+            raw[sl] = self._raw_density(probes.coords[sl], probes.taps.select(sl))
+        return level_cosines(raw.view(-1, N_PROBES), directions)
+
+    def _color(self, samples: SampleTaps, ray_terms: Float[Tensor, "m e"]) -> Float[Tensor, "m 3"]:
+        taps = samples.taps
         m = len(taps)
         n_spatial = 3 * self.appearance_tables.n_components
         x = torch.empty(padded_rows(m), self.color_layer.weight.shape[1], dtype=self.dtype, device=ray_terms.device)
         x[m:].zero_()
         self.appearance_tables.features_into(taps, x[:m])  # [m, 3c]
-        if self._facing is None:
+        if not self._with_directions:
             x[:m, n_spatial:] = ray_terms
         else:
             n_sh = ray_terms.shape[1] - 3
+            directions = ray_terms[:, n_sh:]
             x[:m, n_spatial:n_spatial + n_sh] = ray_terms[:, :n_sh]
-            # on the padded rows, as the decoder's products: a bf16 product of every new row count
-            # is a new oneDNN kernel, cached, and that cache grew a server by 1.2 MB a frame
-            vectors = F.linear(x[:, :n_spatial], self._facing)[:m]  # [m, 3v]
-            x[:m, n_spatial + n_sh:] = facing_cosines(vectors, ray_terms[:, n_sh:]).to(self.dtype)
+            column = n_spatial + n_sh
+            if self._facing is not None:
+                # on the padded rows, as the decoder's products: a bf16 product of every new row count
+                # is a new oneDNN kernel, cached, and that cache grew a server by 1.2 MB a frame
+                vectors = F.linear(x[:, :n_spatial], self._facing)[:m]  # [m, 3v]
+                cosines = facing_cosines(vectors, directions)
+                x[:m, column:column + cosines.shape[1]] = cosines.to(self.dtype)
+                column += cosines.shape[1]
+            if self._level_step is not None:
+                x[:m, column:column + 1] = self._level_cosines(samples.points, directions).to(self.dtype)
         hidden = linear_relu(x, self.color_layer.weight, self.color_layer.bias)  # [padded, h]
         raw = F.linear(hidden, *self._color_out)[:m]
         return torch.sigmoid(raw.float())

@@ -118,3 +118,47 @@ class ParamAxes(nn.Module):
         if not terms:
             return torch.zeros(())
         return sum(terms) / len(terms)
+
+
+class LevelAxis(nn.Module):
+    """The level of an isovalue axis: one learnt scalar per training value, interpolated by the
+    monotone cubic (``interpolate_knots``).
+
+    An isosurface at isovalue ``v`` is the level set ``{f = v}`` of one scalar field ``f``, and the
+    surfaces of a sweep are nested. The field models that directly: its density branch computes
+    ``g(x)`` without this axis's factors and subtracts ``level(v)`` before the softplus, so every
+    isovalue's surface is a level set of the same ``g`` and a value between two training values
+    gives the level set between theirs. Any increasing or decreasing reparameterisation of the
+    isovalue is absorbed by ``g``, so a scalar per training value is general. The levels start at
+    zero (every isovalue the same surface) and are pulled apart by the images; a monotone table
+    stays monotone between its knots.
+
+    ``sharpness`` multiplies ``g(x) - level(v)``. A surface is opaque where that difference has
+    risen by some ten units, so with a fixed scale the field must rise steeply at the training
+    surfaces and stay flat between them, and a value between the training values then finds a flat
+    ``g``: a half-transparent surface. The sharpness is learnt in log space (Adam moves it by about
+    the learning rate a step whatever its gradient's size), so it can grow by orders of magnitude,
+    and ``g`` stays a smooth field whose every level set is sharp."""
+
+    def __init__(self, n_values: int) -> None:
+        super().__init__()
+        self.table = nn.Parameter(torch.zeros(n_values, 1))
+        self.log_sharpness = nn.Parameter(torch.zeros(()))
+        self.register_buffer("knots", torch.linspace(-1.0, 1.0, n_values) if n_values > 1 else torch.zeros(1))
+
+    @torch.no_grad()
+    def set_knots(self, knots: Float[Tensor, " m"]) -> None:
+        """Place the levels at these normalised training values (strictly increasing)."""
+        if knots.shape != self.knots.shape:
+            raise ValueError(f"the level axis has {self.knots.shape[0]} values, got {knots.shape[0]} knots")
+        if knots.numel() > 1 and not bool((knots[1:] > knots[:-1]).all()):
+            raise ValueError("knots of the level axis must be strictly increasing")
+        self.knots.copy_(knots)
+
+    def sharpness(self) -> Tensor:
+        """The factor on ``g(x) - level(v)`` (0-d)."""
+        return self.log_sharpness.exp()
+
+    def sample(self, values: Float[Tensor, " n"]) -> Float[Tensor, " n"]:
+        """The level at normalised values; held at the end levels outside the knots."""
+        return interpolate_knots(self.table, self.knots, values)[:, 0]

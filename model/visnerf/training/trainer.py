@@ -105,6 +105,8 @@ CPU, 2.9 against 9.4 ms per optimizer step and 50.6 against 56.4 ms per 2048-ray
 def make_optimizer(field_: VisNerfField, cfg: TrainConfig, scale: float) -> torch.optim.Adam:
     factors = [*field_.density_grid.parameters(), *field_.appearance_grid.parameters(),
                *field_.density_params.parameters(), *field_.appearance_params.parameters()]
+    if field_.levels is not None:
+        factors += list(field_.levels.parameters())
     networks = [*field_.density_decoder.parameters(), *field_.color_decoder.parameters()]
     if field_.facing is not None:
         networks += list(field_.facing.parameters())

@@ -14,9 +14,11 @@ from visnerf.representation.frame_field import FrameField, ModeTables
 from visnerf.testing import make_tiny_field
 
 
-@pytest.fixture()
-def field():
-    f, _ = make_tiny_field([("a", [0.0, 0.5, 1.0]), ("b", [0.0, 1.0])], seed=3, resolution=12)
+@pytest.fixture(params=[-1, 0], ids=["factors", "level-axis"])
+def field(request):
+    """Parameter factors on both axes, or axis ``a`` a level axis (``param_axes.LevelAxis``)."""
+    f, _ = make_tiny_field([("a", [0.0, 0.5, 1.0]), ("b", [0.0, 1.0])], seed=3, resolution=12,
+                           level_set_axis=request.param)
     return f.eval()
 
 
@@ -69,7 +71,7 @@ def test_folded_decoders_equal_the_field(field, params) -> None:
     with torch.no_grad():
         assert torch.allclose(frame.density(points), field.density(points, q_d.expand(400, -1)), rtol=1e-5, atol=1e-6)
         colour = frame.color(points, frame.direction_terms(dirs))
-        assert torch.allclose(colour, field.color(points, dirs, q_a.expand(400, -1)), atol=1e-6)
+        assert torch.allclose(colour, field.color(points, dirs, q_a.expand(400, -1), q_d.expand(400, -1)), atol=1e-6)
 
 
 def _both_renders(field, settings: RenderSettings, size: int = 24):

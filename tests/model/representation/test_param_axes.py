@@ -84,3 +84,34 @@ def test_slopes_are_zero_where_a_column_turns():
 def test_param_axes_of_ones_leave_features_unchanged():
     axes = ParamAxes((3, 5), 4)
     assert torch.equal(axes.sample(torch.rand(10, 2) * 2 - 1), torch.ones(10, 4))
+
+
+def test_level_axis_starts_flat_and_follows_its_levels_monotonically():
+    from visnerf.representation.param_axes import LevelAxis
+
+    axis = LevelAxis(4)
+    x = torch.linspace(-1.5, 1.5, 61)
+    assert torch.equal(axis.sample(x), torch.zeros(61))  # every value the same surface at first
+    knots = torch.tensor([-1.0, -0.1, 0.3, 1.0])
+    axis.set_knots(knots)
+    with torch.no_grad():
+        axis.table.copy_(torch.tensor([[-2.0], [0.5], [0.6], [3.0]]))
+    levels = axis.sample(x)
+    assert torch.allclose(axis.sample(knots), axis.table[:, 0])
+    assert bool((levels[1:] >= levels[:-1]).all())  # increasing levels stay increasing between knots
+    assert levels[0] == -2.0 and levels[-1] == 3.0  # held at the ends
+    expected = PchipInterpolator(knots.double().numpy(), axis.table[:, 0].double().detach().numpy())(
+        x.clamp(-1.0, 1.0).double().numpy())
+    assert np.allclose(levels.detach().numpy(), expected, atol=1e-5)
+    levels.sum().backward()
+    assert axis.table.grad is not None and torch.isfinite(axis.table.grad).all()
+
+
+def test_level_axis_refuses_knots_that_do_not_fit():
+    from visnerf.representation.param_axes import LevelAxis
+
+    axis = LevelAxis(3)
+    with pytest.raises(ValueError, match="3 values, got 2"):
+        axis.set_knots(torch.tensor([-1.0, 1.0]))
+    with pytest.raises(ValueError, match="strictly increasing"):
+        axis.set_knots(torch.tensor([-1.0, 0.5, 0.5]))

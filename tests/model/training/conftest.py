@@ -24,3 +24,9 @@ def volume_scene(synthetic_scene) -> SceneData:
     """Translucent volume rendering (``vortex_tf2``), K = 1."""
     return load_dataset(synthetic_scene("vortex_tf2"), "train")
 
+
+
+@pytest.fixture(scope="session")
+def iso_sweep_scene(synthetic_scene) -> SceneData:
+    """Opaque isosurfaces at five isovalues (``tangle_iso``), K = 1: nested surfaces."""
+    return load_dataset(synthetic_scene("tangle_iso"), "train")

@@ -11,6 +11,7 @@ from visnerf.config import FieldConfig, TrainConfig
 from visnerf.training.recipe import (
     CARVE_FRAMED_FRACTION,
     FACING_VECTORS,
+    LEVEL_TV_DENSITY,
     VOXEL_PER_PIXEL,
     choose_recipe,
     content_box,
@@ -108,3 +109,29 @@ def test_nyx_gets_the_tuned_recipe():
     assert recipe.train.carve_min_seen_fraction == 0.75
     assert recipe.field == FieldConfig()  # translucent: no surface density
     assert recipe.carved is not None
+
+
+def test_an_isovalue_sweep_gets_a_level_axis_and_other_scenes_do_not(iso_sweep_scene, volume_scene, surface_scene):
+    iso = choose_recipe(iso_sweep_scene, TrainConfig(), FieldConfig())
+    assert iso.field.level_set_axis == 0
+    reason = next(c.reason for c in iso.choices if c.name == "level_set_axis")
+    assert "nested along 'isovalue'" in reason and "shrink" in reason
+    assert iso.train.tv_weight_density == LEVEL_TV_DENSITY > TrainConfig().tv_weight_density
+    # The same opaque images with their isovalues shuffled: the hulls jump in and out, no level axis.
+    values = sorted(set(iso_sweep_scene.params[:, 0].tolist()))
+    shuffled = dict(zip(values, [values[i] for i in (0, 4, 1, 3, 2)], strict=True))
+    params = torch.tensor([[shuffled[v]] for v in iso_sweep_scene.params[:, 0].tolist()])
+    mixed = choose_recipe(dataclasses.replace(iso_sweep_scene, params=params), TrainConfig(), FieldConfig())
+    assert mixed.field.level_set_axis == -1 and mixed.train.tv_weight_density == TrainConfig().tv_weight_density
+    assert "no axis" in next(c.reason for c in mixed.choices if c.name == "level_set_axis")
+    # Translucent content (whose hulls may nest as a transfer function fades it) and K = 0: none.
+    for other in (volume_scene, surface_scene):
+        recipe = choose_recipe(other, TrainConfig(), FieldConfig())
+        assert recipe.field.level_set_axis == -1 and "level_set_axis" not in choices_of(recipe)
+        assert recipe.train.tv_weight_density == TrainConfig().tv_weight_density
+
+
+def test_a_level_axis_the_user_gave_is_kept(iso_sweep_scene):
+    recipe = choose_recipe(iso_sweep_scene, TrainConfig(), FieldConfig(level_set_axis=-1), frozenset({"level_set_axis"}))
+    assert recipe.field.level_set_axis == -1
+    assert next(c.reason for c in recipe.choices if c.name == "level_set_axis") == "set by the user"
