@@ -147,6 +147,9 @@ class FieldConfig:
     the density branch takes no parameter factors along it and subtracts a learnt level of the
     value instead, so every isovalue's surface is a level set of one field and values between the
     training values give the surfaces between. -1: none (every axis scales the features)."""
+    level_normal_step: float = 0.5
+    """Distance in voxels along each axis of the probes whose values of the level field give its
+    normal (``field.level_normal_cosines``; only with a level axis)."""
     density_shift: float = -2.0
     """Added to the raw density before softplus, so that a fresh field is a faint fog (0.13 per world
     unit at a ``density_scale`` of 1): at TensoRF's -10 the photometric gradient behind the density
@@ -188,7 +191,7 @@ class FieldConfig:
             raise ValueError(f"factor_storage must be one of {sorted(FACTOR_STORAGE_DTYPES)}, got {self.factor_storage!r}")
         _check_at_least(self, 1, "n_density_components", "n_appearance_components", "n_param_components", "hidden_width")
         _check_at_least(self, 0, "pos_encoding_freqs")
-        _check_positive(self, "density_scale", "init_scale")
+        _check_positive(self, "density_scale", "init_scale", "level_normal_step")
         _require(math.isfinite(self.density_shift), f"density_shift must be a finite number, got {self.density_shift!r}")
         _check_whole_in(self, 2, MAX_GRID_RESOLUTION, "resolution")
         _check_whole_in(self, 1, MAX_PARAM_VALUES, "param_lengths")

@@ -5,6 +5,13 @@ parameter axes of each branch. The ``n_param_components`` parameter features sca
 groups of the spatial features (channel ``c`` by component ``c % n_param_components``) and are also
 appended to the decoder input, so parameter vectors of ones leave the spatial features unchanged.
 
+A level axis (``FieldConfig.level_set_axis``, an isovalue sweep) takes no density factors: the
+density is ``softplus(s (g(x) - level(v)) + shift) * scale`` with ``g`` the density decoder's output
+and ``level`` and ``s`` learnt (``param_axes.LevelAxis``), so every isovalue's surface is a level
+set of one field ``g``. Its colour decoder also reads the cosine between ``g``'s gradient (the
+surface normal, from four probes around the sample) and the view, which holds between the
+training isovalues where the appearance features were never fitted.
+
 Coordinates: world points are mapped to grid coordinates in [-1, 1]^3 over ``aabb``.
 """
 
@@ -42,8 +49,6 @@ def facing_cosines(vectors: Float[Tensor, "n v"], directions: Float[Tensor, "n 3
 
 FACING_EPS = 1e-12
 """Added to a learnt vector's squared length before its root (a guarded division)."""
-LEVEL_NORMAL_STEP = 0.5
-"""Distance, in voxels along each axis, of the probes that give a level field's normal."""
 TETRAHEDRON = ((1.0, 1.0, 1.0), (1.0, -1.0, -1.0), (-1.0, 1.0, -1.0), (-1.0, -1.0, 1.0))
 """Probe directions of the gradient: ``sum_i v_i g(x + h v_i) / 4h`` is the gradient to second
 order in ``h``, like central differences, from four values of ``g`` instead of six."""
@@ -167,10 +172,11 @@ class VisNerfField(nn.Module):
     def level_normal_cosines(
         self, points: Float[Tensor, "n 3"], directions: Float[Tensor, "n 3"], q_density: Float[Tensor, "n d"]
     ) -> Float[Tensor, "n 1"]:
-        """``level_cosines`` of the level field ``g`` at ``points`` (probes ``LEVEL_NORMAL_STEP``
-        voxels away along each axis). No gradient: the shading reads the shape, it does not move it."""
+        """``level_cosines`` of the level field ``g`` at ``points`` (probes
+        ``cfg.level_normal_step`` voxels away along each axis). No gradient: the shading reads the
+        shape, it does not move it."""
         q, _ = self.split_density_features(q_density)
-        probes = probe_points(points, LEVEL_NORMAL_STEP * self.voxel_size())  # [4n, 3]
+        probes = probe_points(points, self.cfg.level_normal_step * self.voxel_size())  # [4n, 3]
         coords = self.to_grid(probes)
         raw = self.raw_density(coords, self.density_grid.sample(coords), q.repeat_interleave(N_PROBES, dim=0))
         return level_cosines(raw.view(-1, N_PROBES), directions)

@@ -35,7 +35,6 @@ from torch import Tensor
 
 from visnerf.representation.decoders import Decoder, encode_position_into, encode_sh, padded_rows
 from visnerf.representation.field import (
-    LEVEL_NORMAL_STEP,
     N_PROBES,
     VisNerfField,
     facing_cosines,
@@ -170,7 +169,7 @@ class FrameField:
         dd, cd = field.density_decoder.out, field.color_decoder.out
         self._density_out = ((dd.weight.detach() * sharpness).to(dtype), (dd.bias.detach() * sharpness).to(dtype))
         self._color_out = (cd.weight.detach().to(dtype), cd.bias.detach().to(dtype))
-        self._level_step = None if field.levels is None else LEVEL_NORMAL_STEP * field.voxel_size()
+        self._level_step = None if field.levels is None else cfg.level_normal_step * field.voxel_size()
         self._with_directions = self._facing is not None or self._level_step is not None
 
     def lookup(self, points: Float[Tensor, "m 3"]) -> SampleTaps:
