@@ -147,9 +147,11 @@ class FieldConfig:
     the density branch takes no parameter factors along it and subtracts a learnt level of the
     value instead, so every isovalue's surface is a level set of one field and values between the
     training values give the surfaces between. -1: none (every axis scales the features)."""
-    level_normal_step: float = 0.5
+    level_normal_step: float = 1.0
     """Distance in voxels along each axis of the probes whose values of the level field give its
-    normal (``field.level_normal_cosines``; only with a level axis)."""
+    normal (``field.level_normal_cosines``; only with a level axis). tangle_iso, 10 minutes on one
+    thread each, side by side: 25.81 dB / 0.931 on its test path at 1 voxel, 25.26 / 0.917 at half
+    a voxel, whose normals carry the voxel-scale ripples of the field into the shading."""
     density_shift: float = -2.0
     """Added to the raw density before softplus, so that a fresh field is a faint fog (0.13 per world
     unit at a ``density_scale`` of 1): at TensoRF's -10 the photometric gradient behind the density
