@@ -159,9 +159,12 @@ def _shade_samples(
     rgb = torch.zeros(n, 3, dtype=points.dtype, device=points.device)
     if shade.numel() > 0:
         shade_rays = torch.div(shade, s, rounding_mode="floor")
-        colors = field.color(flat_points.index_select(0, shade), rays_d.index_select(0, shade_rays),
-                             q_appearance.index_select(0, shade_rays),
-                             q_density.index_select(0, shade_rays) if field.levels is not None else None)  # [k, 3]
+        shade_points, shade_dirs = flat_points.index_select(0, shade), rays_d.index_select(0, shade_rays)
+        if field.levels is None:
+            colors = field.color(shade_points, shade_dirs, q_appearance.index_select(0, shade_rays))  # [k, 3]
+        else:  # the level field's normal needs the density features too
+            colors = field.color(shade_points, shade_dirs, q_appearance.index_select(0, shade_rays),
+                                 q_density.index_select(0, shade_rays))
         rgb = rgb.index_add(0, shade_rays, weights.reshape(-1).index_select(0, shade)[:, None] * colors)
     return rgb, tau.sum(dim=-1), weights
 

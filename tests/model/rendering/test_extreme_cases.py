@@ -286,12 +286,9 @@ def _lookup(table: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
 
 
 def _index_taps(points: torch.Tensor) -> VMTaps:
-    """VM taps that carry their sample's point (in ``plane_weights[:, 0, :3]``), so that a patched
-    ``FrameField.color_at`` can look its colour up."""
+    """VM taps of the right shape for ``points`` (the patched field reads the samples' points)."""
     m = points.shape[0]
-    weights = torch.zeros(m, 3, 4)
-    weights[:, 0, :3] = points
-    return VMTaps(torch.zeros(m, 3, 4, dtype=torch.long), weights, torch.zeros(m, 3, 2, dtype=torch.long),
+    return VMTaps(torch.zeros(m, 3, 4, dtype=torch.long), torch.zeros(m, 3, 4), torch.zeros(m, 3, 2, dtype=torch.long),
                   torch.zeros(m, 3, 2))
 
 
@@ -307,8 +304,7 @@ def _table_field(monkeypatch: pytest.MonkeyPatch, sigma: torch.Tensor, colours: 
     monkeypatch.setattr(VisNerfField, "color", lambda self, points, dirs, q: _lookup(colours, points))
     monkeypatch.setattr(FrameField, "lookup", lambda self, points: SampleTaps(points, points, _index_taps(points)))
     monkeypatch.setattr(FrameField, "density_at", lambda self, samples: _lookup(sigma, samples.points).detach())
-    monkeypatch.setattr(FrameField, "color_at",
-                        lambda self, taps, terms: _lookup(colours, taps.plane_weights[:, 0, :3]).detach())
+    monkeypatch.setattr(FrameField, "color_at", lambda self, samples, terms: _lookup(colours, samples.points).detach())
     return field
 
 

@@ -125,7 +125,7 @@ def test_unshaded_weight_takes_the_mean_colour_of_the_shaded_samples(shell_field
     (no gain) is off by the skipped weight, the haze in front of the shell."""
     colour = torch.tensor([0.2, 0.6, 0.9])
     monkeypatch.setattr(FrameField, "density_at", lambda self, samples: _haze_density(samples.points))
-    monkeypatch.setattr(FrameField, "color_at", lambda self, taps, ray_terms: colour.expand(len(taps), 3))
+    monkeypatch.setattr(FrameField, "color_at", lambda self, samples, ray_terms: colour.expand(len(samples), 3))
     import visnerf.rendering.renderer as renderer
 
     intr = Intrinsics.from_fov(24, 24, math.radians(35.0))
@@ -155,7 +155,7 @@ def test_the_colour_threshold_skips_the_same_part_of_a_medium_at_any_spacing(she
     colour = torch.tensor([0.2, 0.6, 0.9])
     sigma = 3.0 / 0.8
     monkeypatch.setattr(FrameField, "density_at", lambda self, samples: sigma * (samples.points.norm(dim=-1) < 0.4).float())
-    monkeypatch.setattr(FrameField, "color_at", lambda self, taps, ray_terms: colour.expand(len(taps), 3))
+    monkeypatch.setattr(FrameField, "color_at", lambda self, samples, ray_terms: colour.expand(len(samples), 3))
     import visnerf.rendering.renderer as renderer
 
     monkeypatch.setattr(renderer, "_unshaded_gain", lambda opacity, shaded: torch.ones_like(opacity))
