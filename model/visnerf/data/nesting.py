@@ -7,9 +7,10 @@ cameras), so nested surfaces give nested hulls. A timestep series, a transfer-fu
 simulation parameter moves, splits and recolours its content and does not.
 
 ``axis_nesting`` carves each setting's hull (``data.carving``) and measures, for every pair of
-neighbouring values of one axis (the other axes held), the share of the smaller hull that lies
-outside the larger; an axis is nested when that share stays within a tolerance for every pair, in
-one direction, while the hulls do change along it.
+neighbouring values of one axis (the other axes held), the share of each hull that lies outside
+the other; an axis is nested when, in one direction, that share stays within a tolerance for every
+pair, while the hulls do change along it. The carving costs about 0.4 s a setting at 64^3 cells
+(tangle_iso, 5 settings of 42 views at 128x128: 1.9 s).
 """
 
 from dataclasses import dataclass
