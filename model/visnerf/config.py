@@ -106,8 +106,6 @@ MAX_COMPONENTS = 1024
 """Most VM or parameter-vector components."""
 MAX_HIDDEN_WIDTH = 4096
 """Widest decoder hidden layer."""
-MAX_HEADLIGHT_BINS = 4096
-"""Most knots of the headlight table (``FieldConfig.headlight_bins``)."""
 MAX_ENCODING_FREQS = 32
 """Most positional-encoding frequencies."""
 MAX_SAMPLES_LIMIT = 16384
@@ -149,18 +147,9 @@ class FieldConfig:
     the density branch takes no parameter factors along it and subtracts a learnt level of the
     value instead, so every isovalue's surface is a level set of one field and values between the
     training values give the surfaces between. -1: none (every axis scales the features)."""
-    surface_normals: bool = False
-    """The colour decoder also reads the cosine between the view and the normal of the density
-    decoder's output ``g`` (``field.normal_cosines``), the geometry's own normal. Always on with a
-    level axis (its surfaces are level sets of ``g``)."""
-    headlight_bins: int = 0
-    """Knots of a colour that every surface point shares as a function of the angle between the
-    normal of ``g`` and the view, added to the decoded colour (``representation.headlight``): the
-    highlight of a light at the camera, learnt once for the whole scene instead of point by point.
-    Reads the normals as ``surface_normals`` does. 0: none."""
     level_normal_step: float = 1.0
-    """Distance in voxels along each axis of the probes whose values of ``g`` give its normal
-    (``field.normal_cosines``; with a level axis or ``surface_normals``). tangle_iso, 10 minutes on one
+    """Distance in voxels along each axis of the probes whose values of the level field give its
+    normal (``field.level_normal_cosines``; only with a level axis). tangle_iso, 10 minutes on one
     thread each, side by side: 25.81 dB / 0.931 on its test path at 1 voxel, 25.26 / 0.917 at half
     a voxel, whose normals carry the voxel-scale ripples of the field into the shading."""
     density_shift: float = -2.0
@@ -193,8 +182,6 @@ class FieldConfig:
         ):
             raise ValueError("component counts must be multiples of n_param_components")
         _check_at_least(self, 0, "facing_vectors")
-        _require(isinstance(self.headlight_bins, int) and (self.headlight_bins == 0 or 2 <= self.headlight_bins <= MAX_HEADLIGHT_BINS),
-                 f"headlight_bins must be 0 (none) or 2..{MAX_HEADLIGHT_BINS}, got {self.headlight_bins!r}")
         # a configuration made before the data are read has no axes yet; the field checks the axis against them
         _require(isinstance(self.level_set_axis, int) and self.level_set_axis >= -1
                  and (not self.param_lengths or self.level_set_axis < len(self.param_lengths)),

@@ -10,9 +10,7 @@ density is ``softplus(s (g(x) - level(v)) + shift) * scale`` with ``g`` the dens
 and ``level`` and ``s`` learnt (``param_axes.LevelAxis``), so every isovalue's surface is a level
 set of one field ``g``. Its colour decoder also reads the cosine between ``g``'s gradient (the
 surface normal, from four probes around the sample) and the view, which holds between the
-training isovalues where the appearance features were never fitted. Other fields read it with
-``FieldConfig.surface_normals``; with ``FieldConfig.headlight_bins`` a colour shared by every point
-as a function of that angle is added (``representation.headlight``).
+training isovalues where the appearance features were never fitted.
 
 Coordinates: world points are mapped to grid coordinates in [-1, 1]^3 over ``aabb``.
 """
@@ -30,7 +28,6 @@ from visnerf.representation.decoders import (
     positional_encoding_dim,
     sh_dim,
 )
-from visnerf.representation.headlight import HeadlightTable
 from visnerf.representation.param_axes import LevelAxis, ParamAxes
 from visnerf.representation.vm import VMGrid
 
@@ -75,11 +72,6 @@ def probe_points(points: Float[Tensor, "n 3"], step: float) -> Float[Tensor, "n4
     return (points[:, None, :] + offsets).reshape(-1, 3)
 
 
-def add_headlight(rgb: Float[Tensor, "n 3"], light: Float[Tensor, "n 3"]) -> Float[Tensor, "n 3"]:
-    """The decoded colour plus the headlight table's colour, kept in [0, 1] (float32)."""
-    return (rgb.float() + light).clamp(0.0, 1.0)
-
-
 class VisNerfField(nn.Module):
     """Density and colour of a parameterised scene. Buffers: ``aabb`` [2, 3] (world box)."""
 
@@ -104,13 +96,9 @@ class VisNerfField(nn.Module):
             cfg.hidden_width,
             1,
         )
-        self.reads_normals = self.levels is not None or cfg.surface_normals or cfg.headlight_bins > 0
-        """Whether the colour reads the cosine of ``g``'s normal with the view (and so needs the
-        density features of its points)."""
-        self.headlight: HeadlightTable | None = HeadlightTable(cfg.headlight_bins) if cfg.headlight_bins > 0 else None
         self.color_decoder = Decoder(
             3 * cfg.n_appearance_components + pc + sh_dim(cfg.sh_degree) + cfg.facing_vectors
-            + (1 if self.reads_normals else 0), cfg.hidden_width, 3
+            + (1 if self.levels is not None else 0), cfg.hidden_width, 3
         )
         self.facing: nn.Linear | None = None
         if cfg.facing_vectors > 0:
@@ -181,10 +169,10 @@ class VisNerfField(nn.Module):
         return self.density_from_features(coords, self.density_grid.sample(coords), q_density)
 
     @torch.no_grad()
-    def normal_cosines(
+    def level_normal_cosines(
         self, points: Float[Tensor, "n 3"], directions: Float[Tensor, "n 3"], q_density: Float[Tensor, "n d"]
     ) -> Float[Tensor, "n 1"]:
-        """``level_cosines`` of the density decoder's output ``g`` at ``points`` (probes
+        """``level_cosines`` of the level field ``g`` at ``points`` (probes
         ``cfg.level_normal_step`` voxels away along each axis). No gradient: the shading reads the
         shape, it does not move it."""
         q, _ = self.split_density_features(q_density)
@@ -201,8 +189,8 @@ class VisNerfField(nn.Module):
         q_density: Float[Tensor, "n d"] | None = None,
     ) -> Float[Tensor, "n 3"]:
         """RGB in [0, 1] at world points seen along unit ``directions``. Differentiable. A field
-        that ``reads_normals`` also reads the cosine of ``g``'s normal with the view, for which it
-        needs the density features ``q_density`` of the points."""
+        with a level axis also reads the cosine of its level field's normal with the view, for
+        which it needs the density features ``q_density`` of the points."""
         coords = self.to_grid(points)
         spatial = self.appearance_grid.sample(coords)
         sh = encode_sh(directions, self.cfg.sh_degree)
@@ -210,17 +198,12 @@ class VisNerfField(nn.Module):
         parts = [feats, q_appearance, sh]
         if self.facing is not None:
             parts.append(facing_cosines(self.facing(feats), directions))
-        cosines = None
-        if self.reads_normals:
+        if self.levels is not None:
             if q_density is None:
-                raise ValueError("a field that reads its normals needs the density features for its colour")
-            cosines = self.normal_cosines(points, directions, q_density)  # [n, 1]
-            parts.append(cosines.to(feats.dtype))
+                raise ValueError("a field with a level axis needs the density features for its colour")
+            parts.append(self.level_normal_cosines(points, directions, q_density).to(feats.dtype))
         raw = self.color_decoder(torch.cat(parts, dim=-1))
-        rgb = torch.sigmoid(raw)
-        if self.headlight is not None and cosines is not None:
-            rgb = add_headlight(rgb, self.headlight(cosines))
-        return rgb
+        return torch.sigmoid(raw)
 
     @torch.no_grad()
     def set_occupancy(self, grid: Tensor | None) -> None:

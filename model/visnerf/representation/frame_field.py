@@ -37,7 +37,6 @@ from visnerf.representation.decoders import Decoder, encode_position_into, encod
 from visnerf.representation.field import (
     N_PROBES,
     VisNerfField,
-    add_headlight,
     facing_cosines,
     level_cosines,
     probe_points,
@@ -170,7 +169,7 @@ class FrameField:
         dd, cd = field.density_decoder.out, field.color_decoder.out
         self._density_out = ((dd.weight.detach() * sharpness).to(dtype), (dd.bias.detach() * sharpness).to(dtype))
         self._color_out = (cd.weight.detach().to(dtype), cd.bias.detach().to(dtype))
-        self._level_step = cfg.level_normal_step * field.voxel_size() if field.reads_normals else None
+        self._level_step = None if field.levels is None else cfg.level_normal_step * field.voxel_size()
         self._with_directions = self._facing is not None or self._level_step is not None
 
     def lookup(self, points: Float[Tensor, "m 3"]) -> SampleTaps:
@@ -231,7 +230,7 @@ class FrameField:
         return out
 
     def _level_cosines(self, points: Float[Tensor, "m 3"], directions: Float[Tensor, "m 3"]) -> Float[Tensor, "m 1"]:
-        """``level_cosines`` of the level field at ``points``, as ``VisNerfField.normal_cosines``."""
+        """``level_cosines`` of the level field at ``points``, as ``VisNerfField.level_normal_cosines``."""
         assert self._level_step is not None
         probes = self.lookup(probe_points(points, self._level_step))  # N_PROBES rows a point
         raw = torch.empty(len(probes), dtype=points.dtype, device=points.device)
@@ -247,7 +246,6 @@ class FrameField:
         x = torch.empty(padded_rows(m), self.color_layer.weight.shape[1], dtype=self.dtype, device=ray_terms.device)
         x[m:].zero_()
         self.appearance_tables.features_into(taps, x[:m])  # [m, 3c]
-        normal_cosines = None  # [m, 1] float32, of the normal of ``g`` with the view
         if not self._with_directions:
             x[:m, n_spatial:] = ray_terms
         else:
@@ -263,11 +261,7 @@ class FrameField:
                 x[:m, column:column + cosines.shape[1]] = cosines.to(self.dtype)
                 column += cosines.shape[1]
             if self._level_step is not None:
-                normal_cosines = self._level_cosines(samples.points, directions)
-                x[:m, column:column + 1] = normal_cosines.to(self.dtype)
+                x[:m, column:column + 1] = self._level_cosines(samples.points, directions).to(self.dtype)
         hidden = linear_relu(x, self.color_layer.weight, self.color_layer.bias)  # [padded, h]
         raw = F.linear(hidden, *self._color_out)[:m]
-        rgb = torch.sigmoid(raw.float())
-        if self.field.headlight is not None and normal_cosines is not None:
-            rgb = add_headlight(rgb, self.field.headlight(normal_cosines))
-        return rgb
+        return torch.sigmoid(raw.float())

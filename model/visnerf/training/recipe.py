@@ -25,6 +25,8 @@ the images and cameras alone, each choice with the reason ``visnerf info`` shows
   normal and the view, too sharply for spherical harmonics of degree 3; the field learns
   ``FACING_VECTORS`` unit vectors per point and its colour decoder reads their cosines with the
   view. A volume rendering without lighting looks the same from every side and gets none;
+- total variation on the density factors (``TrainConfig.tv_weight_density``) for opaque scenes:
+  the surface between the views, and between training isovalues, stays smooth;
 - a level-set axis (``FieldConfig.level_set_axis``) for opaque scenes whose settings' visual hulls
   are nested along an axis (``data.nesting``): an isovalue sweep. Its surfaces are then the level
   sets of one learnt field, and a value between two training values gives the surface between
@@ -86,12 +88,13 @@ NEST_TOLERANCE = 0.02
 """Largest share of one setting's visual hull outside its neighbour's for an axis to count as nested
 (``data.nesting``, hulls of ``carve_resolution`` cells): 0.00 % on tangle_iso (whose hulls change by
 up to 64 % between isovalues), 8.9 % on plume_time's timesteps."""
-LEVEL_TV_DENSITY = 0.1
-"""``TrainConfig.tv_weight_density`` with a level axis. The images pin the level field ``g`` only
-at the training surfaces; between them it is free within the two levels, and the surfaces
-between training values are its level sets there. Total variation on the density factors makes
-it vary smoothly across that band. tangle_iso, 10 minutes on one thread, 181-frame test path:
-21.98 dB at 0, 22.55 at 0.01, 24.98 at 0.1 (bench/results/nyx_history.md)."""
+SURFACE_TV_DENSITY = 0.1
+"""``TrainConfig.tv_weight_density`` of opaque scenes: total variation on the density factors. A
+level axis's field ``g`` is pinned by the images only at the training surfaces, and the surfaces
+between training values are its level sets there: tangle_iso, 10 minutes on one thread, 181-frame
+test path, 21.98 dB at 0, 22.55 at 0.01, 24.98 at 0.1. A static surface seen from 39 views fits
+them to 48 dB and new views to 29: tangle_static 29.58 against 28.78 dB at 0 (normals of ``g``
+8.5 against 12.7 degrees off the true surface's, median); bench/results/nyx_history.md."""
 BORDER_PIXELS = 1
 """Width of the image border in which a foreground pixel means content cut by the frame."""
 
@@ -287,12 +290,18 @@ def choose_recipe(scene: SceneData, base: TrainConfig, base_field: FieldConfig,
         else:
             reason = f"opaque surfaces, but no axis's visual hulls are nested within {100 * NEST_TOLERANCE:g} % ({measured})"
         choices.append(Choice("level_set_axis", axis, reason))
-        if axis >= 0 and "tv_weight_density" not in fixed:
-            values["tv_weight_density"] = LEVEL_TV_DENSITY
-            choices.append(Choice("tv_weight_density", LEVEL_TV_DENSITY,
-                                  "a level axis: the images pin its field only at the training surfaces, and the "
-                                  "surfaces between training values are level sets of what lies between them, which "
-                                  "total variation keeps smooth"))
+
+    if "tv_weight_density" in fixed:
+        choices.append(Choice("tv_weight_density", base.tv_weight_density, "set by the user"))
+    elif traits.opaque:
+        values["tv_weight_density"] = SURFACE_TV_DENSITY
+        choices.append(Choice("tv_weight_density", SURFACE_TV_DENSITY,
+                              "opaque surfaces: the images pin the density only where a surface is seen, and a few "
+                              "views fit it with a rough surface (and, with a level axis, leave the surfaces "
+                              "between training values free); total variation keeps it smooth"))
+    else:
+        choices.append(Choice("tv_weight_density", base.tv_weight_density,
+                              "translucent content: its density is seen along every ray through it"))
 
     if traits.n_params == 0:
         choices.append(Choice("parameter_axes", 0, "one setting in the data (K = 0): no parameter factors"))

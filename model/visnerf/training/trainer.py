@@ -110,8 +110,6 @@ def make_optimizer(field_: VisNerfField, cfg: TrainConfig, scale: float) -> torc
     networks = [*field_.density_decoder.parameters(), *field_.color_decoder.parameters()]
     if field_.facing is not None:
         networks += list(field_.facing.parameters())
-    if field_.headlight is not None:
-        networks += list(field_.headlight.parameters())
     return torch.optim.Adam(
         [{"params": factors, "lr": cfg.lr_factors * scale, "base_lr": cfg.lr_factors},
          {"params": networks, "lr": cfg.lr_networks * scale, "base_lr": cfg.lr_networks}],

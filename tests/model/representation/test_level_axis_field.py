@@ -20,25 +20,6 @@ def field():
     return f.eval()
 
 
-@pytest.fixture(params=["level-axis", "surface-normals"])
-def normal_field(request):
-    """A field whose colour reads the normal of ``g``: through its level axis, or with parameter
-    factors on every axis and ``FieldConfig.surface_normals``."""
-    options = {"level_set_axis": 0} if request.param == "level-axis" else {"surface_normals": True}
-    f, _ = make_tiny_field(AXES, seed=5, resolution=10, **options)
-    return f.eval()
-
-
-def test_the_normal_cosine_is_one_more_colour_input_only_where_it_is_asked_for():
-    def colour_inputs(**options):
-        return make_tiny_field(AXES, seed=5, resolution=10, **options)[0].color_decoder.hidden.in_features
-
-    plain = colour_inputs()
-    assert colour_inputs(surface_normals=True) == plain + 1
-    assert colour_inputs(level_set_axis=0) == plain + 1
-    assert colour_inputs(level_set_axis=0, surface_normals=True) == plain + 1
-
-
 def test_the_level_axis_has_no_density_factors_and_keeps_its_appearance_factors(field):
     assert len(field.density_params.tables) == 1 and field.density_params.tables[0].shape[0] == 3
     assert [t.shape[0] for t in field.appearance_params.tables] == [4, 3]
@@ -113,19 +94,18 @@ def test_level_cosines_of_a_linear_field_are_its_normal_against_the_view():
                           atol=1e-5)
 
 
-def test_normal_cosines_follow_the_derivative_of_the_level_field(normal_field):
+def test_level_normal_cosines_follow_the_derivative_of_the_level_field(field):
     """Against the derivative of ``g`` taken independently: a float64 copy of the field, central
     differences a millionth of a world unit apart, one axis at a time (the field's own probes are
     float32, here a thousandth of a voxel apart)."""
     import copy
 
-    field = normal_field
     g = torch.Generator().manual_seed(3)
     points = (torch.rand(64, 3, generator=g) - 0.5) * 0.8
     dirs = F.normalize(torch.randn(64, 3, generator=g), dim=-1)
     params = torch.tensor([[0.1, 0.5]]).expand(64, 2)
     exact = copy.deepcopy(field).double()
-    q = exact.split_density_features(exact.param_features(params.double())[0])[0]
+    q = exact.param_features(params.double())[0][:, :-1]
 
     def g_at(x):
         coords = exact.to_grid(x)
@@ -137,13 +117,12 @@ def test_normal_cosines_follow_the_derivative_of_the_level_field(normal_field):
     expected = ((grad * dirs.double()).sum(-1, keepdim=True) / grad.norm(dim=-1, keepdim=True)).float()
     fine = copy.deepcopy(field)
     fine.cfg = dataclasses.replace(field.cfg, level_normal_step=1e-3)
-    got = fine.normal_cosines(points, dirs, field.param_features(params)[0])
+    got = fine.level_normal_cosines(points, dirs, field.param_features(params)[0])
     assert torch.allclose(got, expected, atol=2e-2)
     assert float((got - expected).abs().median()) < 2e-3
 
 
-def test_colour_of_a_level_axis_field_needs_its_density_features(normal_field):
-    field = normal_field
+def test_colour_of_a_level_axis_field_needs_its_density_features(field):
     points, dirs = torch.zeros(3, 3), F.normalize(torch.ones(3, 3), dim=-1)
     q_d, q_a = field.param_features(torch.zeros(3, 2))
     with pytest.raises(ValueError, match="density features"):

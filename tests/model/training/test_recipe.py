@@ -11,7 +11,7 @@ from visnerf.config import FieldConfig, TrainConfig
 from visnerf.training.recipe import (
     CARVE_FRAMED_FRACTION,
     FACING_VECTORS,
-    LEVEL_TV_DENSITY,
+    SURFACE_TV_DENSITY,
     VOXEL_PER_PIXEL,
     choose_recipe,
     content_box,
@@ -44,6 +44,10 @@ def test_opaque_surfaces_get_a_surface_density_and_volumes_do_not(surface_scene,
     assert surface.field.facing_vectors == FACING_VECTORS > 0 and volume.field.facing_vectors == 0
     assert "opaque" in next(c.reason for c in surface.choices if c.name == "facing_vectors")
     assert "translucent" in next(c.reason for c in volume.choices if c.name == "facing_vectors")
+    # Only opaque content gets total variation on its density.
+    assert surface.train.tv_weight_density == SURFACE_TV_DENSITY > volume.train.tv_weight_density == 0.0
+    assert "opaque" in next(c.reason for c in surface.choices if c.name == "tv_weight_density")
+    assert "translucent" in next(c.reason for c in volume.choices if c.name == "tv_weight_density")
     # Only opaque content drops occluded samples from a training step.
     assert surface.train.stop_eps == TrainConfig().stop_eps > 0 and "stop_eps" not in choices_of(surface)
     assert volume.train.stop_eps == 0.0 and "translucent" in next(c.reason for c in volume.choices
@@ -91,11 +95,13 @@ def test_parameter_factors_are_left_out_only_without_parameters(surface_scene, v
 
 
 def test_settings_the_user_gave_are_kept(surface_scene):
-    base = TrainConfig(resolution_final=40, carve_min_seen_fraction=0.1)
+    base = TrainConfig(resolution_final=40, carve_min_seen_fraction=0.1, tv_weight_density=0.0)
     field = FieldConfig(density_scale=3.0, facing_vectors=0)
     recipe = choose_recipe(surface_scene, base, field,
-                           frozenset({"resolution_final", "carve_min_seen_fraction", "density_scale", "facing_vectors"}))
+                           frozenset({"resolution_final", "carve_min_seen_fraction", "density_scale", "facing_vectors",
+                                      "tv_weight_density"}))
     assert recipe.train.resolution_final == 40 and recipe.train.carve_min_seen_fraction == 0.1
+    assert recipe.train.tv_weight_density == 0.0
     assert recipe.field.density_scale == 3.0 and recipe.field.facing_vectors == 0
     assert all(c.reason == "set by the user" for c in recipe.choices if c.name != "parameter_axes")
 
@@ -116,19 +122,18 @@ def test_an_isovalue_sweep_gets_a_level_axis_and_other_scenes_do_not(iso_sweep_s
     assert iso.field.level_set_axis == 0
     reason = next(c.reason for c in iso.choices if c.name == "level_set_axis")
     assert "nested along 'isovalue'" in reason and "shrink" in reason
-    assert iso.train.tv_weight_density == LEVEL_TV_DENSITY > TrainConfig().tv_weight_density
+    assert iso.train.tv_weight_density == SURFACE_TV_DENSITY > TrainConfig().tv_weight_density
     # The same opaque images with their isovalues shuffled: the hulls jump in and out, no level axis.
     values = sorted(set(iso_sweep_scene.params[:, 0].tolist()))
     shuffled = dict(zip(values, [values[i] for i in (0, 4, 1, 3, 2)], strict=True))
     params = torch.tensor([[shuffled[v]] for v in iso_sweep_scene.params[:, 0].tolist()])
     mixed = choose_recipe(dataclasses.replace(iso_sweep_scene, params=params), TrainConfig(), FieldConfig())
-    assert mixed.field.level_set_axis == -1 and mixed.train.tv_weight_density == TrainConfig().tv_weight_density
+    assert mixed.field.level_set_axis == -1 and mixed.train.tv_weight_density == SURFACE_TV_DENSITY
     assert "no axis" in next(c.reason for c in mixed.choices if c.name == "level_set_axis")
     # Translucent content (whose hulls may nest as a transfer function fades it) and K = 0: none.
     for other in (volume_scene, surface_scene):
         recipe = choose_recipe(other, TrainConfig(), FieldConfig())
         assert recipe.field.level_set_axis == -1 and "level_set_axis" not in choices_of(recipe)
-        assert recipe.train.tv_weight_density == TrainConfig().tv_weight_density
 
 
 def test_a_level_axis_the_user_gave_is_kept(iso_sweep_scene):
