@@ -94,7 +94,7 @@ level axis's field ``g`` is pinned by the images only at the training surfaces, 
 between training values are its level sets there: tangle_iso, 10 minutes on one thread, 181-frame
 test path, 21.98 dB at 0, 22.55 at 0.01, 24.98 at 0.1. A static surface seen from 39 views fits
 them to 48 dB and new views to 29: tangle_static 29.58 against 28.78 dB at 0 (normals of ``g``
-8.5 against 12.7 degrees off the true surface's, median); bench/results/nyx_history.md."""
+8.5 against 12.8 degrees off the true surface's, median); bench/results/nyx_history.md."""
 BORDER_PIXELS = 1
 """Width of the image border in which a foreground pixel means content cut by the frame."""
 
