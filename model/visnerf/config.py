@@ -147,10 +147,6 @@ class FieldConfig:
     the density branch takes no parameter factors along it and subtracts a learnt level of the
     value instead, so every isovalue's surface is a level set of one field and values between the
     training values give the surfaces between. -1: none (every axis scales the features)."""
-    linear_density: bool = False
-    """The density decoder is one linear layer, no hidden one: ``g`` is then a weighted sum of the
-    density grid's VM features (TensoRF's density), as smooth as its factors are, and a level
-    axis's surfaces between training values are level sets of a smooth field."""
     level_normal_step: float = 1.0
     """Distance in voxels along each axis of the probes whose values of the level field give its
     normal (``field.level_normal_cosines``; only with a level axis). tangle_iso, 10 minutes on one

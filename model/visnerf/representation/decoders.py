@@ -91,8 +91,7 @@ def encode_position_into(points: Float[Tensor, "n 3"], n_freqs: int, out: Float[
 
 
 class Decoder(nn.Module):
-    """One hidden layer MLP: ``in -> hidden -> out`` with ReLU; with ``n_hidden`` 0, one linear
-    layer ``in -> out`` (``hidden`` is None).
+    """One hidden layer MLP: ``in -> hidden -> out`` with ReLU.
 
     With ``bf16 = True`` the two matrix products run in bfloat16 (AMX / tensor cores) while the
     weights, the input and the returned output stay float32; everything downstream (softplus,
@@ -101,12 +100,9 @@ class Decoder(nn.Module):
 
     def __init__(self, n_in: int, n_hidden: int, n_out: int) -> None:
         super().__init__()
-        self.hidden: nn.Linear | None = nn.Linear(n_in, n_hidden) if n_hidden > 0 else None
-        self.out = nn.Linear(n_hidden if n_hidden > 0 else n_in, n_out)
+        self.hidden = nn.Linear(n_in, n_hidden)
+        self.out = nn.Linear(n_hidden, n_out)
         self.bf16 = False
-
-    def _layers(self, x: Float[Tensor, "n i"]) -> Float[Tensor, "n o"]:
-        return self.out(x if self.hidden is None else torch.relu(self.hidden(x)))
 
     def forward(self, x: Float[Tensor, "n i"]) -> Float[Tensor, "n o"]:
         if self.bf16 and x.device.type in ("cpu", "cuda"):
@@ -114,5 +110,5 @@ class Decoder(nn.Module):
             if x.device.type == "cpu":  # a few shapes for oneDNN's bf16 kernels (``padded_rows``)
                 x = F.pad(x, (0, 0, 0, padded_rows(n) - n))
             with torch.autocast(x.device.type, dtype=torch.bfloat16):
-                return self._layers(x)[:n].float()
-        return self._layers(x)
+                return self.out(torch.relu(self.hidden(x)))[:n].float()
+        return self.out(torch.relu(self.hidden(x)))

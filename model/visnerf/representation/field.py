@@ -93,7 +93,7 @@ class VisNerfField(nn.Module):
         pc = cfg.n_param_components
         self.density_decoder = Decoder(
             3 * cfg.n_density_components + pc + positional_encoding_dim(cfg.pos_encoding_freqs),
-            0 if cfg.linear_density else cfg.hidden_width,
+            cfg.hidden_width,
             1,
         )
         self.color_decoder = Decoder(

@@ -62,14 +62,12 @@ class FoldedLayer:
 
 
 def fold_first_layer(decoder: Decoder, q: Float[Tensor, " c"], n_components: int, dtype: torch.dtype) -> FoldedLayer:
-    """Fold parameter features ``q`` into ``decoder.hidden`` (``decoder.out`` for a decoder with no
-    hidden layer).
+    """Fold parameter features ``q`` into ``decoder.hidden``.
 
     The layer's input is ``[spatial * q_rep, q, rest]`` with ``spatial`` the three VM modes of
     ``n_components`` channels each, concatenated; the folded layer's input is ``[spatial, rest]``.
     """
-    first = decoder.out if decoder.hidden is None else decoder.hidden
-    w, b = first.weight.detach(), first.bias.detach()  # [h, n_in], [h]
+    w, b = decoder.hidden.weight.detach(), decoder.hidden.bias.detach()  # [h, n_in], [h]
     c = q.shape[0]
     n_spatial = 3 * n_components
     scaled = w[:, :n_spatial] * q.repeat(n_spatial // c)[None]  # [h, f]
@@ -169,13 +167,7 @@ class FrameField:
             scaled = field.facing.weight.detach() * q_appearance[0].repeat(n_spatial // c)[None]  # [3m, f]
             self._facing = scaled.to(dtype).contiguous()
         dd, cd = field.density_decoder.out, field.color_decoder.out
-        self._density_out: tuple[Tensor, Tensor] | None = None  # None: the folded layer is the output layer
-        if field.density_decoder.hidden is None:
-            exact = fold_first_layer(field.density_decoder, q_factors[0], cfg.n_density_components, torch.float32)
-            self.density_layer = FoldedLayer((exact.weight * sharpness).to(dtype).contiguous(),
-                                             (exact.bias * sharpness).to(dtype))
-        else:
-            self._density_out = ((dd.weight.detach() * sharpness).to(dtype), (dd.bias.detach() * sharpness).to(dtype))
+        self._density_out = ((dd.weight.detach() * sharpness).to(dtype), (dd.bias.detach() * sharpness).to(dtype))
         self._color_out = (cd.weight.detach().to(dtype), cd.bias.detach().to(dtype))
         self._level_step = None if field.levels is None else cfg.level_normal_step * field.voxel_size()
         self._with_directions = self._facing is not None or self._level_step is not None
@@ -211,8 +203,6 @@ class FrameField:
         x[m:].zero_()
         self.density_tables.features_into(taps, x[:m])
         encode_position_into(coords, cfg.pos_encoding_freqs, x[:m, n_spatial:])
-        if self._density_out is None:  # a linear density decoder
-            return F.linear(x, self.density_layer.weight, self.density_layer.bias)[:m, 0].to(coords.dtype)
         hidden = linear_relu(x, self.density_layer.weight, self.density_layer.bias)  # [padded, h]
         return F.linear(hidden, *self._density_out)[:m, 0].to(coords.dtype)
 

@@ -128,39 +128,3 @@ def test_colour_of_a_level_axis_field_needs_its_density_features(field):
     with pytest.raises(ValueError, match="density features"):
         field.color(points, dirs, q_a)
     assert field.color(points, dirs, q_a, q_d).shape == (3, 3)
-
-
-def test_a_linear_density_decoder_is_a_weighted_sum_of_the_features():
-    """``FieldConfig.linear_density``: ``g = w . [features * q, q, encoding] + b``, no hidden layer, so
-    ``g`` is linear in the VM features (its level sets as smooth as the factors)."""
-    from visnerf.representation.decoders import encode_position
-    from visnerf.representation.field import modulate
-
-    f, _ = make_tiny_field(AXES, seed=5, resolution=10, level_set_axis=0, linear_density=True)
-    assert f.density_decoder.hidden is None and f.density_decoder.out.weight.shape[0] == 1
-    g = torch.Generator().manual_seed(1)
-    coords = torch.rand(40, 3, generator=g) * 2 - 1
-    q = f.split_density_features(f.param_features(torch.rand(40, 2, generator=g))[0])[0]
-    spatial = f.density_grid.sample(coords)
-    with torch.no_grad():
-        w, b = f.density_decoder.out.weight[0], f.density_decoder.out.bias[0]
-        x = torch.cat([modulate(spatial, q), q, encode_position(coords, f.cfg.pos_encoding_freqs)], dim=-1)
-        assert torch.allclose(f.raw_density(coords, spatial, q), x @ w + b, atol=1e-5)
-        # Linear in the features: doubling them doubles their part of g.
-        twice = f.raw_density(coords, 2 * spatial, q) - f.raw_density(coords, spatial, q)
-        assert torch.allclose(twice, modulate(spatial, q) @ w[: spatial.shape[1]], atol=1e-5)
-
-
-
-def test_a_linear_density_decoder_round_trips_through_a_checkpoint(tmp_path):
-    from visnerf.checkpoint import load_checkpoint
-    from visnerf.testing import make_tiny_checkpoint
-
-    path = make_tiny_checkpoint(tmp_path / "linear.safetensors", AXES, kind="ir", level_set_axis=0, linear_density=True)
-    loaded, meta = load_checkpoint(path, torch.device("cpu"))
-    assert meta.field.linear_density and loaded.density_decoder.hidden is None
-    original, _ = make_tiny_field(AXES, seed=0, level_set_axis=0, linear_density=True)
-    points = torch.rand(30, 3, generator=torch.Generator().manual_seed(2)) - 0.5
-    q = original.param_features(torch.full((30, 2), 0.3))[0]
-    with torch.no_grad():
-        assert torch.allclose(loaded.density(points, q), original.density(points, q), rtol=1e-2, atol=1e-3)
