@@ -25,8 +25,9 @@ the images and cameras alone, each choice with the reason ``visnerf info`` shows
   normal and the view, too sharply for spherical harmonics of degree 3; the field learns
   ``FACING_VECTORS`` unit vectors per point and its colour decoder reads their cosines with the
   view. A volume rendering without lighting looks the same from every side and gets none;
-- total variation on the density factors (``TrainConfig.tv_weight_density``) for opaque scenes:
-  the surface between the views, and between training isovalues, stays smooth;
+- total variation on the density and appearance factors (``TrainConfig.tv_weight_density``,
+  ``tv_weight_appearance``) for opaque scenes: the surface and its colours between the views, and
+  between training isovalues, stay smooth;
 - a level-set axis (``FieldConfig.level_set_axis``) for opaque scenes whose settings' visual hulls
   are nested along an axis (``data.nesting``): an isovalue sweep. Its surfaces are then the level
   sets of one learnt field, and a value between two training values gives the surface between
@@ -82,7 +83,8 @@ Nyx (32x32 to 256x256 renders)."""
 CHOSEN_FIELDS = frozenset({("TrainConfig", "resolution_final"), ("TrainConfig", "carve_min_seen_fraction"),
                            ("FieldConfig", "density_scale"), ("FieldConfig", "density_shift"),
                            ("TrainConfig", "stop_eps"), ("FieldConfig", "facing_vectors"),
-                           ("FieldConfig", "level_set_axis"), ("TrainConfig", "tv_weight_density")})
+                           ("FieldConfig", "level_set_axis"), ("TrainConfig", "tv_weight_density"),
+                           ("TrainConfig", "tv_weight_appearance")})
 """The configuration fields ``choose_recipe`` sets from the data unless the user gives them."""
 NEST_TOLERANCE = 0.02
 """Largest share of one setting's visual hull outside its neighbour's for an axis to count as nested
@@ -95,6 +97,12 @@ between training values are its level sets there: tangle_iso, 10 minutes on one 
 test path, 21.98 dB at 0, 22.55 at 0.01, 24.98 at 0.1. A static surface seen from 39 views fits
 them to 48 dB and new views to 29: tangle_static 29.58 against 28.78 dB at 0 (normals of ``g``
 8.5 against 12.8 degrees off the true surface's, median); bench/results/nyx_history.md."""
+SURFACE_TV_APPEARANCE = 0.1
+"""``TrainConfig.tv_weight_appearance`` of opaque scenes: total variation on the appearance factors.
+A point of a surface seen by a few views is coloured by features fitted to those views alone; kept
+smooth, its neighbours' fits carry over. tangle_static, 10 minutes on one thread, 181-frame test
+path: 30.19 dB / 0.973 with 0.1 on both the density and the appearance against 29.58 / 0.964 with
+0.1 on the density alone (bench/results/nyx_history.md)."""
 BORDER_PIXELS = 1
 """Width of the image border in which a foreground pixel means content cut by the frame."""
 
@@ -291,17 +299,21 @@ def choose_recipe(scene: SceneData, base: TrainConfig, base_field: FieldConfig,
             reason = f"opaque surfaces, but no axis's visual hulls are nested within {100 * NEST_TOLERANCE:g} % ({measured})"
         choices.append(Choice("level_set_axis", axis, reason))
 
-    if "tv_weight_density" in fixed:
-        choices.append(Choice("tv_weight_density", base.tv_weight_density, "set by the user"))
-    elif traits.opaque:
-        values["tv_weight_density"] = SURFACE_TV_DENSITY
-        choices.append(Choice("tv_weight_density", SURFACE_TV_DENSITY,
-                              "opaque surfaces: the images pin the density only where a surface is seen, and a few "
-                              "views fit it with a rough surface (and, with a level axis, leave the surfaces "
-                              "between training values free); total variation keeps it smooth"))
-    else:
-        choices.append(Choice("tv_weight_density", base.tv_weight_density,
-                              "translucent content: its density is seen along every ray through it"))
+    for name, weight in (("tv_weight_density", SURFACE_TV_DENSITY), ("tv_weight_appearance", SURFACE_TV_APPEARANCE)):
+        factors = name.removeprefix("tv_weight_")
+        if name in fixed:
+            choices.append(Choice(name, getattr(base, name), "set by the user"))
+        elif traits.opaque:
+            values[name] = weight
+            reason = ("opaque surfaces: the images pin the density only where a surface is seen, and a few views fit "
+                      "it with a rough surface (and, with a level axis, leave the surfaces between training values "
+                      "free); total variation keeps it smooth") if factors == "density" else (
+                      "opaque surfaces: each surface point is seen by a few views, whose fit total variation on the "
+                      "appearance factors carries over to its neighbours")
+            choices.append(Choice(name, weight, reason))
+        else:
+            choices.append(Choice(name, getattr(base, name),
+                                  f"translucent content: its {factors} is seen along every ray through it"))
 
     if traits.n_params == 0:
         choices.append(Choice("parameter_axes", 0, "one setting in the data (K = 0): no parameter factors"))

@@ -11,6 +11,7 @@ from visnerf.config import FieldConfig, TrainConfig
 from visnerf.training.recipe import (
     CARVE_FRAMED_FRACTION,
     FACING_VECTORS,
+    SURFACE_TV_APPEARANCE,
     SURFACE_TV_DENSITY,
     VOXEL_PER_PIXEL,
     choose_recipe,
@@ -44,10 +45,13 @@ def test_opaque_surfaces_get_a_surface_density_and_volumes_do_not(surface_scene,
     assert surface.field.facing_vectors == FACING_VECTORS > 0 and volume.field.facing_vectors == 0
     assert "opaque" in next(c.reason for c in surface.choices if c.name == "facing_vectors")
     assert "translucent" in next(c.reason for c in volume.choices if c.name == "facing_vectors")
-    # Only opaque content gets total variation on its density.
+    # Only opaque content gets total variation on its density and appearance.
     assert surface.train.tv_weight_density == SURFACE_TV_DENSITY > volume.train.tv_weight_density == 0.0
-    assert "opaque" in next(c.reason for c in surface.choices if c.name == "tv_weight_density")
-    assert "translucent" in next(c.reason for c in volume.choices if c.name == "tv_weight_density")
+    assert surface.train.tv_weight_appearance == SURFACE_TV_APPEARANCE > 0.0
+    assert volume.train.tv_weight_appearance == TrainConfig().tv_weight_appearance
+    for name in ("tv_weight_density", "tv_weight_appearance"):
+        assert "opaque" in next(c.reason for c in surface.choices if c.name == name)
+        assert "translucent" in next(c.reason for c in volume.choices if c.name == name)
     # Only opaque content drops occluded samples from a training step.
     assert surface.train.stop_eps == TrainConfig().stop_eps > 0 and "stop_eps" not in choices_of(surface)
     assert volume.train.stop_eps == 0.0 and "translucent" in next(c.reason for c in volume.choices
@@ -95,13 +99,13 @@ def test_parameter_factors_are_left_out_only_without_parameters(surface_scene, v
 
 
 def test_settings_the_user_gave_are_kept(surface_scene):
-    base = TrainConfig(resolution_final=40, carve_min_seen_fraction=0.1, tv_weight_density=0.0)
+    base = TrainConfig(resolution_final=40, carve_min_seen_fraction=0.1, tv_weight_density=0.0, tv_weight_appearance=0.0)
     field = FieldConfig(density_scale=3.0, facing_vectors=0)
     recipe = choose_recipe(surface_scene, base, field,
                            frozenset({"resolution_final", "carve_min_seen_fraction", "density_scale", "facing_vectors",
-                                      "tv_weight_density"}))
+                                      "tv_weight_density", "tv_weight_appearance"}))
     assert recipe.train.resolution_final == 40 and recipe.train.carve_min_seen_fraction == 0.1
-    assert recipe.train.tv_weight_density == 0.0
+    assert recipe.train.tv_weight_density == recipe.train.tv_weight_appearance == 0.0
     assert recipe.field.density_scale == 3.0 and recipe.field.facing_vectors == 0
     assert all(c.reason == "set by the user" for c in recipe.choices if c.name != "parameter_axes")
 
