@@ -299,17 +299,20 @@ def choose_recipe(scene: SceneData, base: TrainConfig, base_field: FieldConfig,
             reason = f"opaque surfaces, but no axis's visual hulls are nested within {100 * NEST_TOLERANCE:g} % ({measured})"
         choices.append(Choice("level_set_axis", axis, reason))
 
-    for name, weight in (("tv_weight_density", SURFACE_TV_DENSITY), ("tv_weight_appearance", SURFACE_TV_APPEARANCE)):
-        factors = name.removeprefix("tv_weight_")
+    smoothing = (
+        ("tv_weight_density", SURFACE_TV_DENSITY, "density",
+         "opaque surfaces: the images pin the density only where a surface is seen, and a few views fit it with a "
+         "rough surface (and, with a level axis, leave the surfaces between training values free); total "
+         "variation keeps it smooth"),
+        ("tv_weight_appearance", SURFACE_TV_APPEARANCE, "appearance",
+         "opaque surfaces: each surface point is seen by a few views, whose fit total variation on the appearance "
+         "factors carries over to its neighbours"),
+    )
+    for name, weight, factors, reason in smoothing:
         if name in fixed:
             choices.append(Choice(name, getattr(base, name), "set by the user"))
         elif traits.opaque:
             values[name] = weight
-            reason = ("opaque surfaces: the images pin the density only where a surface is seen, and a few views fit "
-                      "it with a rough surface (and, with a level axis, leave the surfaces between training values "
-                      "free); total variation keeps it smooth") if factors == "density" else (
-                      "opaque surfaces: each surface point is seen by a few views, whose fit total variation on the "
-                      "appearance factors carries over to its neighbours")
             choices.append(Choice(name, weight, reason))
         else:
             choices.append(Choice(name, getattr(base, name),
