@@ -369,6 +369,19 @@ class TrainConfig:
     tv_weight_appearance: float = 0.0
     """Total variation on the appearance factors: none, the fit is limited by capacity, not noise
     (Nyx, 35 minutes side by side: 26.46 against 26.36 dB with 0.01)."""
+    level_curvature_weight: float = 1.0
+    """Weight of the curvature prior of a level axis's field ``g`` (``regularizers.level_curvature``:
+    its squared second difference along random directions at random points of the box, over the
+    squared span of the levels); nothing without a level axis. The images pin ``g`` only at the
+    training surfaces, and the surfaces between training values are its level sets; a ``g`` whose
+    slope changes smoothly carries the slope across each band, where a merely smooth ``g`` rises
+    evenly between two surfaces and keeps a shrinking blob's arms too long. tangle_iso, 12 minutes,
+    one thread each, three runs at a time, 181-frame test path: 23.79 dB at 0, 24.33 at 0.1, 25.98 at
+    1, 25.40 at 3, 22.81 at 10; the top band (isovalues 0.7 to 0.85) 21.13 dB at 0 and 26.43 at 1
+    (bench/results/nyx_history.md)."""
+    level_curvature_points: int = 1024
+    """Random points a step for ``level_curvature_weight``: 1024 made 883 steps and 26.24 dB in the
+    runs above, 4096 784 steps and 25.98 dB, none 1082 steps."""
     tv_weight_params: float = 0.01
     """Total variation on the parameter vectors (smoothness along each parameter axis)."""
     stop_eps: float = 1e-4
@@ -428,12 +441,14 @@ class TrainConfig:
         _check_at_least(self, 1, "trim_every", "occupancy_max_settings", "validate_max_images")
         _check_at_least(self, 2, "resolution_init", "resolution_final", "occupancy_resolution", "carve_resolution")
         _check_at_least(self, 0, "occupancy_min_iterations", "l1_switch_iteration")
+        _check_at_least(self, 1, "level_curvature_points")
         _check_positive(self, "lr_factors", "lr_networks", "validate_every_s")
         _require(0.0 < self.lr_decay_ratio <= 1.0, f"lr_decay_ratio must be in (0, 1], got {self.lr_decay_ratio!r}")
         _require(len(self.betas) == 2 and all(0.0 <= b < 1.0 for b in self.betas),
                  f"betas must be two numbers in [0, 1), got {self.betas!r}")
         _check_non_negative(self, "checkpoint_every_s", "l1_weight_initial", "l1_weight_rest", "param_l1_weight",
-                            "tv_weight_density", "tv_weight_appearance", "tv_weight_params")
+                            "tv_weight_density", "tv_weight_appearance", "tv_weight_params",
+                            "level_curvature_weight")
         _check_below_one(self, "stop_eps")
         _require(0.0 <= self.carve_min_seen_fraction <= 1.0,
                  f"carve_min_seen_fraction must be in [0, 1], got {self.carve_min_seen_fraction!r}")

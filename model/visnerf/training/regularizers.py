@@ -3,6 +3,7 @@
 from dataclasses import dataclass
 
 import torch
+from jaxtyping import Float
 from torch import Tensor
 
 from visnerf.representation.field import VisNerfField
@@ -98,3 +99,33 @@ def backward_regularization(field: VisNerfField, w: RegularizerWeights) -> dict[
         sum(rest.values()).backward()
         values.update({k: float(v.detach()) for k, v in rest.items()})
     return values
+
+
+LEVEL_SPAN_EPS = 1e-6
+"""Added to the squared span of the levels before dividing by it (a guarded division)."""
+
+
+def level_curvature(
+    field: VisNerfField, params: Float[Tensor, "n k"], generator: torch.Generator, step_voxels: float = 2.0
+) -> Tensor:
+    """Mean squared second difference of the level field ``g`` at ``n`` random points of the box
+    along random unit directions, ``h = step_voxels`` voxels, over the squared span of the levels:
+    unchanged when ``g`` and the levels are scaled together (the sharpness absorbs the scale).
+    ``params``: normalised parameter values of the points (the density features of the other axes).
+    0 for a field without a level axis."""
+    if field.levels is None:
+        return torch.zeros((), device=field.device)
+    n = params.shape[0]
+    lo, hi = field.aabb[0], field.aabb[1]
+    x = lo + (hi - lo) * torch.rand(n, 3, generator=generator).to(field.device)  # [n, 3]
+    u = torch.randn(n, 3, generator=generator).to(field.device)
+    u = u / u.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+    h = step_voxels * field.voxel_size()
+    points = torch.cat([x - h * u, x, x + h * u])  # [3n, 3]
+    q, _ = field.split_density_features(field.param_features(params)[0])
+    coords = field.to_grid(points)
+    g = field.raw_density(coords, field.density_grid.sample(coords), q.repeat(3, 1)).view(3, n)
+    second = g[0] - 2.0 * g[1] + g[2]  # [n]
+    table = field.levels.table[:, 0]
+    span = table.max() - table.min()
+    return second.pow(2).mean() / (span * span + LEVEL_SPAN_EPS)

@@ -51,7 +51,7 @@ from visnerf.representation.vm_taps import table_gradients_in_place
 from visnerf.runtime import bf16_native, keep_freed_blocks, release_free_memory
 from visnerf.training.distributed import Ranks
 from visnerf.training.ray_batches import RayBatchSampler
-from visnerf.training.regularizers import RegularizerWeights, backward_regularization
+from visnerf.training.regularizers import RegularizerWeights, backward_regularization, level_curvature
 from visnerf.training.run_state import (
     RunStateError,
     pack_optimizer,
@@ -399,6 +399,10 @@ class Trainer:
                 with table_gradients_in_place():  # each chunk's factor gradients add into .grad
                     part.backward()
             sq_error += float(part.detach())
+        if cfg.level_curvature_weight > 0 and self.field.levels is not None:
+            pick = torch.randint(0, batch.params.shape[0], (cfg.level_curvature_points,), generator=self.generator)
+            curvature = level_curvature(self.field, batch.params[pick.to(self.device)], self.generator)
+            (cfg.level_curvature_weight * curvature).backward()
         reg_value = sum(backward_regularization(self.field, self._weights()).values())
         if not math.isfinite(reg_value):  # before the step: the factors stay as they were
             raise FloatingPointError(f"non-finite regularization at iteration {self.state.iteration}")
