@@ -399,16 +399,21 @@ class Trainer:
                 with table_gradients_in_place():  # each chunk's factor gradients add into .grad
                     part.backward()
             sq_error += float(part.detach())
+        terms = backward_regularization(self.field, self._weights())
         if cfg.level_curvature_weight > 0 and self.field.levels is not None:
+            # at the parameter values of random rays of the batch (the other axes' density features)
             pick = torch.randint(0, batch.params.shape[0], (cfg.level_curvature_points,), generator=self.generator)
-            curvature = level_curvature(self.field, batch.params[pick.to(self.device)], self.generator)
-            (cfg.level_curvature_weight * curvature).backward()
-        reg_value = sum(backward_regularization(self.field, self._weights()).values())
+            curvature = cfg.level_curvature_weight * level_curvature(self.field, batch.params[pick.to(self.device)],
+                                                                     self.generator)
+            curvature.backward()
+            terms["level_curvature"] = float(curvature.detach())
+        reg_value = sum(terms.values())
         if not math.isfinite(reg_value):  # before the step: the factors stay as they were
             raise FloatingPointError(f"non-finite regularization at iteration {self.state.iteration}")
         (sq_error,) = self.ranks.average_gradients(self.field.parameters(), sq_error)
         self.optimizer.step()
-        return {"mse": sq_error, "loss": sq_error + reg_value, "samples": float(per_ray.sum())}
+        return {"mse": sq_error, "loss": sq_error + reg_value, "samples": float(per_ray.sum()),
+                **{name: value for name, value in terms.items() if name == "level_curvature"}}
 
     def run(
         self,

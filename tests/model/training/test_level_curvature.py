@@ -1,12 +1,14 @@
-"""The curvature prior of a level axis's field ``g`` against closed forms: zero for a linear field,
+"""The curvature prior of a level axis's field ``g`` against closed forms (zero for a linear field,
 ``(8 c h^2)^2 / span^2`` for ``c |x|^2`` in grid coordinates, unchanged when ``g`` and the levels
-are scaled together, and nothing for a field without a level axis."""
+are scaled together, nothing for a field without a level axis), and its place in a training step."""
 
 import pytest
 import torch
 
-from visnerf.testing import make_tiny_field
+from visnerf.config import TrainConfig
+from visnerf.testing import make_noise_scene, make_tiny_field
 from visnerf.training.regularizers import LEVEL_SPAN_EPS, level_curvature
+from visnerf.training.trainer import Trainer
 
 ISOVALUES = [("isovalue", [0.2, 0.4, 0.6])]
 
@@ -73,3 +75,22 @@ def test_a_field_without_a_level_axis_gets_nothing() -> None:
     field, _ = make_tiny_field(ISOVALUES, seed=2, resolution=9)
     value = level_curvature(field, _params(64), torch.Generator().manual_seed(0))
     assert float(value) == 0.0
+
+
+def _step(level_set_axis: int, weight: float) -> dict[str, float]:
+    field, _ = make_tiny_field([("t", [0.0, 1.0])], seed=1, resolution=8, level_set_axis=level_set_axis)
+    cfg = TrainConfig(iterations=10, resolution_init=8, resolution_final=8, occupancy_at=(), carve=False,
+                      batch_rays=128, level_curvature_weight=weight, level_curvature_points=64)
+    return Trainer(make_noise_scene(), None, cfg, torch.device("cpu"), init_field=field).train_step()
+
+
+def test_a_training_step_of_a_level_axis_adds_the_prior_to_its_loss() -> None:
+    with_prior, without = _step(0, 2.0), _step(0, 0.0)
+    assert with_prior["level_curvature"] > 0
+    assert "level_curvature" not in without
+    assert with_prior["mse"] == pytest.approx(without["mse"], rel=1e-6)  # the same rays: the prior draws after them
+    assert with_prior["loss"] - without["loss"] == pytest.approx(with_prior["level_curvature"], rel=1e-4)
+
+
+def test_a_training_step_without_a_level_axis_has_no_prior() -> None:
+    assert "level_curvature" not in _step(-1, 2.0)
