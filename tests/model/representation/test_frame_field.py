@@ -152,12 +152,25 @@ def test_bf16_decoders_differ_from_float32_only_by_rounding(field, params) -> No
     assert not torch.equal(colour_b, colour)
 
 
-def test_bf16_frames_stay_close_to_the_exhaustive_float32_frames(field) -> None:
+def test_bf16_frames_stay_close_to_the_exhaustive_float32_frames(field, monkeypatch) -> None:
+    from visnerf.rendering import renderer
+
+    monkeypatch.setattr(renderer, "bf16_native", lambda device: True)  # the bf16 path on any CPU
     base = RenderSettings(use_occupancy=False, early_termination=False, weight_threshold_per_voxel=0.0)
     exact, _ = _both_renders(field, base)
     rounded, _ = _both_renders(field, replace(base, bf16=True))
     mse = float(((rounded - exact) ** 2).mean())
     assert mse > 0.0 and 10.0 * math.log10(1.0 / mse) > 45.0
+
+
+def test_bf16_frames_are_float32_frames_where_the_cpu_has_no_bf16_units(field, monkeypatch) -> None:
+    from visnerf.rendering import renderer
+
+    monkeypatch.setattr(renderer, "bf16_native", lambda device: False)
+    base = RenderSettings(use_occupancy=False, early_termination=False, weight_threshold_per_voxel=0.0)
+    exact, _ = _both_renders(field, base)
+    asked, _ = _both_renders(field, replace(base, bf16=True))
+    assert torch.equal(asked, exact)
 
 
 def test_qualities_derive_from_the_checkpoint_render_config() -> None:
@@ -190,13 +203,30 @@ def test_linear_relu_equals_the_plain_product(dtype, rows, monkeypatch) -> None:
     expected = torch.relu(x.double() @ w.double().t() + b.double())
     with torch.inference_mode():
         got = lr.linear_relu(x, w, b)
-        monkeypatch.setattr(lr, "_fused_ok", False)  # the fallback where oneDNN's fused op is missing
+        monkeypatch.setattr(lr, "_fused_ok", {dtype: False})  # the fallback where oneDNN's fused op is missing
         plain = lr.linear_relu(x, w, b)
     assert got.dtype == plain.dtype == dtype and got.shape == (rows, 128)
     assert (got >= 0).all() and (plain >= 0).all()
     tol = 1e-4 if dtype == torch.float32 else 0.1  # bf16 rounds the output to 8 bits (values up to ~30)
     assert torch.allclose(got.double(), expected, atol=tol, rtol=1e-2 if dtype == torch.bfloat16 else 1e-5)
     assert torch.allclose(plain.double(), expected, atol=tol, rtol=1e-2 if dtype == torch.bfloat16 else 1e-5)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.bfloat16])
+def test_linear_relu_takes_the_plain_path_where_onednn_refuses_the_dtype(dtype, monkeypatch) -> None:
+    """As on a CPU without bf16 instructions, where oneDNN cannot create the bfloat16 kernel."""
+    from visnerf.representation import linear_relu as lr
+
+    def refuse(*args):  # noqa: ANN002, ANN202
+        raise RuntimeError("could not create a primitive descriptor for the inner product forward propagation primitive")
+
+    monkeypatch.setattr(lr, "_fused_ok", {})
+    monkeypatch.setattr(lr, "_fused_op", lambda: refuse)
+    x, w, b = torch.randn(9, 6).to(dtype), torch.randn(4, 6).to(dtype), torch.randn(4).to(dtype)
+    with torch.inference_mode():
+        got = lr.linear_relu(x, w, b)
+    assert lr._fused_ok == {dtype: False}
+    assert torch.equal(got, lr.plain_linear_relu(x, w, b))
 
 
 def test_linear_relu_keeps_gradients_on_the_plain_path() -> None:
