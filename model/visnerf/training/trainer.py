@@ -412,8 +412,10 @@ class Trainer:
             raise FloatingPointError(f"non-finite regularization at iteration {self.state.iteration}")
         (sq_error,) = self.ranks.average_gradients(self.field.parameters(), sq_error)
         self.optimizer.step()
-        return {"mse": sq_error, "loss": sq_error + reg_value, "samples": float(per_ray.sum()),
-                **{name: value for name, value in terms.items() if name == "level_curvature"}}
+        stats = {"mse": sq_error, "loss": sq_error + reg_value, "samples": float(per_ray.sum())}
+        if "level_curvature" in terms:
+            stats["level_curvature"] = terms["level_curvature"]
+        return stats
 
     def run(
         self,
