@@ -12,7 +12,7 @@ from visnerf.checkpoint import read_checkpoint
 from visnerf.cli import build_parser
 from visnerf.config import FieldConfig, RenderConfig, TrainConfig
 from visnerf.config_options import CONFIG_CLASSES, NOT_OPTIONS, field_docs, option_of
-from visnerf.training.recipe import SURFACE_TV_APPEARANCE, SURFACE_TV_DENSITY
+from visnerf.training.recipe import SURFACE_COLOUR_FLOOR, SURFACE_TV_APPEARANCE, SURFACE_TV_DENSITY
 
 
 def train_parser() -> argparse.ArgumentParser:
@@ -74,7 +74,8 @@ def test_given_options_round_trip_through_the_checkpoint(tangle, tmp_path) -> No
                                  betas=(0.8, 0.95), stop_eps=1e-3, resolution_final=recipe.resolution_final,
                                  resolution_init=recipe.resolution_init,
                                  carve_min_seen_fraction=recipe.carve_min_seen_fraction,
-                                 tv_weight_density=SURFACE_TV_DENSITY, tv_weight_appearance=SURFACE_TV_APPEARANCE)
+                                 tv_weight_density=SURFACE_TV_DENSITY, tv_weight_appearance=SURFACE_TV_APPEARANCE,
+                                 colour_weight_floor=SURFACE_COLOUR_FLOOR)
 
 
 def test_options_not_given_keep_the_recipe(tangle, tmp_path) -> None:
@@ -86,6 +87,7 @@ def test_options_not_given_keep_the_recipe(tangle, tmp_path) -> None:
     assert meta.field.hidden_width == FieldConfig.hidden_width and meta.render.max_samples == RenderConfig.max_samples
     assert meta.field.density_scale > 1.0  # tangle_static is opaque: the recipe's surface density
     assert (recipe.tv_weight_density, recipe.tv_weight_appearance) == (SURFACE_TV_DENSITY, SURFACE_TV_APPEARANCE)
+    assert recipe.colour_weight_floor == SURFACE_COLOUR_FLOOR
 
 
 @pytest.mark.parametrize(("options", "message"), [

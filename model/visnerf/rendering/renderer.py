@@ -22,6 +22,7 @@ from visnerf.config import RenderConfig
 from visnerf.data.cameras import Intrinsics, image_rays
 from visnerf.rendering.aabb import intersect_aabb
 from visnerf.rendering.cancel import CancelCheck, raise_if_cancelled
+from visnerf.rendering.colour_sampling import ColourSampling, pick_coloured
 from visnerf.rendering.density_gradients import DensityGradientSampling, density_with_sampled_gradients
 from visnerf.rendering.empty_space import EmptySpace
 from visnerf.rendering.occupancy import query_occupancy
@@ -128,13 +129,15 @@ def _shade_samples(
     weight_threshold: float,
     density_grads: DensityGradientSampling | None = None,
     sigma: Float[Tensor, "n s"] | None = None,
+    colour_sampling: ColourSampling | None = None,
 ) -> tuple[Float[Tensor, "n 3"], Float[Tensor, " n"], Float[Tensor, "n s"]]:
     """Density at valid samples, log-space transmittance, colour where the weight matters.
 
     Returns (colour contribution, optical depth of this segment, weights). ``tau_before`` is the
     optical depth accumulated by earlier segments of the same rays. With ``density_grads``, the
     backward pass takes near-empty samples at random (``rendering.density_gradients``), from the
-    graph-free densities ``sigma`` where they are given.
+    graph-free densities ``sigma`` where they are given. With ``colour_sampling``, light samples
+    are coloured at random (``rendering.colour_sampling``).
     """
     n, s = valid.shape
     # Gathers by index_select on flat sample indices: the backward of advanced indexing is
@@ -156,6 +159,7 @@ def _shade_samples(
     tau = optical_depths(sigmas, deltas)  # [n, s]
     weights = weights_from_optical_depth(tau, tau_before)  # [n, s]
     shade = (valid & (weights > weight_threshold)).reshape(-1).nonzero()[:, 0]  # [k], into the n * s samples
+    shade, shade_weights = pick_coloured(weights.reshape(-1), shade, colour_sampling)
     rgb = torch.zeros(n, 3, dtype=points.dtype, device=points.device)
     if shade.numel() > 0:
         shade_rays = torch.div(shade, s, rounding_mode="floor")
@@ -165,7 +169,7 @@ def _shade_samples(
         else:  # the level field's normal needs the density features too
             colors = field.color(shade_points, shade_dirs, q_appearance.index_select(0, shade_rays),
                                  q_density.index_select(0, shade_rays))
-        rgb = rgb.index_add(0, shade_rays, weights.reshape(-1).index_select(0, shade)[:, None] * colors)
+        rgb = rgb.index_add(0, shade_rays, shade_weights[:, None] * colors)
     return rgb, tau.sum(dim=-1), weights
 
 
@@ -331,14 +335,16 @@ def shade_rays(
     samples: RaySamples,
     weight_threshold: float = 1e-4,
     density_grads: DensityGradientSampling | None = None,
+    colour_sampling: ColourSampling | None = None,
 ) -> dict[str, Tensor]:
     """Differentiable colour of rays at their ``samples``. ``density_grads`` back-propagates
-    near-empty samples at random, unbiased (``rendering.density_gradients``). Returns ``rgb``
+    near-empty samples at random, unbiased (``rendering.density_gradients``); ``colour_sampling``
+    colours light samples at random, unbiased (``rendering.colour_sampling``). Returns ``rgb``
     [n, 3], ``opacity`` [n] and ``n_samples`` (valid samples evaluated)."""
     q_d, q_a = field.param_features(params)
     tau0 = torch.zeros(rays_d.shape[0], dtype=rays_d.dtype, device=rays_d.device)
     rgb, tau, _ = _shade_samples(field, rays_d, samples.points, samples.deltas, samples.valid, q_d, q_a, tau0,
-                                 weight_threshold, density_grads, samples.sigma)
+                                 weight_threshold, density_grads, samples.sigma, colour_sampling)
     opacity = -torch.expm1(-tau)
     return {
         "rgb": rgb + background * (1.0 - opacity)[:, None],
@@ -360,11 +366,12 @@ def render_rays(
     generator: torch.Generator | None = None,
     windows: tuple[Int[Tensor, " n"], Int[Tensor, " n"]] | None = None,
     density_grads: DensityGradientSampling | None = None,
+    colour_sampling: ColourSampling | None = None,
 ) -> dict[str, Tensor]:
     """Differentiable render of a batch of rays (training and tests): ``place_samples`` then
     ``shade_rays``."""
     samples = place_samples(field, rays_o, rays_d, step, max_samples, occupancy, generator, windows)
-    return shade_rays(field, rays_d, params, background, samples, weight_threshold, density_grads)
+    return shade_rays(field, rays_d, params, background, samples, weight_threshold, density_grads, colour_sampling)
 
 
 _EMPTY_SPACE: "weakref.WeakKeyDictionary[VisNerfField, tuple[Tensor, EmptySpace]]" = weakref.WeakKeyDictionary()

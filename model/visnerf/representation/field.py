@@ -55,15 +55,22 @@ order in ``h``, like central differences, from four values of ``g`` instead of s
 N_PROBES = len(TETRAHEDRON)
 
 
-def level_cosines(raw_probes: Float[Tensor, "n 4"], directions: Float[Tensor, "n 3"]) -> Float[Tensor, "n 1"]:
+def level_cosines(
+    raw_probes: Float[Tensor, "n 4"], directions: Float[Tensor, "n 3"], powers: tuple[int, ...] = ()
+) -> Float[Tensor, "n p"]:
     """Cosine between the gradient of the level field ``g`` and the unit view direction, from ``g``
-    at the probes of ``probe_points``. ``g`` grows inwards, so the cosine is that of the outward
-    normal with the direction to the eye: positive on the side of a surface facing the camera. A
-    flat ``g`` gives 0 (guarded division)."""
+    at the probes of ``probe_points``, then each of ``powers`` of its positive part (``p = 1 +
+    len(powers)`` columns). ``g`` grows inwards, so the cosine is that of the outward normal with
+    the direction to the eye: positive on the side of a surface facing the camera. A flat ``g``
+    gives 0 (guarded division)."""
     vertices = torch.tensor(TETRAHEDRON, device=raw_probes.device)  # [4, 3]
     grad = raw_probes.float() @ vertices  # [n, 3], 4h times the gradient
     length = torch.sqrt(grad.pow(2).sum(-1, keepdim=True) + FACING_EPS)
-    return (grad * directions.float()).sum(-1, keepdim=True) / length
+    cosine = (grad * directions.float()).sum(-1, keepdim=True) / length  # [n, 1]
+    if not powers:
+        return cosine
+    facing = cosine.clamp(0.0, 1.0)  # a rounding past 1 must not grow under a high power
+    return torch.cat([cosine, *(facing.pow(k) for k in powers)], dim=-1)
 
 
 def probe_points(points: Float[Tensor, "n 3"], step: float) -> Float[Tensor, "n4 3"]:
@@ -98,7 +105,7 @@ class VisNerfField(nn.Module):
         )
         self.color_decoder = Decoder(
             3 * cfg.n_appearance_components + pc + sh_dim(cfg.sh_degree) + cfg.facing_vectors
-            + (1 if self.levels is not None else 0), cfg.hidden_width, 3
+            + (1 + len(cfg.level_cosine_powers) if self.levels is not None else 0), cfg.hidden_width, 3
         )
         self.facing: nn.Linear | None = None
         if cfg.facing_vectors > 0:
@@ -171,7 +178,7 @@ class VisNerfField(nn.Module):
     @torch.no_grad()
     def level_normal_cosines(
         self, points: Float[Tensor, "n 3"], directions: Float[Tensor, "n 3"], q_density: Float[Tensor, "n d"]
-    ) -> Float[Tensor, "n 1"]:
+    ) -> Float[Tensor, "n p"]:
         """``level_cosines`` of the level field ``g`` at ``points`` (probes
         ``cfg.level_normal_step`` voxels away along each axis). No gradient: the shading reads the
         shape, it does not move it."""
@@ -179,7 +186,7 @@ class VisNerfField(nn.Module):
         probes = probe_points(points, self.cfg.level_normal_step * self.voxel_size())  # [4n, 3]
         coords = self.to_grid(probes)
         raw = self.raw_density(coords, self.density_grid.sample(coords), q.repeat_interleave(N_PROBES, dim=0))
-        return level_cosines(raw.view(-1, N_PROBES), directions)
+        return level_cosines(raw.view(-1, N_PROBES), directions, self.cfg.level_cosine_powers)
 
     def color(
         self,

@@ -229,7 +229,7 @@ class FrameField:
             out[sl] = self._color(samples.select(sl), ray_terms[sl])
         return out
 
-    def _level_cosines(self, points: Float[Tensor, "m 3"], directions: Float[Tensor, "m 3"]) -> Float[Tensor, "m 1"]:
+    def _level_cosines(self, points: Float[Tensor, "m 3"], directions: Float[Tensor, "m 3"]) -> Float[Tensor, "m p"]:
         """``level_cosines`` of the level field at ``points``, as ``VisNerfField.level_normal_cosines``."""
         assert self._level_step is not None
         probes = self.lookup(probe_points(points, self._level_step))  # N_PROBES rows a point
@@ -237,7 +237,7 @@ class FrameField:
         for start in range(0, len(probes), SUB_CHUNK):
             sl = slice(start, start + SUB_CHUNK)
             raw[sl] = self._raw_density(probes.coords[sl], probes.taps.select(sl))
-        return level_cosines(raw.view(-1, N_PROBES), directions)
+        return level_cosines(raw.view(-1, N_PROBES), directions, self.field.cfg.level_cosine_powers)
 
     def _color(self, samples: SampleTaps, ray_terms: Float[Tensor, "m e"]) -> Float[Tensor, "m 3"]:
         taps = samples.taps
@@ -261,7 +261,8 @@ class FrameField:
                 x[:m, column:column + cosines.shape[1]] = cosines.to(self.dtype)
                 column += cosines.shape[1]
             if self._level_step is not None:
-                x[:m, column:column + 1] = self._level_cosines(samples.points, directions).to(self.dtype)
+                level = self._level_cosines(samples.points, directions)  # [m, 1 + powers]
+                x[:m, column:column + level.shape[1]] = level.to(self.dtype)
         hidden = linear_relu(x, self.color_layer.weight, self.color_layer.bias)  # [padded, h]
         raw = F.linear(hidden, *self._color_out)[:m]
         return torch.sigmoid(raw.float())

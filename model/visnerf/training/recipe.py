@@ -20,6 +20,9 @@ the images and cameras alone, each choice with the reason ``visnerf info`` shows
 - dropping occluded samples (``TrainConfig.stop_eps``) only for opaque scenes: a translucent
   scene's rays seldom turn opaque, and the density pass that finds occluded samples cost Nyx 6 %
   of its steps;
+- colouring light samples at random (``TrainConfig.colour_weight_floor``) only for opaque scenes:
+  they start as a fog of light samples and end as surfaces of heavy ones; a translucent scene's
+  colour stays spread over light samples, where the draws would add noise to every step;
 - facing cosines (``FieldConfig.facing_vectors``) only for opaque scenes: a surface shaded by a
   light at the camera (isosurface renderers' headlight) changes colour with the cosine between its
   normal and the view, too sharply for spherical harmonics of degree 3; the field learns
@@ -84,7 +87,7 @@ CHOSEN_FIELDS = frozenset({("TrainConfig", "resolution_final"), ("TrainConfig", 
                            ("FieldConfig", "density_scale"), ("FieldConfig", "density_shift"),
                            ("TrainConfig", "stop_eps"), ("FieldConfig", "facing_vectors"),
                            ("FieldConfig", "level_set_axis"), ("TrainConfig", "tv_weight_density"),
-                           ("TrainConfig", "tv_weight_appearance")})
+                           ("TrainConfig", "tv_weight_appearance"), ("TrainConfig", "colour_weight_floor")})
 """The configuration fields ``choose_recipe`` sets from the data unless the user gives them."""
 NEST_TOLERANCE = 0.02
 """Largest share of one setting's visual hull outside its neighbour's for an axis to count as nested
@@ -103,6 +106,15 @@ A point of a surface seen by a few views is coloured by features fitted to those
 smooth, its neighbours' fits carry over. tangle_static, 10 minutes on one thread, 181-frame test
 path: 30.19 dB / 0.973 with 0.1 on both the density and the appearance against 29.58 / 0.964 with
 0.1 on the density alone (bench/results/nyx_history.md)."""
+SURFACE_COLOUR_FLOOR = 0.1
+"""``TrainConfig.colour_weight_floor`` of opaque scenes: lighter samples are coloured at random
+(``rendering.colour_sampling``). An opaque scene starts as a faint fog whose every sample has a
+weight of about 1e-3, and colouring them all made its early steps 5 times as long as its late
+ones (tangle_iso on two threads: 0.5 to 0.6 s a step from the start, 0.18 to 0.2 s at a floor of
+0.03 or more). tangle_iso, 12 minutes on one thread, three at a time, 181-frame test path: 26.15 dB
+/ 0.934 at 0 (880 steps), 26.98 at 0.01, 27.84 at 0.03, 28.11 / 0.952 at 0.1 (1711 steps); in a
+second trio 28.45 at 0.1 against 25.92 at 0.3, where a surface's own samples are drawn too
+(bench/results/nyx_history.md)."""
 BORDER_PIXELS = 1
 """Width of the image border in which a foreground pixel means content cut by the frame."""
 
@@ -271,6 +283,18 @@ def choose_recipe(scene: SceneData, base: TrainConfig, base_field: FieldConfig,
         values["stop_eps"] = 0.0
         choices.append(Choice("stop_eps", 0.0, "translucent content seldom turns a ray opaque: training steps keep "
                                                 "every sample instead of marching a density pass to drop occluded ones"))
+
+    if "colour_weight_floor" in fixed:
+        choices.append(Choice("colour_weight_floor", base.colour_weight_floor, "set by the user"))
+    elif traits.opaque:
+        values["colour_weight_floor"] = SURFACE_COLOUR_FLOOR
+        choices.append(Choice("colour_weight_floor", SURFACE_COLOUR_FLOOR,
+                              "opaque surfaces start as a faint fog: samples lighter than this are coloured at random "
+                              "(unbiased), not all of them, until the surfaces form"))
+    else:
+        choices.append(Choice("colour_weight_floor", base.colour_weight_floor,
+                              "translucent content: its colour is spread over many light samples along a ray, "
+                              "every one coloured"))
 
     if "facing_vectors" in fixed:
         choices.append(Choice("facing_vectors", base_field.facing_vectors, "set by the user"))

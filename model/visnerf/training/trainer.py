@@ -28,6 +28,7 @@ from visnerf.data.carving import carve_occupancy
 from visnerf.data.scene import SceneData, estimate_bbox
 from visnerf.evaluation.metrics import mse_to_psnr, psnr, ssim
 from visnerf.evaluation.spacing import choose_full_spacing
+from visnerf.rendering.colour_sampling import ColourSampling
 from visnerf.rendering.density_gradients import DensityGradientSampling
 from visnerf.rendering.empty_space import EmptySpace
 from visnerf.rendering.occupancy import (
@@ -383,6 +384,9 @@ class Trainer:
         density_grads = None
         if cfg.density_grad_keep < 1.0:
             density_grads = DensityGradientSampling(cfg.density_grad_floor, cfg.density_grad_keep, self.generator)
+        colour_sampling = None
+        if cfg.colour_weight_floor > 0.0:
+            colour_sampling = ColourSampling(cfg.colour_weight_floor, self.generator)
         # The whole batch's positions at once; micro-batches count the samples each ray evaluates.
         samples = place_samples(self.field, batch.rays_o, batch.rays_d, step,
                                 self.render_cfg.max_samples, self.field.occupancy, self.generator, windows)
@@ -390,7 +394,7 @@ class Trainer:
         per_ray = samples.per_ray()
         for sl in micro_batches(per_ray, cfg.micro_batch_rays, cfg.micro_batch_samples):
             out = shade_rays(self.field, batch.rays_d[sl], batch.params[sl], bg[sl], samples.of_rays(sl),
-                             self.render_cfg.weight_threshold, density_grads)
+                             self.render_cfg.weight_threshold, density_grads, colour_sampling)
             ray_error = ((out["rgb"] - target[sl]) ** 2).mean(-1)  # [chunk]
             part = ray_error.sum() / n  # this chunk's share of the batch mean
             if not torch.isfinite(part):

@@ -92,13 +92,22 @@ def test_level_cosines_of_a_linear_field_are_its_normal_against_the_view():
     quad = (probe_points(points, 0.3).pow(2).sum(-1) / 2).view(-1, 4)
     assert torch.allclose(level_cosines(quad, dirs), ((points * dirs).sum(-1) / points.norm(dim=-1)).float()[:, None],
                           atol=1e-5)
+    # Powers of the facing part follow the cosine: zero where the surface faces away.
+    with_powers = level_cosines(raw, dirs, (4, 64))
+    assert with_powers.shape == (50, 3) and torch.equal(with_powers[:, :1], level_cosines(raw, dirs))
+    facing = expected.clamp_min(0.0)
+    assert torch.allclose(with_powers[:, 1:], torch.cat([facing.pow(4), facing.pow(64)], dim=1), atol=64e-6)  # k times
+    assert bool((with_powers[expected[:, 0] < 0, 1:] == 0).all())
 
 
-def test_level_normal_cosines_follow_the_derivative_of_the_level_field(field):
+def test_level_normal_cosines_follow_the_derivative_of_the_level_field():
     """Against the derivative of ``g`` taken independently: a float64 copy of the field, central
     differences a millionth of a world unit apart, one axis at a time (the field's own probes are
-    float32, here a thousandth of a voxel apart)."""
+    float32, here a thousandth of a voxel apart). The field is drawn as before the cosine's powers
+    (the decoder's width changes the draw); the powers are then asked of the same field."""
     import copy
+
+    field, _ = make_tiny_field(AXES, seed=5, resolution=10, level_set_axis=0, level_cosine_powers=())
 
     g = torch.Generator().manual_seed(3)
     points = (torch.rand(64, 3, generator=g) - 0.5) * 0.8
@@ -116,10 +125,17 @@ def test_level_normal_cosines_follow_the_derivative_of_the_level_field(field):
         grad = torch.stack([(g_at(p64 + h * e) - g_at(p64 - h * e)) / (2 * h) for e in torch.eye(3, dtype=torch.float64)], 1)
     expected = ((grad * dirs.double()).sum(-1, keepdim=True) / grad.norm(dim=-1, keepdim=True)).float()
     fine = copy.deepcopy(field)
-    fine.cfg = dataclasses.replace(field.cfg, level_normal_step=1e-3)
+    powers = FieldConfig().level_cosine_powers
+    fine.cfg = dataclasses.replace(field.cfg, level_normal_step=1e-3, level_cosine_powers=powers)
     got = fine.level_normal_cosines(points, dirs, field.param_features(params)[0])
-    assert torch.allclose(got, expected, atol=2e-2)
-    assert float((got - expected).abs().median()) < 2e-3
+    assert got.shape == (64, 1 + len(powers)) and len(powers) > 0
+    assert torch.allclose(got[:, :1], expected, atol=2e-2)
+    assert float((got[:, :1] - expected).abs().median()) < 2e-3
+    # then each power of the facing part: d(c^k) = k c^(k-1) dc, so its error is at most k times the cosine's
+    facing = expected.clamp(0.0, 1.0)
+    for column, k in enumerate(powers, start=1):
+        assert torch.allclose(got[:, column:column + 1], facing.pow(k), atol=k * 2e-2)
+        assert bool((got[:, column] >= 0).all() and (got[:, column] <= 1).all())
 
 
 def test_colour_of_a_level_axis_field_needs_its_density_features(field):
