@@ -1,9 +1,10 @@
 """Training steps of an opaque isosurface scene against a translucent volume, late in a run.
 
 Each trained checkpoint is stepped as the end of its run does (its grid and occupancy, no
-milestones left, its recipe's step), the scenes in turn so that they share the machine's noise:
-the isosurface with the samples behind opaque content dropped (the product's step), the same
-without dropping them (``stop_eps`` 0, the step before), and the volume with the product's step.
+milestones left, the recipe it records: its step and its priors), the scenes in turn so that they
+share the machine's noise: the isosurface with the samples behind opaque content dropped (the
+product's step), the same without dropping them (``stop_eps`` 0, the step before), and the volume
+with the product's step.
 Reports the median milliseconds and the samples shaded and evaluated per step.
 
     .venv/bin/python bench/train_step_kinds.py --surface runs/eval/tangle_iso.safetensors \\
@@ -27,13 +28,19 @@ from visnerf.data.parsers.blender import load_dataset
 from visnerf.training.trainer import Trainer
 
 
-def late_trainer(ckpt: Path, data: Path, stop_eps: float, batch_rays: int) -> Trainer:
-    """A trainer that steps the trained field of ``ckpt`` on ``data`` as the late phase of a run."""
+def late_trainer(ckpt: Path, data: Path, stop_eps: float | None, batch_rays: int) -> Trainer:
+    """A trainer that steps the trained field of ``ckpt`` on ``data`` as the late phase of its run:
+    the recipe the checkpoint records (its priors and step), with no milestones left. ``stop_eps``
+    None keeps the recipe's."""
     field, meta = load_checkpoint(ckpt, torch.device("cpu"))
     res = max(field.resolution)
-    cfg = TrainConfig(iterations=10**9, resolution_init=res, resolution_final=res, upsample_at=(), occupancy_at=(),
-                      occupancy_refine_at=(), trim_every=10**9, batch_rays=batch_rays, stop_eps=stop_eps,
-                      l1_switch_iteration=0, weight_average_span=0.0)
+    recipe = dict(meta.provenance.get("recipe", {}))
+    late = dict(iterations=10**9, resolution_init=res, resolution_final=res, upsample_at=(), occupancy_at=(),
+                occupancy_refine_at=(), trim_every=10**9, batch_rays=batch_rays, l1_switch_iteration=0,
+                weight_average_span=0.0)
+    if stop_eps is not None:
+        late["stop_eps"] = stop_eps
+    cfg = TrainConfig.from_dict({**recipe, **late})
     render = dataclasses.replace(meta.render)
     return Trainer(load_dataset(data, "train"), None, cfg, torch.device("cpu"), render_cfg=render, init_field=field)
 
@@ -53,9 +60,9 @@ def main() -> int:
         if not path.exists():
             ap.error(f"{path} does not exist")
     trainers = {
-        "surface": late_trainer(args.surface, args.surface_data, TrainConfig.stop_eps, args.batch_rays),
+        "surface": late_trainer(args.surface, args.surface_data, None, args.batch_rays),
         "surface, every sample shaded": late_trainer(args.surface, args.surface_data, 0.0, args.batch_rays),
-        "volume": late_trainer(args.volume, args.volume_data, TrainConfig.stop_eps, args.batch_rays),
+        "volume": late_trainer(args.volume, args.volume_data, None, args.batch_rays),
     }
     times, outputs = alternate_steps(trainers, args.rounds, args.steps, warm_up=True)
     rows = {k: {"ms_median": statistics.median(v), "samples_shaded": statistics.median(o["samples"] for o in outputs[k])}
