@@ -284,28 +284,35 @@ def choose_recipe(scene: SceneData, base: TrainConfig, base_field: FieldConfig,
         choices.append(Choice("stop_eps", 0.0, "translucent content seldom turns a ray opaque: training steps keep "
                                                 "every sample instead of marching a density pass to drop occluded ones"))
 
-    if "colour_weight_floor" in fixed:
-        choices.append(Choice("colour_weight_floor", base.colour_weight_floor, "set by the user"))
-    elif traits.opaque:
-        values["colour_weight_floor"] = SURFACE_COLOUR_FLOOR
-        choices.append(Choice("colour_weight_floor", SURFACE_COLOUR_FLOOR,
-                              "opaque surfaces start as a faint fog: samples lighter than this are coloured at random "
-                              "(unbiased), not all of them, until the surfaces form"))
-    else:
-        choices.append(Choice("colour_weight_floor", base.colour_weight_floor,
-                              "translucent content: its colour is spread over many light samples along a ray, "
-                              "every one coloured"))
-
-    if "facing_vectors" in fixed:
-        choices.append(Choice("facing_vectors", base_field.facing_vectors, "set by the user"))
-    elif traits.opaque:
-        field_values["facing_vectors"] = FACING_VECTORS
-        choices.append(Choice("facing_vectors", FACING_VECTORS,
-                              "opaque surfaces: their shading follows the cosine between the surface and the view "
-                              "(a light at the camera), which the colour decoder reads from learnt unit vectors"))
-    else:
-        choices.append(Choice("facing_vectors", base_field.facing_vectors,
-                              "translucent content: its colours are read with spherical harmonics of the view alone"))
+    # Made for opaque surfaces only: (the values it goes into, where a given one is, field, value,
+    # why on opaque surfaces, why not on translucent content).
+    opaque_only = (
+        (values, base, "colour_weight_floor", SURFACE_COLOUR_FLOOR,
+         "opaque surfaces start as a faint fog: samples lighter than this are coloured at random (unbiased), not "
+         "all of them, until the surfaces form",
+         "translucent content: its colour is spread over many light samples along a ray, every one coloured"),
+        (field_values, base_field, "facing_vectors", FACING_VECTORS,
+         "opaque surfaces: their shading follows the cosine between the surface and the view (a light at the "
+         "camera), which the colour decoder reads from learnt unit vectors",
+         "translucent content: its colours are read with spherical harmonics of the view alone"),
+        (values, base, "tv_weight_density", SURFACE_TV_DENSITY,
+         "opaque surfaces: the images pin the density only where a surface is seen, and a few views fit it with a "
+         "rough surface (and, with a level axis, leave the surfaces between training values free); total "
+         "variation keeps it smooth",
+         "translucent content: its density is seen along every ray through it"),
+        (values, base, "tv_weight_appearance", SURFACE_TV_APPEARANCE,
+         "opaque surfaces: each surface point is seen by a few views, whose fit total variation on the appearance "
+         "factors carries over to its neighbours",
+         "translucent content: its appearance is seen along every ray through it"),
+    )
+    for chosen, given, name, value, opaque_reason, translucent_reason in opaque_only:
+        if name in fixed:
+            choices.append(Choice(name, getattr(given, name), "set by the user"))
+        elif traits.opaque:
+            chosen[name] = value
+            choices.append(Choice(name, value, opaque_reason))
+        else:
+            choices.append(Choice(name, getattr(given, name), translucent_reason))
 
     if "level_set_axis" in fixed:
         choices.append(Choice("level_set_axis", base_field.level_set_axis, "set by the user"))
@@ -322,25 +329,6 @@ def choose_recipe(scene: SceneData, base: TrainConfig, base_field: FieldConfig,
         else:
             reason = f"opaque surfaces, but no axis's visual hulls are nested within {100 * NEST_TOLERANCE:g} % ({measured})"
         choices.append(Choice("level_set_axis", axis, reason))
-
-    smoothing = (
-        ("tv_weight_density", SURFACE_TV_DENSITY, "density",
-         "opaque surfaces: the images pin the density only where a surface is seen, and a few views fit it with a "
-         "rough surface (and, with a level axis, leave the surfaces between training values free); total "
-         "variation keeps it smooth"),
-        ("tv_weight_appearance", SURFACE_TV_APPEARANCE, "appearance",
-         "opaque surfaces: each surface point is seen by a few views, whose fit total variation on the appearance "
-         "factors carries over to its neighbours"),
-    )
-    for name, weight, factors, reason in smoothing:
-        if name in fixed:
-            choices.append(Choice(name, getattr(base, name), "set by the user"))
-        elif traits.opaque:
-            values[name] = weight
-            choices.append(Choice(name, weight, reason))
-        else:
-            choices.append(Choice(name, getattr(base, name),
-                                  f"translucent content: its {factors} is seen along every ray through it"))
 
     if traits.n_params == 0:
         choices.append(Choice("parameter_axes", 0, "one setting in the data (K = 0): no parameter factors"))

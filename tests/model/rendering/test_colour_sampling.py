@@ -4,11 +4,9 @@ import dataclasses
 
 import pytest
 import torch
-import torch.nn.functional as F
 
 from visnerf.config import TrainConfig
 from visnerf.rendering.colour_sampling import ColourSampling, pick_coloured
-from visnerf.rendering.renderer import render_rays
 from visnerf.testing import make_tiny_field
 
 
@@ -66,27 +64,17 @@ def test_the_mean_over_draws_is_the_exact_colour_sum_and_its_gradient():
     assert float(grad_total[6] / draws) == pytest.approx(float(colours[6]), rel=1e-12)  # the heavy one: exact
 
 
-def test_render_rays_with_colour_sampling():
+def test_render_rays_with_colour_sampling(box_rays):
     """A floor below every weight is the exact render and gradient; a floor above most colours
     fewer samples, gives finite gradients and a render whose mean over draws is the exact one."""
     field, _ = make_tiny_field([("a", [0.0, 1.0])], resolution=12)
-    gen = torch.Generator().manual_seed(0)
-    n = 48
-    rays_o = torch.tensor([[0.0, 0.0, -3.0]]).repeat(n, 1) + 0.3 * (torch.rand(n, 3, generator=gen) - 0.5)
-    rays_d = F.normalize(torch.tensor([[0.0, 0.0, 1.0]]).repeat(n, 1) + 0.2 * (torch.rand(n, 3, generator=gen) - 0.5),
-                         dim=-1)
-    params = torch.rand(n, 1, generator=gen) * 2 - 1
-    bg = torch.ones(n, 3)
+    rays = box_rays(48)
     step = field.voxel_size() * 0.5
     with torch.no_grad():  # a faint fog: every sample light
         field.density_decoder.out.bias -= 4.0
 
     def run(sampling):
-        field.zero_grad(set_to_none=True)
-        out = render_rays(field, rays_o, rays_d, params, bg, step, 512, None, 1e-6,
-                          torch.Generator().manual_seed(1), colour_sampling=sampling)
-        out["rgb"].square().sum().backward()
-        return out["rgb"].detach(), {k: p.grad.clone() for k, p in field.named_parameters() if p.grad is not None}
+        return rays.render_with_gradients(field, step, 1e-6, colour_sampling=sampling)
 
     plain_rgb, plain = run(None)
     tiny_rgb, tiny = run(ColourSampling(1e-9, torch.Generator().manual_seed(2)))

@@ -8,7 +8,6 @@ import torch.nn.functional as F
 
 from visnerf.config import TrainConfig
 from visnerf.rendering.density_gradients import DensityGradientSampling, density_with_sampled_gradients
-from visnerf.rendering.renderer import render_rays
 from visnerf.testing import make_tiny_field
 
 
@@ -85,23 +84,15 @@ def test_keep_one_or_no_grad_is_the_plain_call():
         density_with_sampled_gradients(density, pts, q, d, DensityGradientSampling(1e-4, 0.0, torch.Generator()))
 
 
-def test_render_rays_with_sampled_density_gradients():
+def test_render_rays_with_sampled_density_gradients(box_rays):
     """Same colours; keep = 1 gives the plain gradients; keep < 1 traces fewer samples yet every
     factor the solid samples read still gets a finite gradient."""
     field, _ = make_tiny_field([("a", [0.0, 1.0])], resolution=12)
-    gen = torch.Generator().manual_seed(0)
-    rays_o = torch.tensor([[0.0, 0.0, -3.0]]).repeat(64, 1) + 0.3 * (torch.rand(64, 3, generator=gen) - 0.5)
-    rays_d = F.normalize(torch.tensor([[0.0, 0.0, 1.0]]).repeat(64, 1) + 0.2 * (torch.rand(64, 3, generator=gen) - 0.5), dim=-1)
-    params = torch.rand(64, 1, generator=gen) * 2 - 1
-    bg = torch.ones(64, 3)
+    rays = box_rays(64)
     step = field.voxel_size() * 0.5
 
     def run(sampling):
-        field.zero_grad(set_to_none=True)
-        out = render_rays(field, rays_o, rays_d, params, bg, step, 512, None, 1e-4,
-                          torch.Generator().manual_seed(1), density_grads=sampling)
-        out["rgb"].square().sum().backward()
-        return out["rgb"].detach(), {n: p.grad.clone() for n, p in field.named_parameters() if p.grad is not None}
+        return rays.render_with_gradients(field, step, 1e-4, density_grads=sampling)
 
     plain_rgb, plain = run(None)
     one_rgb, one = run(DensityGradientSampling(1e-4, 1.0, torch.Generator().manual_seed(2)))
