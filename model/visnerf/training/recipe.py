@@ -110,7 +110,7 @@ SURFACE_COLOUR_FLOOR = 0.1
 """``TrainConfig.colour_weight_floor`` of opaque scenes: lighter samples are coloured at random
 (``rendering.colour_sampling``). An opaque scene starts as a faint fog whose every sample has a
 weight of about 1e-3, and colouring them all made its early steps 5 times as long as its late
-ones (tangle_iso on two threads: 0.5 to 0.6 s a step from the start, 0.18 to 0.2 s at a floor of
+ones (tangle_iso on two threads: 0.5 to 0.63 s a step from the start, 0.18 to 0.2 s at a floor of
 0.03 or more). tangle_iso, 12 minutes on one thread, three at a time, 181-frame test path: 26.15
 dB / 0.934 at 0 (880 steps), then in the next trio 26.98 at 0.01, 27.84 at 0.03, 28.11 / 0.952 at
 0.1 (1711 steps); in a third, 28.45 at 0.1 against 25.92 at 0.3, where a surface's own samples are
