@@ -4,7 +4,8 @@ For each scene of ``visnerf scenes``: generate the dataset at ``--res`` (the ful
 icosphere views per parameter setting, a 181-view test path between training values), train under
 ``--minutes-per-scene`` with views 3, 11 and 25 held out for validation, evaluate the checkpoint on
 the test path as ``visnerf eval`` does (per-scene report in RESULTS/eval_scenes/NAME/, or
-RESULTS/eval_scenes.partial/NAME/ for a partial run), and write one
+RESULTS/eval_scenes.partial/NAME/ for a partial run, RESULTS/bundled_eval/NAME/ for a partial run
+with ``--bundle``, whose rows replace theirs in RESULTS/bundled_eval/bundled.json), and write one
 table (scene, K, PSNR, SSIM, training minutes, ms per frame, model MB) next to the paper's figures
 where the paper has a corresponding row.
 
@@ -36,6 +37,7 @@ from pathlib import Path
 
 import torch
 from bench_common import cpu_description, write_json
+from bundle_record import BUNDLED, bundle_entry, write_bundle_record
 
 from visnerf import runtime
 from visnerf.config import FieldConfig, HoldoutConfig, TrainConfig
@@ -55,7 +57,6 @@ from visnerf.training.trainer import Trainer
 ROOT = Path(__file__).resolve().parents[1]
 HOLDOUT_VIEWS = (3, 11, 25)
 README_BEGIN, README_END = "<!-- eval_scenes:begin -->", "<!-- eval_scenes:end -->"
-BUNDLED_BEGIN, BUNDLED_END = "<!-- bundled:begin -->", "<!-- bundled:end -->"
 
 # The paper's figures for the real datasets these scenes stand in for (181 test views each).
 PAPER_PSNR = {
@@ -66,8 +67,6 @@ PAPER_PSNR = {
     "cosmo_sim": ("Nyx-DVR, 3 simulation parameters", 30.02),
 }
 PAPER_STATIC = ("static scenes", "27.0 to 38.7")
-BUNDLED = ("plume_time", "tangle_iso", "vortex_tf1", "cosmo_sim")
-"""The scenes shipped in checkpoints/ (``--bundle``): one of each slider kind the product exists for."""
 
 
 def machine(device: torch.device) -> dict:
@@ -136,36 +135,6 @@ def bundle_scene(ckpt: Path, folder: Path) -> None:
         tmp = folder / (src.name + ".tmp")
         shutil.copyfile(src, tmp)
         tmp.replace(folder / src.name)
-
-
-def bundled_rows(record: dict, link_root: Path, reports: Path) -> list[str]:
-    """The bundled scenes' table: slider, test-path PSNR/SSIM, size, a link to each report."""
-    lines = ["| scene | slider | test-path PSNR (dB) | SSIM | model MB | report |", "| --- | --- | --- | --- | --- | --- |"]
-    for r in record["scenes"]:
-        if r["scene"] in BUNDLED:
-            report = os.path.relpath(reports / r["scene"] / "report.md", link_root)
-            sliders = {"plume_time": "timestep", "tangle_iso": "isovalue", "vortex_tf1": "transfer function",
-                       "cosmo_sim": "3 simulation parameters"}
-            lines.append(f"| `{r['scene']}` | {sliders.get(r['scene'], r['kind'])} ({r['kind']}) | {_f(r['psnr'], 2)} | "
-                         f"{_f(r['ssim'], 3)} | {_f(r['model_mb'], 2)} | [report]({report}) |")
-    return lines
-
-
-def replace_section(text: str, begin: str, end: str, body: list[str]) -> str:
-    """``text`` with the lines between the markers ``begin`` and ``end`` replaced by ``body``."""
-    pattern = re.compile(re.escape(begin) + ".*?" + re.escape(end), re.S)
-    return pattern.sub(lambda _: "\n".join([begin, *body, end]), text)
-
-
-def write_bundled_index(path: Path, record: dict, reports: Path) -> None:
-    """bench/results/bundled_eval/README.md: each bundled scene's test-path figures and its report."""
-    rows = [r for r in record["scenes"] if r["scene"] in BUNDLED]
-    lines = ["# The bundled checkpoints on their test paths", "",
-             f"Trained and evaluated by `{record['command']}` ({record['machine'].get('cpu', '')}, "
-             f"{record['machine']['torch_threads']} threads, {record['date'][:10]}); `scripts/train_bundled.sh` reruns it.",
-             "", *bundled_rows({"scenes": rows}, path.parent, reports)]
-    path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text("\n".join(lines) + "\n")
 
 
 def _f(value: object, digits: int) -> str:
@@ -287,8 +256,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--minutes-per-scene", type=float, default=10.0, help="training budget (default 10)")
     parser.add_argument("--res", type=int, default=128, help="image size (default 128)")
     parser.add_argument("--bundle", type=Path, default=None, metavar="DIR",
-                        help=f"copy the checkpoints (and logs) of {', '.join(BUNDLED)} into DIR and index their "
-                             "reports in RESULTS/bundled_eval/README.md (scripts/train_bundled.sh)")
+                        help=f"copy the checkpoints (and logs) of {', '.join(BUNDLED)} into DIR and replace their rows "
+                             "in RESULTS/bundled_eval/ and the README's bundled table; a run that is not the "
+                             "record's keeps their reports in RESULTS/bundled_eval/NAME/ (scripts/train_bundled.sh)")
     parser.add_argument("--test-views", type=int, default=181, help="views on the test path (default 181)")
     parser.add_argument("--max-eval-frames", type=int, default=None, help="evaluate only N test frames")
     parser.add_argument("--sweep-frames", type=int, default=4, help="frames per render setting (default 4)")
@@ -325,7 +295,8 @@ def main(argv: list[str] | None = None) -> int:
     stem = "eval_scenes" if full_run or args.replace_rows else "eval_scenes.partial"  # a partial run never replaces the record
     temporary = Path(tempfile.mkdtemp(prefix="visnerf_eval_scenes_"))
     data_root, work = args.data_root or temporary / "data", args.work_dir or temporary / "runs"
-    reports = args.results / stem
+    # a bundled scene's report must outlive the next partial run
+    reports = args.results / ("bundled_eval" if args.bundle is not None and stem.endswith("partial") else stem)
     options = DatasetOptions(resolution=args.res, n_test_views=args.test_views)
     eval_cfg = EvalConfig(split="test", max_frames=args.max_eval_frames, sweep=SweepConfig(n_frames=args.sweep_frames))
     record = {
@@ -364,6 +335,10 @@ def main(argv: list[str] | None = None) -> int:
                   + "; ".join(f"{PLACES[g]} {place_cell(places[g])}" for g in PLACES if g in places), file=sys.stderr)
     finally:
         shutil.rmtree(temporary, ignore_errors=True)
+    if args.bundle is not None:
+        write_bundle_record(args.results, ROOT, [bundle_entry(r, record, reports / r["scene"] / "report.md", ROOT, args.rescore)
+                                                 for r in record["scenes"] if r["scene"] in BUNDLED],
+                            ROOT / "README.md" if args.results == ROOT / "bench" / "results" else None)
     if args.replace_rows:
         replaced = {r["scene"]: {**r, "rerun": {"date": record["date"], "command": record["command"],
                                                 "cpu": record["machine"].get("cpu", ""), "rescored": args.rescore}}
@@ -372,11 +347,6 @@ def main(argv: list[str] | None = None) -> int:
         write_json(args.results / f"{stem}.json", record)
         write_markdown(args.results / f"{stem}.md", record)
         update_readme(ROOT / "README.md", record)
-        if args.bundle is not None:
-            write_bundled_index(args.results / "bundled_eval" / "README.md", record, reports)
-            readme = ROOT / "README.md"
-            readme.write_text(replace_section(readme.read_text(), BUNDLED_BEGIN, BUNDLED_END,
-                                              bundled_rows(record, ROOT, reports)))
         print(f"rows of {', '.join(replaced)} replaced in {args.results / stem}.json and .md", file=sys.stderr)
         return 0
     figure = args.results / f"{stem}_training.png"
@@ -385,11 +355,6 @@ def main(argv: list[str] | None = None) -> int:
     args.results.mkdir(parents=True, exist_ok=True)
     write_json(args.results / f"{stem}.json", record)
     write_markdown(args.results / f"{stem}.md", record)
-    if args.bundle is not None:
-        write_bundled_index(args.results / "bundled_eval" / "README.md", record, reports)
-        readme = ROOT / "README.md"
-        readme.write_text(replace_section(readme.read_text(), BUNDLED_BEGIN, BUNDLED_END,
-                                          bundled_rows(record, ROOT, reports)))
     if full_run:
         update_readme(ROOT / "README.md", record)
     print(f"results -> {args.results / stem}.json and .md", file=sys.stderr)

@@ -3,8 +3,8 @@
 # plume_time, isovalue tangle_iso, transfer function vortex_tf1, simulation parameters cosmo_sim),
 # rendered at 128x128, trained MINUTES (default 10) each on both cores with the product's recipe
 # (no flags), then evaluated on its 181-frame test path. Checkpoints and training logs go to
-# checkpoints/, the reports to bench/results/eval_scenes.partial/ and their index to
-# bench/results/bundled_eval/README.md.
+# checkpoints/, the reports to bench/results/bundled_eval/NAME/; the rows of the scenes rebuilt
+# replace theirs in bench/results/bundled_eval/ and the README, the others stay.
 #
 #   bash scripts/train_bundled.sh                    # all four
 #   bash scripts/train_bundled.sh tangle_iso         # one scene
