@@ -381,15 +381,16 @@ class TrainConfig:
     tv_weight_appearance: float = 0.0
     """Total variation on the appearance factors: none, the fit is limited by capacity, not noise
     (Nyx, 35 minutes side by side: 26.46 against 26.36 dB with 0.01)."""
-    level_curvature_weight: float = 1.0
+    level_curvature_weight: float = 4.0
     """Weight of the curvature prior of a level axis's field ``g`` (``regularizers.level_curvature``:
     its squared second difference along random directions at random points of the box, over the
     squared span of the levels); nothing without a level axis. The images pin ``g`` only at the
     training surfaces, and the surfaces between training values are its level sets; a ``g`` whose
     slope changes smoothly carries the slope across each band, where a merely smooth ``g`` rises
     evenly between two surfaces and keeps a shrinking blob's arms too long. tangle_iso, 12 minutes,
-    one thread each, three runs at a time, 181-frame test path: 23.79 dB at 0, 24.33 at 0.1, 25.98 at
-    1, 25.40 at 3, 22.81 at 10; the top band (isovalues 0.7 to 0.85) 21.13 dB at 0 and 26.43 at 1
+    one thread each, three runs at a time, 181-frame test path: 29.31 dB at 1, 30.10 at 2, 30.36 at
+    4 (the top band, isovalues 0.7 to 0.85: 29.05, 30.52, 31.22); with an earlier recipe (no colour
+    floor, no cosine powers), 23.79 at 0, 25.98 at 1, 25.40 at 3, 22.81 at 10
     (bench/results/nyx_history.md)."""
     level_curvature_points: int = 1024
     """Random points a step for ``level_curvature_weight``: 1024 made 883 steps and 26.24 dB in the
