@@ -389,7 +389,8 @@ class TrainConfig:
     slope changes smoothly carries the slope across each band, where a merely smooth ``g`` rises
     evenly between two surfaces and keeps a shrinking blob's arms too long. tangle_iso, 12 minutes,
     one thread each, three runs at a time, 181-frame test path: 29.31 dB at 1, 30.10 at 2, 30.36 at
-    4 (the top band, isovalues 0.7 to 0.85: 29.05, 30.52, 31.22); with an earlier recipe (no colour
+    4 (the top band, isovalues 0.7 to 0.85: 29.05, 30.52, 31.22); in another trio 30.35 at 4, 30.30
+    at 8, 29.36 at 16; with an earlier recipe (no colour
     floor, no cosine powers), 23.79 at 0, 25.98 at 1, 25.40 at 3, 22.81 at 10
     (bench/results/nyx_history.md)."""
     level_curvature_points: int = 1024
