@@ -46,7 +46,11 @@ from visnerf.representation.vm import VMGrid
 from visnerf.representation.vm_taps import TapLayout, VMTaps, lookup_modes, take_rows
 
 SUB_CHUNK = 16384
-"""Samples decoded per pass: the hidden activations of one pass stay in the core's cache."""
+"""Samples decoded per pass on the CPU: the hidden activations of one pass stay in the core's cache."""
+
+ACCELERATOR_SUB_CHUNK = 16 * SUB_CHUNK
+"""Samples decoded per pass on a GPU, where each pass's kernels cost a launch whatever their size
+(the renderer's chunks of rays grow by the same factor there, ``renderer.ACCELERATOR_CHUNK_FACTOR``)."""
 
 
 
@@ -147,6 +151,8 @@ class FrameField:
     ) -> None:
         self.field = field
         self.dtype = dtype
+        self.sub_chunk = SUB_CHUNK if q_density.device.type == "cpu" else ACCELERATOR_SUB_CHUNK
+        """Samples decoded per pass."""
         cfg = field.cfg
         q_factors, level = field.split_density_features(q_density)
         self.density_layer = fold_first_layer(field.density_decoder, q_factors[0], cfg.n_density_components, dtype)
@@ -186,8 +192,8 @@ class FrameField:
 
     def density_at(self, samples: SampleTaps) -> Float[Tensor, " m"]:
         out = torch.empty(len(samples), dtype=samples.points.dtype, device=samples.points.device)
-        for start in range(0, len(samples), SUB_CHUNK):
-            sl = slice(start, start + SUB_CHUNK)
+        for start in range(0, len(samples), self.sub_chunk):
+            sl = slice(start, start + self.sub_chunk)
             out[sl] = self._density(samples.coords[sl], samples.taps.select(sl))
         return out
 
@@ -224,8 +230,8 @@ class FrameField:
         """RGB at ``samples`` (``lookup(points)``); ``ray_terms`` is ``direction_terms`` of each
         sample's ray."""
         out = torch.empty(len(samples), 3, dtype=torch.float32, device=ray_terms.device)
-        for start in range(0, len(samples), SUB_CHUNK):
-            sl = slice(start, start + SUB_CHUNK)
+        for start in range(0, len(samples), self.sub_chunk):
+            sl = slice(start, start + self.sub_chunk)
             out[sl] = self._color(samples.select(sl), ray_terms[sl])
         return out
 
@@ -234,8 +240,8 @@ class FrameField:
         assert self._level_step is not None
         probes = self.lookup(probe_points(points, self._level_step))  # N_PROBES rows a point
         raw = torch.empty(len(probes), dtype=points.dtype, device=points.device)
-        for start in range(0, len(probes), SUB_CHUNK):
-            sl = slice(start, start + SUB_CHUNK)
+        for start in range(0, len(probes), self.sub_chunk):
+            sl = slice(start, start + self.sub_chunk)
             raw[sl] = self._raw_density(probes.coords[sl], probes.taps.select(sl))
         return level_cosines(raw.view(-1, N_PROBES), directions, self.field.cfg.level_cosine_powers)
 
