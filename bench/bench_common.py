@@ -9,6 +9,7 @@ import json
 import math
 import os
 import platform
+import re
 import statistics
 import sys
 import time
@@ -254,6 +255,21 @@ def fmt(value: float | None, digits: int = 1) -> str:
     if math.isinf(value):
         return "identical" if value > 0 else "-inf"
     return f"{value:.{digits}f}"
+
+
+def table_cell(value: object, digits: int) -> str:
+    """A Markdown table cell: a float to ``digits`` decimals, ``n/a`` for a missing value, anything
+    else as it prints (a count, a name)."""
+    return f"{value:.{digits}f}" if isinstance(value, float) else ("n/a" if value is None else str(value))
+
+
+def replace_marked_section(text: str, begin: str, end: str, body: str) -> str | None:
+    """``text`` with its section from the marker line ``begin`` to ``end`` (both kept) holding
+    ``body`` instead; None where ``text`` has no such section."""
+    pattern = re.compile(re.escape(begin) + ".*?" + re.escape(end), re.S)
+    if not pattern.search(text):
+        return None
+    return pattern.sub(lambda _: f"{begin}\n{body}\n{end}", text, count=1)
 
 
 def markdown_header(title: str, record: dict[str, Any]) -> list[str]:

@@ -7,8 +7,9 @@ replaces their rows and keeps the others' (``bench/eval_scenes.py --bundle``).
 
 import json
 import os
-import re
 from pathlib import Path
+
+from bench_common import replace_marked_section, table_cell
 
 BUNDLED = ("plume_time", "tangle_iso", "vortex_tf1", "cosmo_sim")
 """The scenes shipped in checkpoints/: one of each slider kind the product exists for."""
@@ -50,10 +51,6 @@ def merge_entries(path: Path, entries: list[dict]) -> dict:
     return record
 
 
-def _f(value: object, digits: int) -> str:
-    return f"{value:.{digits}f}" if isinstance(value, float) else ("n/a" if value is None else str(value))
-
-
 def table_lines(record: dict, link_root: Path, root: Path) -> list[str]:
     """The bundled scenes' table, each report linked relative to ``link_root``."""
     lines = ["| scene | slider | trained (min) | test-path PSNR (dB) | SSIM | model MB | report |",
@@ -61,7 +58,7 @@ def table_lines(record: dict, link_root: Path, root: Path) -> list[str]:
     for e in record["scenes"]:
         report = os.path.relpath(root / e["report"], link_root)
         lines.append(f"| `{e['scene']}` | {SLIDERS.get(e['scene'], e['kind'])} ({e['kind']}) | {e['minutes']:g} | "
-                     f"{_f(e['psnr'], 2)} | {_f(e['ssim'], 3)} | {_f(e['model_mb'], 2)} | [report]({report}) |")
+                     f"{table_cell(e['psnr'], 2)} | {table_cell(e['ssim'], 3)} | {table_cell(e['model_mb'], 2)} | [report]({report}) |")
     return lines
 
 
@@ -85,10 +82,9 @@ def write_bundle_record(results: Path, root: Path, entries: list[dict], readme: 
     record = merge_entries(folder / "bundled.json", entries)
     (folder / "README.md").write_text("\n".join(index_lines(record, folder, root)) + "\n")
     if readme is not None:
-        text = readme.read_text()
-        pattern = re.compile(re.escape(BEGIN) + ".*?" + re.escape(END), re.S)
-        if not pattern.search(text):
+        text = replace_marked_section(readme.read_text(), BEGIN, END,
+                                      "\n".join(table_lines(record, readme.parent, root)))
+        if text is None:
             raise ValueError(f"{readme} has no {BEGIN} ... {END} section")
-        body = "\n".join([BEGIN, *table_lines(record, readme.parent, root), END])
-        readme.write_text(pattern.sub(lambda _: body, text))
+        readme.write_text(text)
     return record

@@ -28,7 +28,6 @@ import argparse
 import json
 import os
 import platform
-import re
 import shutil
 import sys
 import tempfile
@@ -36,7 +35,7 @@ import time
 from pathlib import Path
 
 import torch
-from bench_common import cpu_description, write_json
+from bench_common import cpu_description, replace_marked_section, table_cell, write_json
 from bundle_record import BUNDLED, bundle_entry, write_bundle_record
 
 from visnerf import runtime
@@ -137,10 +136,6 @@ def bundle_scene(ckpt: Path, folder: Path) -> None:
         tmp.replace(folder / src.name)
 
 
-def _f(value: object, digits: int) -> str:
-    return f"{value:.{digits}f}" if isinstance(value, float) else ("n/a" if value is None else str(value))
-
-
 def table_lines(record: dict, commands: bool = True) -> list[str]:
     """The results table, with the paper's PSNR on the real dataset each scene stands in for, and
     a note on the rows rerun since the record (with their commands unless ``commands`` is False:
@@ -154,8 +149,8 @@ def table_lines(record: dict, commands: bool = True) -> list[str]:
         paper = r["paper"]
         grid = "x".join(map(str, r["resolution"])) if r.get("resolution") else "n/a"
         name = r["scene"] + (" *" if r.get("rerun") else "")
-        lines.append(f"| {name} | {r['kind']} | {r['K']} | {_f(r['psnr'], 2)} | {_f(r['ssim'], 3)} | "
-                     f"{r.get('iterations', 'n/a')} | {grid} | {_f(r['ms_per_frame'], 0)} | {_f(r['model_mb'], 2)} | "
+        lines.append(f"| {name} | {r['kind']} | {r['K']} | {table_cell(r['psnr'], 2)} | {table_cell(r['ssim'], 3)} | "
+                     f"{r.get('iterations', 'n/a')} | {grid} | {table_cell(r['ms_per_frame'], 0)} | {table_cell(r['model_mb'], 2)} | "
                      f"{'-' if not paper else paper['dataset'] + ', ' + str(paper['psnr'])} |")
     # One note per day and CPU, naming each rerun's scenes and command; the CPU only where it is
     # not the record's.
@@ -185,7 +180,7 @@ def place_cell(group: dict | None) -> str:
         return "-"
     if not group["n"]:
         return "no frame"
-    return f"{_f(group['psnr'], 2)} / {_f(group['ssim'], 3)} ({group['n']})"
+    return f"{table_cell(group['psnr'], 2)} / {table_cell(group['ssim'], 3)} ({group['n']})"
 
 
 def place_lines(record: dict) -> list[str]:
@@ -230,18 +225,19 @@ def write_markdown(path: Path, record: dict) -> None:
 
 def update_readme(readme: Path, record: dict) -> None:
     """Replace (or add, before "## Layout") the README's evaluation section."""
-    section = "\n".join([
-        README_BEGIN, "## Evaluation of the synthetic scenes", "",
+    body = "\n".join([
+        "## Evaluation of the synthetic scenes", "",
         f"`python bench/eval_scenes.py`: {record['minutes_per_scene']:g} minutes a scene, no flags, one at a time, "
         f"{record['resolution']}x{record['resolution']}, {record['machine'].get('cpu', record['machine']['device'])} "
         f"with {record['machine']['torch_threads']} threads, {record['date'][:10]}; PSNR and SSIM on each scene's "
         "181-frame test path, beside the paper's PSNR on the real counterpart "
-        "([details](bench/results/eval_scenes.md)):", "", *table_lines(record, commands=False), README_END,
+        "([details](bench/results/eval_scenes.md)):", "", *table_lines(record, commands=False),
     ])  # fmt: skip
+    section = f"{README_BEGIN}\n{body}\n{README_END}"
     text = readme.read_text()
-    pattern = re.compile(re.escape(README_BEGIN) + ".*?" + re.escape(README_END), re.S)
-    if pattern.search(text):
-        text = pattern.sub(lambda _: section, text)
+    replaced = replace_marked_section(text, README_BEGIN, README_END, body)
+    if replaced is not None:
+        text = replaced
     elif "\n## Layout" in text:
         text = text.replace("\n## Layout", f"\n{section}\n\n## Layout", 1)
     else:
@@ -330,7 +326,7 @@ def main(argv: list[str] | None = None) -> int:
                 bundle_scene(ckpt, args.bundle)
             runs.append(read_training_log(ckpt.with_suffix(".log.csv"), name=name))
             places = record["scenes"][-1]["parameter_space"]
-            print(f"{name}: PSNR {_f(summary['metrics']['psnr'], 2)} dB, SSIM {_f(summary['metrics']['ssim'], 3)} on "
+            print(f"{name}: PSNR {table_cell(summary['metrics']['psnr'], 2)} dB, SSIM {table_cell(summary['metrics']['ssim'], 3)} on "
                   f"{summary['metrics']['n']} test frames; PSNR / SSIM (frames) "
                   + "; ".join(f"{PLACES[g]} {place_cell(places[g])}" for g in PLACES if g in places), file=sys.stderr)
     finally:
