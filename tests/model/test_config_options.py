@@ -33,8 +33,8 @@ def test_every_field_is_an_option_or_left_out_with_a_reason() -> None:
 
 def test_generated_help_is_the_fields_docstring() -> None:
     text = train_parser().format_help()
-    assert field_docs(FieldConfig)["hidden_width"] == "Hidden layer width of both decoders."
-    assert "Hidden layer width of both decoders (default: 128)" in " ".join(text.split())
+    assert field_docs(FieldConfig)["hidden_width"].startswith("Hidden layer width of both decoders. 64 rather")
+    assert "Hidden layer width of both decoders (default: 64)" in " ".join(text.split())
     assert "(default: chosen from the data" in text
     assert "--stop-eps" in text and "--no-mixed-precision" in text
 
