@@ -135,7 +135,7 @@ class FieldConfig:
     """Components of each CP parameter-axis vector."""
     hidden_width: int = 64
     """Hidden layer width of both decoders. 64 rather than 128: the decoders are most of a step's
-    and a frame's work, and at 64 the same minutes buy 1.4 to 1.8 times the steps for the same or
+    and a frame's work, and at 64 the same minutes buy 1.35 to 1.43 times the steps for the same or
     better held-out figures (side by side on one AMD EPYC: Nyx's hour, vortex_tf1 and tangle_iso;
     bench/results/nyx_history.md)."""
     pos_encoding_freqs: int = 2

@@ -31,7 +31,7 @@ from visnerf.rendering.sampling import uniform_noise, uniform_samples
 from visnerf.rendering.volume import exclusive_optical_depth, optical_depths, weights_from_optical_depth
 from visnerf.representation.field import VisNerfField
 from visnerf.representation.frame_field import FrameField
-from visnerf.runtime import bf16_native
+from visnerf.runtime import batch_factor, bf16_native
 
 if TYPE_CHECKING:
     from visnerf.checkpoint import CheckpointMeta
@@ -48,18 +48,10 @@ buffers grow with its rays times its segment. With two threads on the 170^3 Nyx 
 3.6 s (the end of training renders such frames to choose the spacing)."""
 
 
-ACCELERATOR_CHUNK_FACTOR = 16
-"""On a GPU a frame's chunks hold this many times ``RenderSettings.chunk_rays`` rays (65,536 at
-full quality): every segment of a chunk launches some hundred small kernels and waits for a few
-counts (``nonzero``), so a GPU frame in CPU-sized chunks is bound by launches, not by its work.
-On one H200, a 256x256 frame of the bundled cosmo_sim took 312 ms in chunks of 4096 rays, with
-29 ms of kernels in it (bench/results/cuda_check)."""
-
-
 def rays_per_chunk(settings: "RenderSettings", device: torch.device) -> int:
     """Rays a chunk of a frame holds on ``device``: ``settings.chunk_rays`` on the CPU, where
-    chunks go to one thread per core; ``ACCELERATOR_CHUNK_FACTOR`` times more elsewhere."""
-    return settings.chunk_rays if device.type == "cpu" else settings.chunk_rays * ACCELERATOR_CHUNK_FACTOR
+    chunks go to one thread per core; more on a GPU (``runtime.batch_factor``)."""
+    return settings.chunk_rays * batch_factor(device)
 
 
 def exhaustive_step_ratio(cfg: RenderConfig) -> float:

@@ -44,13 +44,11 @@ from visnerf.representation.field import (
 from visnerf.representation.linear_relu import linear_relu
 from visnerf.representation.vm import VMGrid
 from visnerf.representation.vm_taps import TapLayout, VMTaps, lookup_modes, take_rows
+from visnerf.runtime import batch_factor
 
 SUB_CHUNK = 16384
-"""Samples decoded per pass on the CPU: the hidden activations of one pass stay in the core's cache."""
-
-ACCELERATOR_SUB_CHUNK = 16 * SUB_CHUNK
-"""Samples decoded per pass on a GPU, where each pass's kernels cost a launch whatever their size
-(the renderer's chunks of rays grow by the same factor there, ``renderer.ACCELERATOR_CHUNK_FACTOR``)."""
+"""Samples decoded per pass on the CPU: the hidden activations of one pass stay in the core's cache
+(``runtime.batch_factor`` times more on a GPU)."""
 
 
 
@@ -151,7 +149,7 @@ class FrameField:
     ) -> None:
         self.field = field
         self.dtype = dtype
-        self.sub_chunk = SUB_CHUNK if q_density.device.type == "cpu" else ACCELERATOR_SUB_CHUNK
+        self.sub_chunk = SUB_CHUNK * batch_factor(q_density.device)
         """Samples decoded per pass."""
         cfg = field.cfg
         q_factors, level = field.split_density_features(q_density)
