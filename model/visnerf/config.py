@@ -137,7 +137,9 @@ class FieldConfig:
     """Hidden layer width of both decoders. 64 rather than 128: the decoders are most of a step's
     and a frame's work, and at 64 the same minutes buy 1.35 to 1.43 times the steps for the same or
     better held-out figures (side by side on one AMD EPYC: Nyx's hour, vortex_tf1 and tangle_iso;
-    bench/results/nyx_history.md)."""
+    bench/results/nyx_history.md). 32 made 7 to 9 % more steps than 64, scored the same (tangle_iso
+    29.37 against 29.57 dB, vortex_tf1 38.25 against 38.22) and rendered no faster: at 64 the
+    factor lookups cost about as much as the first layer."""
     pos_encoding_freqs: int = 2
     """Frequencies of the positional encoding of x fed to the density decoder."""
     sh_degree: int = 3
