@@ -130,12 +130,15 @@ def bf16_native(device: torch.device) -> bool:
 
 
 def pick_device(name: str) -> torch.device:
-    """``auto`` takes CUDA when present; thread count is set once, to the machine's cores."""
+    """``auto`` takes CUDA when present. The torch thread count is set (``configure``) on every
+    device: a CUDA run's ray draws, carving and image work run on the CPU too. Set only for CPU
+    runs, ``VISNERF_THREADS`` was ignored on CUDA and each process took every core (torch's
+    default): five 2-thread trainings on one 16-core GPU node ran 16 threads each and stalled
+    (bench/results/cuda_check/README.md)."""
     if name == "auto":
         name = "cuda" if torch.cuda.is_available() else "cpu"
     device = torch.device(name)
     if device.type == "cuda" and not torch.cuda.is_available():
         raise SystemExit("error: --device cuda asked for, but no CUDA device is available")
-    if device.type == "cpu":
-        configure()
+    configure()
     return device

@@ -22,6 +22,19 @@ def test_an_explicit_thread_count_survives_pick_device(restore_threads, monkeypa
     assert torch.get_num_threads() == 1
 
 
+def test_visnerf_threads_holds_on_cuda_too(restore_threads, monkeypatch) -> None:
+    """A GPU run's CPU work (ray draws, carving, images) takes the thread count it was given, not
+    every core of the node (torch's default), so that several runs can share one node."""
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setenv("VISNERF_THREADS", "2")
+    torch.set_num_threads(1)
+    assert pick_device("cuda").type == "cuda"
+    assert torch.get_num_threads() == 2
+    torch.set_num_threads(1)
+    assert pick_device("auto").type == "cuda"
+    assert torch.get_num_threads() == 2
+
+
 def test_without_an_explicit_count_the_default_is_used(restore_threads, monkeypatch) -> None:
     monkeypatch.setattr(runtime, "default_threads", lambda: 2)
     torch.set_num_threads(1)
