@@ -14,11 +14,13 @@ from visnerf.representation.frame_field import FrameField, ModeTables
 from visnerf.testing import make_tiny_field
 
 
-@pytest.fixture(params=[-1, 0], ids=["factors", "level-axis"])
+@pytest.fixture(params=[(-1, 1), (0, 1), (-1, 2)], ids=["factors", "level-axis", "two-layer-density"])
 def field(request):
-    """Parameter factors on both axes, or axis ``a`` a level axis (``param_axes.LevelAxis``)."""
+    """Parameter factors on both axes, or axis ``a`` a level axis (``param_axes.LevelAxis``), or a
+    density decoder of two hidden layers."""
+    axis, layers = request.param
     f, _ = make_tiny_field([("a", [0.0, 0.5, 1.0]), ("b", [0.0, 1.0])], seed=3, resolution=12,
-                           level_set_axis=request.param)
+                           level_set_axis=axis, density_hidden_layers=layers)
     return f.eval()
 
 
