@@ -106,8 +106,6 @@ MAX_COMPONENTS = 1024
 """Most VM or parameter-vector components."""
 MAX_HIDDEN_WIDTH = 4096
 """Widest decoder hidden layer."""
-MAX_DECODER_LAYERS = 8
-"""Most hidden layers of a decoder."""
 MAX_ENCODING_FREQS = 32
 """Most positional-encoding frequencies."""
 MAX_COSINE_POWER = 1024
@@ -142,9 +140,6 @@ class FieldConfig:
     bench/results/nyx_history.md). 32 made 7 to 9 % more steps than 64, scored the same (tangle_iso
     29.37 against 29.57 dB, vortex_tf1 38.25 against 38.22) and rendered no faster: at 64 the
     factor lookups cost about as much as the first layer."""
-    density_hidden_layers: int = 1
-    """Hidden layers of the density decoder, each ``hidden_width`` wide (the colour decoder has one).
-    Checkpoints that do not name this field have one."""
     pos_encoding_freqs: int = 2
     """Frequencies of the positional encoding of x fed to the density decoder."""
     sh_degree: int = 3
@@ -219,7 +214,6 @@ class FieldConfig:
         _check_whole_in(self, 1, MAX_PARAM_VALUES, "param_lengths")
         _check_whole_in(self, 1, MAX_COMPONENTS, "n_density_components", "n_appearance_components", "n_param_components")
         _check_whole_in(self, 1, MAX_HIDDEN_WIDTH, "hidden_width")
-        _check_whole_in(self, 1, MAX_DECODER_LAYERS, "density_hidden_layers")
         _check_whole_in(self, 0, MAX_ENCODING_FREQS, "pos_encoding_freqs")
         _check_whole_in(self, 1, MAX_COSINE_POWER, "level_cosine_powers")
 

@@ -16,22 +16,6 @@ def test_checkpoint_round_trip_is_exact(tmp_path):
     assert meta2 == meta
 
 
-def test_a_deeper_density_decoder_round_trips_and_loads_into_its_shape(tmp_path):
-    """A density decoder of two hidden layers saves its second layer and loads back into a field of
-    that depth, with the same densities."""
-    from visnerf.testing import make_tiny_field
-
-    field, _ = make_tiny_field([("a", [0.0, 1.0])], density_hidden_layers=2)
-    path = _save_with_storage(field, tmp_path / "deep.safetensors", "float32")
-    loaded, meta = load_checkpoint(path, torch.device("cpu"))
-    assert meta.field.density_hidden_layers == 2
-    assert set(loaded.state_dict()) == set(field.state_dict())
-    assert "density_decoder.deeper.0.weight" in loaded.state_dict()
-    points, q = torch.rand(64, 3) - 0.5, field.param_features(torch.tensor([[0.3]]))[0].expand(64, -1)
-    with torch.no_grad():
-        assert torch.equal(loaded.density(points, q), field.density(points, q))
-
-
 def _save_with_storage(field, path, storage):
     import dataclasses
 

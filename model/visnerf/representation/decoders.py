@@ -91,30 +91,18 @@ def encode_position_into(points: Float[Tensor, "n 3"], n_freqs: int, out: Float[
 
 
 class Decoder(nn.Module):
-    """An MLP ``in -> hidden (-> hidden ...) -> out`` with ReLU after every hidden layer.
+    """One hidden layer MLP: ``in -> hidden -> out`` with ReLU.
 
-    ``n_layers`` hidden layers of one width: ``hidden`` reads the input, each of ``deeper`` (``n_layers
-    - 1`` of them, none for the one-layer decoders of the recipe) reads the layer before.
-
-    With ``bf16 = True`` the matrix products run in bfloat16 (AMX / tensor cores) while the
+    With ``bf16 = True`` the two matrix products run in bfloat16 (AMX / tensor cores) while the
     weights, the input and the returned output stay float32; everything downstream (softplus,
     transmittance, compositing) is float32.
     """
 
-    def __init__(self, n_in: int, n_hidden: int, n_out: int, n_layers: int = 1) -> None:
+    def __init__(self, n_in: int, n_hidden: int, n_out: int) -> None:
         super().__init__()
-        if n_layers < 1:
-            raise ValueError(f"a decoder needs at least one hidden layer, got {n_layers}")
         self.hidden = nn.Linear(n_in, n_hidden)
-        self.deeper = nn.ModuleList(nn.Linear(n_hidden, n_hidden) for _ in range(n_layers - 1))
         self.out = nn.Linear(n_hidden, n_out)
         self.bf16 = False
-
-    def _mlp(self, x: Float[Tensor, "n i"]) -> Float[Tensor, "n o"]:
-        h = torch.relu(self.hidden(x))  # [n, hidden]
-        for layer in self.deeper:
-            h = torch.relu(layer(h))
-        return self.out(h)
 
     def forward(self, x: Float[Tensor, "n i"]) -> Float[Tensor, "n o"]:
         if self.bf16 and x.device.type in ("cpu", "cuda"):
@@ -122,5 +110,5 @@ class Decoder(nn.Module):
             if x.device.type == "cpu":  # a few shapes for oneDNN's bf16 kernels (``padded_rows``)
                 x = F.pad(x, (0, 0, 0, padded_rows(n) - n))
             with torch.autocast(x.device.type, dtype=torch.bfloat16):
-                return self._mlp(x)[:n].float()
-        return self._mlp(x)
+                return self.out(torch.relu(self.hidden(x)))[:n].float()
+        return self.out(torch.relu(self.hidden(x)))

@@ -102,7 +102,6 @@ class VisNerfField(nn.Module):
             3 * cfg.n_density_components + pc + positional_encoding_dim(cfg.pos_encoding_freqs),
             cfg.hidden_width,
             1,
-            cfg.density_hidden_layers,
         )
         self.color_decoder = Decoder(
             3 * cfg.n_appearance_components + pc + sh_dim(cfg.sh_degree) + cfg.facing_vectors

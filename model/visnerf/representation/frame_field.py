@@ -171,8 +171,6 @@ class FrameField:
             scaled = field.facing.weight.detach() * q_appearance[0].repeat(n_spatial // c)[None]  # [3m, f]
             self._facing = scaled.to(dtype).contiguous()
         dd, cd = field.density_decoder.out, field.color_decoder.out
-        self._density_deeper = [(layer.weight.detach().to(dtype), layer.bias.detach().to(dtype))
-                                for layer in field.density_decoder.deeper]  # hidden layers after the first
         self._density_out = ((dd.weight.detach() * sharpness).to(dtype), (dd.bias.detach() * sharpness).to(dtype))
         self._color_out = (cd.weight.detach().to(dtype), cd.bias.detach().to(dtype))
         self._level_step = None if field.levels is None else cfg.level_normal_step * field.voxel_size()
@@ -210,8 +208,6 @@ class FrameField:
         self.density_tables.features_into(taps, x[:m])
         encode_position_into(coords, cfg.pos_encoding_freqs, x[:m, n_spatial:])
         hidden = linear_relu(x, self.density_layer.weight, self.density_layer.bias)  # [padded, h]
-        for weight, bias in self._density_deeper:
-            hidden = linear_relu(hidden, weight, bias)
         return F.linear(hidden, *self._density_out)[:m, 0].to(coords.dtype)
 
     def direction_terms(self, directions: Float[Tensor, "a 3"]) -> Float[Tensor, "a e"]:

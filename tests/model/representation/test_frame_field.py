@@ -14,13 +14,11 @@ from visnerf.representation.frame_field import FrameField, ModeTables
 from visnerf.testing import make_tiny_field
 
 
-@pytest.fixture(params=[(-1, 1), (0, 1), (-1, 2)], ids=["factors", "level-axis", "two-layer-density"])
+@pytest.fixture(params=[-1, 0], ids=["factors", "level-axis"])
 def field(request):
-    """Parameter factors on both axes, or axis ``a`` a level axis (``param_axes.LevelAxis``), or a
-    density decoder of two hidden layers."""
-    axis, layers = request.param
+    """Parameter factors on both axes, or axis ``a`` a level axis (``param_axes.LevelAxis``)."""
     f, _ = make_tiny_field([("a", [0.0, 0.5, 1.0]), ("b", [0.0, 1.0])], seed=3, resolution=12,
-                           level_set_axis=axis, density_hidden_layers=layers)
+                           level_set_axis=request.param)
     return f.eval()
 
 
