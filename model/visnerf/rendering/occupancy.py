@@ -78,6 +78,12 @@ def build_occupancy(
     """Union over ``settings`` of ``max alpha over the cell > threshold``, dilated by ``dilation``
     cells (a cube of side ``2 * dilation + 1`` around each occupied cell; 0: none).
 
+    Each setting evaluates only the cells no setting before it found occupied (the union does not
+    depend on the order): where content is much the same at every setting, as in a parameter sweep
+    of one simulation, the first setting finds most occupied cells and the others evaluate what is
+    left. A 96^3 rebuild of a cosmo_sim field at 27 settings took 63 s of a 10-minute training
+    budget when every setting evaluated every cell (bench/results/occupancy_build.md).
+
     Alpha is taken at the centres of ``samples_per_axis``^3 sub-cells of every cell: a structure
     thinner than a cell (a sharp isosurface, a filament) that passes between cell centres is still
     seen (tested with a shell a tenth of a cell thick). Only ``candidates`` cells are evaluated
@@ -99,13 +105,18 @@ def build_occupancy(
     occupied = torch.zeros(pts.shape[0], dtype=torch.bool, device=pts.device)
     settings = settings.to(pts.device)
     for setting in settings:
+        # a union: a cell some earlier setting found occupied stays so, whatever this one says
+        open_cells = (~occupied).nonzero()[:, 0]  # [o], indices into pts
+        if open_cells.numel() == 0:
+            break
         q_d, q_a = field.param_features(setting[None])
         frame = FrameField(field, q_d, q_a, torch.bfloat16 if bf16_native(pts.device) else torch.float32)
-        for start in range(0, pts.shape[0], per_chunk):
-            part = (pts[start : start + per_chunk, None, :] + offsets[None]).reshape(-1, 3)  # [c * p, 3]
+        for start in range(0, open_cells.numel(), per_chunk):
+            cells = open_cells[start : start + per_chunk]  # [c]
+            part = (pts[cells, None, :] + offsets[None]).reshape(-1, 3)  # [c * p, 3]
             sigma = frame.density(part).reshape(-1, offsets.shape[0]).amax(dim=1)
             alpha = -torch.expm1(-sigma * step)
-            occupied[start : start + per_chunk] |= alpha > threshold
+            occupied[cells] |= alpha > threshold
     full = torch.zeros(all_pts.shape[0], dtype=torch.bool, device=all_pts.device)
     full[cand] = occupied
     return dilate(full.reshape(resolution), dilation)

@@ -89,3 +89,56 @@ def test_refined_grids_use_the_configured_dilation(cells: int) -> None:
 def test_a_negative_refine_dilation_is_refused() -> None:
     with pytest.raises(ValueError, match="occupancy_refine_dilation"):
         TrainConfig(occupancy_refine_dilation=-1)
+
+
+def _every_cell_at_every_setting(field, res, settings, step, threshold) -> torch.Tensor:
+    """Reference union: each setting's own grid, every cell evaluated, then or-ed together."""
+    from visnerf.rendering.occupancy import cell_centres, cell_offsets
+    from visnerf.representation.frame_field import FrameField
+    from visnerf.runtime import bf16_native
+
+    pts = cell_centres(field.aabb, res).reshape(-1, 1, 3) + cell_offsets(res, field.aabb[1] - field.aabb[0], 2)[None]
+    grids = []
+    with torch.no_grad():
+        for setting in settings:
+            q_d, q_a = field.param_features(setting[None])
+            frame = FrameField(field, q_d, q_a, torch.bfloat16 if bf16_native(pts.device) else torch.float32)
+            sigma = frame.density(pts.reshape(-1, 3)).reshape(pts.shape[0], -1).amax(dim=1)
+            grids.append((-torch.expm1(-sigma * step) > threshold).reshape(res))
+    return torch.stack(grids)
+
+
+def test_the_union_skips_cells_found_occupied_and_equals_every_setting_evaluated(monkeypatch) -> None:
+    """Later settings evaluate only the cells earlier ones left empty: the grid is the union of
+    every setting's own grid all the same, and the density is asked for fewer points."""
+    from visnerf.representation.frame_field import FrameField
+
+    field, _ = make_tiny_field([("t", [0.0, 0.5, 1.0])], seed=5, resolution=12)
+    field.eval()
+    res, step = (10, 10, 10), 0.03
+    settings = torch.tensor([[-1.0], [0.0], [1.0]])
+    alphas = _every_cell_at_every_setting(field, res, settings, step, 0.0)  # every cell: alpha > 0
+    assert alphas.all()
+    # a threshold that leaves each setting part of the box, and differs between settings
+    with torch.no_grad():
+        q_d, q_a = field.param_features(settings[:1])
+        from visnerf.rendering.occupancy import cell_centres
+
+        sigma = FrameField(field, q_d, q_a).density(cell_centres(field.aabb, res).reshape(-1, 3))
+    threshold = float(torch.quantile(-torch.expm1(-sigma * step), 0.6))
+    own = _every_cell_at_every_setting(field, res, settings, step, threshold)  # [3, 10, 10, 10]
+    union = own.any(dim=0)
+    assert 0 < int(own[0].sum()) < int(union.sum()) < union.numel()  # each setting adds cells: the union is real
+    asked: list[int] = []
+    real_density = FrameField.density
+
+    def counting(self, points):
+        asked.append(points.shape[0])
+        return real_density(self, points)
+
+    monkeypatch.setattr(FrameField, "density", counting)
+    grid = build_occupancy(field, res, settings, step, threshold, dilation=0)
+    assert torch.equal(grid, union)
+    every = len(settings) * union.numel() * 8  # 8 sub-cells a cell
+    assert sum(asked) == 8 * (union.numel() + int((~own[0]).sum()) + int((~(own[0] | own[1])).sum()))
+    assert sum(asked) < every
