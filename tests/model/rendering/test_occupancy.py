@@ -1,5 +1,6 @@
 """Occupancy dilation: the grown grid against a closed form, and refined training grids built
-with the configured dilation."""
+with the configured dilation; the union over settings against every cell evaluated at every
+setting."""
 
 import dataclasses
 import itertools
@@ -8,7 +9,9 @@ import pytest
 import torch
 
 from visnerf.config import TrainConfig
-from visnerf.rendering.occupancy import build_occupancy, dilate
+from visnerf.rendering.occupancy import build_occupancy, cell_centres, cell_offsets, dilate
+from visnerf.representation.frame_field import FrameField
+from visnerf.runtime import bf16_native
 from visnerf.testing import make_noise_scene, make_tiny_field
 from visnerf.training.trainer import Trainer
 
@@ -93,10 +96,6 @@ def test_a_negative_refine_dilation_is_refused() -> None:
 
 def _every_cell_at_every_setting(field, res, settings, step, threshold) -> torch.Tensor:
     """Reference union: each setting's own grid, every cell evaluated, then or-ed together."""
-    from visnerf.rendering.occupancy import cell_centres, cell_offsets
-    from visnerf.representation.frame_field import FrameField
-    from visnerf.runtime import bf16_native
-
     pts = cell_centres(field.aabb, res).reshape(-1, 1, 3) + cell_offsets(res, field.aabb[1] - field.aabb[0], 2)[None]
     grids = []
     with torch.no_grad():
@@ -111,8 +110,6 @@ def _every_cell_at_every_setting(field, res, settings, step, threshold) -> torch
 def test_the_union_skips_cells_found_occupied_and_equals_every_setting_evaluated(monkeypatch) -> None:
     """Later settings evaluate only the cells earlier ones left empty: the grid is the union of
     every setting's own grid all the same, and the density is asked for fewer points."""
-    from visnerf.representation.frame_field import FrameField
-
     field, _ = make_tiny_field([("t", [0.0, 0.5, 1.0])], seed=5, resolution=12)
     field.eval()
     res, step = (10, 10, 10), 0.03
@@ -122,8 +119,6 @@ def test_the_union_skips_cells_found_occupied_and_equals_every_setting_evaluated
     # a threshold that leaves each setting part of the box, and differs between settings
     with torch.no_grad():
         q_d, q_a = field.param_features(settings[:1])
-        from visnerf.rendering.occupancy import cell_centres
-
         sigma = FrameField(field, q_d, q_a).density(cell_centres(field.aabb, res).reshape(-1, 3))
     threshold = float(torch.quantile(-torch.expm1(-sigma * step), 0.6))
     own = _every_cell_at_every_setting(field, res, settings, step, threshold)  # [3, 10, 10, 10]
