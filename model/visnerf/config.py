@@ -437,8 +437,9 @@ class TrainConfig:
     validate_max_images: int = 8
     """Held-out frames rendered at each validation (evenly chosen)."""
     choose_full_spacing: bool = True
-    """At the end of training, choose the checkpoint's full-quality sample spacing on the
-    validation frames (``evaluation.spacing``; needs held-out frames)."""
+    """At the end of training, choose the checkpoint's full-quality sample spacing
+    (``evaluation.spacing``) on the validation frames, or on training frames where none are held
+    out."""
     seed: int = 0
     """Seed of the ray draws, the sample jitter and the field's initial factors."""
     random_background: bool = False

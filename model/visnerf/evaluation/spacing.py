@@ -10,8 +10,10 @@ frames exhaustively and at each candidate, and keep the coarsest candidate whose
 against the ground truth is within ``tolerance_db`` of the exhaustive frames'. The default, 0.05 dB,
 is half the fast renderer's accuracy target, because a few frames do not speak for all: on the
 60-minute Nyx model one voxel was 0.045 dB below the exhaustive frames on 8 validation frames and
-0.147 dB below on the 20 frames of bench/render_speed.py. Training does it on its validation frames at the end
-(``Trainer.run``); ``visnerf calibrate`` does it for an existing checkpoint.
+0.147 dB below on the 20 frames of bench/render_speed.py. Training does it at the end (``Trainer.run``)
+on its validation frames, or on its training frames where none are held out: the choice weighs
+sampling error, which training frames show as well; ``visnerf calibrate`` does it for an existing
+checkpoint.
 
 The exhaustive reference here marches the checkpoint's occupancy grid, as the candidates do: the
 grid a training run leaves is part of the model (the cells it kept fitting, ``Trainer.finish_occupancy``),

@@ -480,10 +480,16 @@ class Trainer:
             stop.loop_ended()
         compared = self._use_weight_average()
         self.finish_occupancy()  # final grid, for fast inference
-        if self.val_scene is not None and cfg.choose_full_spacing:
-            choice = choose_full_spacing(self.field, self.val_scene, self.render_cfg, cfg.validate_max_images)
+        if cfg.choose_full_spacing:
+            # Without held-out frames the training frames serve: the choice weighs each spacing's
+            # sampling error against the exhaustive render of the same frame, not how the model
+            # generalises. A tangle_iso run on every view, which kept the configured 0.75 voxel,
+            # chooses 1.25 on 8 training frames: 30.72 dB on its test path against 30.73.
+            held_out = self.val_scene is not None
+            frames = self.val_scene if held_out else self.scene
+            choice = choose_full_spacing(self.field, frames, self.render_cfg, cfg.validate_max_images)
             self.render_cfg = replace(self.render_cfg, full_step_ratio=choice.ratio)
-            self.spacing_note = choice.describe()
+            self.spacing_note = choice.describe() + ("" if held_out else ", training frames (none held out)")
             if progress_bar:
                 tqdm.write(self.spacing_note)
         self._record(mse_to_psnr(self.ema_mse) if self.ema_mse else float("nan"), wall0, on_validate, compared)
