@@ -17,8 +17,9 @@ SLIDERS = {"plume_time": "timestep", "tangle_iso": "isovalue", "vortex_tf1": "tr
            "cosmo_sim": "3 simulation parameters"}
 BEGIN, END = "<!-- bundled:begin -->", "<!-- bundled:end -->"
 """Markers of the README's bundled-checkpoint table."""
-FIGURES = ("kind", "psnr", "ssim", "model_mb", "iterations", "train_minutes")
-"""The row fields of ``bench/eval_scenes.py`` a bundled scene keeps."""
+FIGURES = ("kind", "psnr", "ssim", "model_mb", "iterations", "train_minutes", "holdout_views")
+"""The row fields of ``bench/eval_scenes.py`` a bundled scene keeps (``holdout_views``: the views
+left out of its training, none for a scene trained on every view as `visnerf train DATA` does)."""
 
 
 def bundle_entry(row: dict, record: dict, report: Path, root: Path, rescored: bool = False) -> dict:
@@ -70,8 +71,10 @@ def index_lines(record: dict, link_root: Path, root: Path) -> list[str]:
              *table_lines(record, link_root, root), ""]
     for e in record["scenes"]:
         how = "evaluated again (not retrained: the steps are its training run's)" if e.get("rescored") else "trained"
+        held = e["holdout_views"]
+        views = f", views {', '.join(map(str, held))} held out" if held else " on every view"
         lines.append(f"- `{e['scene']}`: {how} by `{e['command']}` ({e['cpu']}, {e['threads']} threads, "
-                     f"{e['date'][:10]}); {e['iterations']} steps in {e['train_minutes']:.1f} min.")
+                     f"{e['date'][:10]}); {e['iterations']} steps in {e['train_minutes']:.1f} min{views}.")
     return lines
 
 

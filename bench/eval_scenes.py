@@ -95,10 +95,12 @@ def dataset_for(spec: SceneSpec, root: Path, options: DatasetOptions, workers: i
     return folder, summary.seconds
 
 
-def train_scene(data: Path, ckpt: Path, minutes: float, device: torch.device) -> Trainer:
-    """Train under the budget with the product's recipe, as `visnerf train DATA --time-budget MINUTES`
-    does (the recipe's look at the data counts as training time, validation does not)."""
-    train, val = split_holdout(load_dataset(data, "train"), HoldoutConfig(views=HOLDOUT_VIEWS))
+def train_scene(data: Path, ckpt: Path, minutes: float, device: torch.device,
+                holdout_views: tuple[int, ...] = HOLDOUT_VIEWS) -> Trainer:
+    """Train under the budget with the product's recipe, as `visnerf train DATA --time-budget MINUTES
+    --holdout-views ...` does (the recipe's look at the data counts as training time, validation
+    does not); with no ``holdout_views``, on every view, as `visnerf train DATA` does."""
+    train, val = split_holdout(load_dataset(data, "train"), HoldoutConfig(views=holdout_views))
     budget = 60.0 * minutes
     base = TrainConfig(time_budget_s=budget, validate_every_s=max(budget / 6.0, 5.0))
     trainer = recipe_trainer(train, val, base, FieldConfig(), device)
@@ -117,10 +119,12 @@ def evaluation_fields(summary: dict) -> dict:
     }  # fmt: skip
 
 
-def scene_row(spec: SceneSpec, summary: dict, trainer: Trainer, gen_seconds: float) -> dict:
+def scene_row(spec: SceneSpec, summary: dict, trainer: Trainer, gen_seconds: float,
+              holdout_views: tuple[int, ...]) -> dict:
     paper = PAPER_PSNR.get(spec.name) if spec.axes else PAPER_STATIC
     return {
-        "scene": spec.name, "kind": spec.kind, "K": len(spec.axes), **evaluation_fields(summary),
+        "scene": spec.name, "kind": spec.kind, "K": len(spec.axes), "holdout_views": list(holdout_views),
+        **evaluation_fields(summary),
         "train_minutes": trainer.state.train_seconds / 60.0, "iterations": trainer.state.iteration,
         "resolution": list(trainer.field.resolution), "generation_seconds": gen_seconds,
         "choices": trainer.recipe_choices, "paper": None if paper is None else {"dataset": paper[0], "psnr": paper[1]},
@@ -252,9 +256,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--minutes-per-scene", type=float, default=10.0, help="training budget (default 10)")
     parser.add_argument("--res", type=int, default=128, help="image size (default 128)")
     parser.add_argument("--bundle", type=Path, default=None, metavar="DIR",
-                        help=f"copy the checkpoints (and logs) of {', '.join(BUNDLED)} into DIR and replace their rows "
-                             "in RESULTS/bundled_eval/ and the README's bundled table; a run that is not the "
-                             "record's keeps their reports in RESULTS/bundled_eval/NAME/ (scripts/train_bundled.sh)")
+                        help=f"train {', '.join(BUNDLED)} on every view, as `visnerf train DATA` does (the others "
+                             "keep the hold-out), copy their checkpoints (and logs) into DIR and replace their rows "
+                             "in RESULTS/bundled_eval/ and the README's bundled table; their reports go to "
+                             "RESULTS/bundled_eval/NAME/ (scripts/train_bundled.sh)")
     parser.add_argument("--test-views", type=int, default=181, help="views on the test path (default 181)")
     parser.add_argument("--max-eval-frames", type=int, default=None, help="evaluate only N test frames")
     parser.add_argument("--sweep-frames", type=int, default=4, help="frames per render setting (default 4)")
@@ -274,6 +279,10 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     if args.rescore and not (args.replace_rows and args.work_dir):
         parser.error("--rescore needs --replace-rows and --work-dir (the folder of the record's checkpoints)")
+    if args.bundle is not None and args.replace_rows and not args.rescore and set(args.scenes) & set(BUNDLED):
+        parser.error(f"--bundle trains {', '.join(sorted(set(args.scenes) & set(BUNDLED)))} on every view and the "
+                     f"record's rows hold views {', '.join(map(str, HOLDOUT_VIEWS))} out: run --bundle and "
+                     "--replace-rows apart")
     if args.minutes_per_scene <= 0 or args.res < 8 or args.test_views < 2:
         parser.error("--minutes-per-scene must be positive, --res at least 8, --test-views at least 2")
     runtime.configure(args.threads)
@@ -289,6 +298,8 @@ def main(argv: list[str] | None = None) -> int:
             parser.error("--replace-rows reruns scenes the record's way: its --res, --test-views and "
                          "--minutes-per-scene, every test frame")
     stem = "eval_scenes" if full_run or args.replace_rows else "eval_scenes.partial"  # a partial run never replaces the record
+    if args.bundle is not None and full_run:
+        parser.error("--bundle trains the bundled scenes on every view, not the record's way: name the scenes")
     temporary = Path(tempfile.mkdtemp(prefix="visnerf_eval_scenes_"))
     data_root, work = args.data_root or temporary / "data", args.work_dir or temporary / "runs"
     # a bundled scene's report must outlive the next partial run
@@ -314,13 +325,16 @@ def main(argv: list[str] | None = None) -> int:
                     parser.error(f"--rescore: {name} has no row in the record or no checkpoint {ckpt}")
                 print(f"{name}: evaluating {ckpt} again", file=sys.stderr)
             else:
-                print(f"{name}: training {args.minutes_per_scene:g} min on {data}", file=sys.stderr)
-                trainer = train_scene(data, ckpt, args.minutes_per_scene, device)
+                holdout = () if args.bundle is not None and name in BUNDLED else HOLDOUT_VIEWS
+                print(f"{name}: training {args.minutes_per_scene:g} min on {data}, "
+                      + (f"views {', '.join(map(str, holdout))} held out" if holdout else "every view"), file=sys.stderr)
+                trainer = train_scene(data, ckpt, args.minutes_per_scene, device, holdout)
             summary = write_report(evaluate_checkpoint(ckpt, data, eval_cfg, device), eval_cfg, reports / name)
             if args.rescore:
-                record["scenes"].append({**row, **evaluation_fields(summary)})
+                # every row of the record was trained with the hold-out (a bundling run does not replace rows)
+                record["scenes"].append({"holdout_views": list(HOLDOUT_VIEWS), **row, **evaluation_fields(summary)})
             else:
-                record["scenes"].append(scene_row(spec, summary, trainer, gen_seconds))
+                record["scenes"].append(scene_row(spec, summary, trainer, gen_seconds, holdout))
                 del trainer
             if args.bundle is not None and name in BUNDLED:
                 bundle_scene(ckpt, args.bundle)
