@@ -8,9 +8,9 @@ with the camera and parameters of those frames, are rendered at each size with t
 - plain: quality ``exhaustive``: the training sample spacing (half a voxel), no occupancy grid, no
   early ray termination, every sample's colour decoded and float32 decoders: the exhaustive renderer;
 - fast: the checkpoint's full settings (``RenderSettings.from_meta``), as the server renders (the
-  checkpoint's full-quality spacing, chosen on held-out frames by ``evaluation.spacing``; empty-space
-  skipping, early termination, colour decoded only above a weight threshold, bf16 lookups and
-  decoders where the CPU has bf16 instructions);
+  checkpoint's full-quality spacing, chosen by ``evaluation.spacing`` on held-out frames, or on
+  training frames when none were held out; empty-space skipping, early termination, colour decoded
+  only above a weight threshold, bf16 lookups and decoders where the CPU has bf16 instructions);
 - preview: quality ``preview`` (half resolution, larger steps), bilinearly upsampled to the size.
 
 Per view the three run back to back (fast, plain, preview, then the next view), so machine noise

@@ -300,6 +300,7 @@ def _calibrate(args: argparse.Namespace) -> int:
     device = pick_device(args.device)
     try:
         field, meta = load_checkpoint(args.checkpoint, device)
+        which = ""
         if args.holdout_views or args.holdout_params or args.holdout_value:
             scene = load_dataset(args.data, "train")
             _, frames = split_holdout(scene, holdout_config(scene, args))
@@ -308,18 +309,20 @@ def _calibrate(args: argparse.Namespace) -> int:
         elif (Path(args.data) / "transforms_val.json").is_file():
             frames = load_dataset(args.data, "val")
         else:
-            raise ValueError(f"{args.data} has no transforms_val.json: name the frames the checkpoint was not "
-                             "trained on with --holdout-views / --holdout-params / --holdout-value")
+            # as training does with nothing held out: the choice weighs sampling error against the
+            # exhaustive render of the same frame, which training frames show as well
+            frames, which = load_dataset(args.data, "train"), ", training frames (none held out)"
         frames = frames_in_checkpoint_axes(frames, meta.param_axes)
         choice = choose_full_spacing(field, frames, meta.render, args.frames, args.tolerance)
     except (CheckpointError, DatasetError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    print(choice.describe())
+    note = choice.describe() + which
+    print(note)
     if args.dry_run:
         return 0
     render = dataclasses.replace(meta.render, full_step_ratio=choice.ratio)
-    prov = dict(meta.provenance, full_spacing=choice.describe())
+    prov = dict(meta.provenance, full_spacing=note)
     save_checkpoint(field, dataclasses.replace(meta, render=render, provenance=prov), args.checkpoint)
     print(f"wrote full_step_ratio {choice.ratio:g} into {args.checkpoint}")
     return 0
@@ -380,9 +383,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.add_argument("-o", "--output", required=True)
     r.set_defaults(func=_render)
 
-    c = sub.add_parser("calibrate", help="choose a checkpoint's full-quality sample spacing on held-out frames")
+    c = sub.add_parser("calibrate", help="choose a checkpoint's full-quality sample spacing on held-out frames "
+                                         "(on training frames when none are held out)")
     c.add_argument("checkpoint", help="checkpoint to measure and update in place (written atomically)")
-    c.add_argument("data", help="dataset folder: transforms_val.json, or the training split with --holdout-*")
+    c.add_argument("data", help="dataset folder: transforms_val.json, the training split with --holdout-*, else "
+                                "the training frames")
     c.add_argument("--holdout-views", type=parse_views, default=(), metavar="I,J,..",
                    help="the views held out in training (frames of transforms_train.json)")
     c.add_argument("--holdout-params", type=parse_settings, default=(), metavar="A,B;C,D",

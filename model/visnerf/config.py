@@ -252,9 +252,9 @@ class RenderConfig:
     1.5 pixels apart, the spacing the Nyx record trained at (bench/results/nyx_history.md)."""
     full_step_ratio: float = 0.75
     """Sample spacing of full-quality inference frames in voxels (stored with each checkpoint):
-    training ends by choosing the coarsest spacing whose held-out frames are within 0.05 dB of
-    exhaustive ones (``evaluation.spacing``, ``visnerf calibrate``); this default is for
-    checkpoints that stored none."""
+    training ends by choosing the coarsest spacing whose held-out frames (training frames when none
+    are held out) are within 0.05 dB of exhaustive ones (``evaluation.spacing``, ``visnerf
+    calibrate``); this default is for checkpoints that stored none."""
     max_samples: int = 1024
     """Upper bound on samples per ray (at most ``MAX_SAMPLES_LIMIT``)."""
     bf16: bool = True

@@ -41,7 +41,8 @@ ALIASES: dict[tuple[str, str], str] = {
 NOT_OPTIONS: dict[tuple[str, str], str] = {
     ("FieldConfig", "resolution"): "follows from the content box and --resolution",
     ("FieldConfig", "param_lengths"): "the number of training values of each parameter, from the data",
-    ("RenderConfig", "full_step_ratio"): "chosen at the end of training from held-out frames (visnerf calibrate)",
+    ("RenderConfig", "full_step_ratio"): "chosen at the end of training from held-out frames, else training frames "
+                                           "(visnerf calibrate)",
 }
 """Fields that are not options, and why."""
 

@@ -164,8 +164,22 @@ def test_calibrate_writes_the_spacing_and_nothing_else(plume, tmp_path) -> None:
     assert after.keys() == before.keys() and all(torch.equal(after[k], before[k]) for k in before)
 
 
+def test_calibrate_without_held_out_frames_chooses_on_the_training_frames(plume, tmp_path) -> None:
+    """No transforms_val.json and no --holdout-*: the training frames serve, as in training, and the
+    checkpoint's note says so."""
+    axes = load_dataset(plume).param_axes
+    ckpt = make_tiny_checkpoint(tmp_path / "tiny.safetensors", [(a.name, list(a.values)) for a in axes])
+    assert not (plume / "transforms_val.json").exists()
+    run = _calibrate(str(ckpt), str(plume), "--frames", "2", "--device", "cpu")
+    assert run.returncode == 0, run.stderr
+    meta, _ = read_checkpoint(ckpt)
+    chosen = float(run.stdout.split("wrote full_step_ratio ")[1].split()[0])
+    assert meta.render.full_step_ratio == chosen
+    assert meta.provenance["full_spacing"].endswith(", training frames (none held out)")
+    assert meta.provenance["full_spacing"] in run.stdout
+
+
 @pytest.mark.parametrize(("extra", "message"), [
-    ((), "no transforms_val.json"),
     (("--holdout-views", "999"), "matches no frame"),
     (("--holdout-views", "1", "--tolerance", "-1"), "tolerance_db"),
 ])
@@ -175,6 +189,16 @@ def test_calibrate_errors_change_nothing(plume, tmp_path, extra, message) -> Non
     blob = ckpt.read_bytes()
     run = _calibrate(str(ckpt), str(plume), *extra)
     assert run.returncode == 2 and message in run.stderr, run.stderr
+    assert ckpt.read_bytes() == blob
+
+
+def test_calibrate_names_a_folder_without_frames_and_changes_nothing(plume, tmp_path) -> None:
+    axes = load_dataset(plume).param_axes
+    ckpt = make_tiny_checkpoint(tmp_path / "tiny.safetensors", [(a.name, list(a.values)) for a in axes])
+    blob = ckpt.read_bytes()
+    (tmp_path / "empty").mkdir()
+    run = _calibrate(str(ckpt), str(tmp_path / "empty"))
+    assert run.returncode == 2 and "transforms_train.json" in run.stderr, run.stderr
     assert ckpt.read_bytes() == blob
 
 
