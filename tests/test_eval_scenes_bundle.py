@@ -47,3 +47,13 @@ def test_bundling_and_replacing_the_record_rows_together_is_refused(tmp_path: Pa
     assert "every view" in capsys.readouterr().err
     assert sorted(p.name for p in results.iterdir()) == ["eval_scenes.json"]
     assert not (tmp_path / "checkpoints").exists()
+
+
+def test_bundling_in_a_full_run_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A run of every scene is the record's; the bundled ones would train another way in it."""
+    with pytest.raises(SystemExit) as exit_info:
+        eval_scenes.main(["--bundle", str(tmp_path / "checkpoints"), "--results", str(tmp_path / "results"),
+                          "--data-root", str(tmp_path / "data")])
+    assert exit_info.value.code == 2
+    assert "name the scenes" in capsys.readouterr().err
+    assert not any(tmp_path.iterdir())
