@@ -300,7 +300,7 @@ def _calibrate(args: argparse.Namespace) -> int:
     device = pick_device(args.device)
     try:
         field, meta = load_checkpoint(args.checkpoint, device)
-        which = ""
+        on_training_frames = False
         if args.holdout_views or args.holdout_params or args.holdout_value:
             scene = load_dataset(args.data, "train")
             _, frames = split_holdout(scene, holdout_config(scene, args))
@@ -311,13 +311,13 @@ def _calibrate(args: argparse.Namespace) -> int:
         else:
             # as training does with nothing held out: the choice weighs sampling error against the
             # exhaustive render of the same frame, which training frames show as well
-            frames, which = load_dataset(args.data, "train"), ", training frames (none held out)"
+            frames, on_training_frames = load_dataset(args.data, "train"), True
         frames = frames_in_checkpoint_axes(frames, meta.param_axes)
         choice = choose_full_spacing(field, frames, meta.render, args.frames, args.tolerance)
     except (CheckpointError, DatasetError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    note = choice.describe() + which
+    note = choice.describe(training_frames=on_training_frames)
     print(note)
     if args.dry_run:
         return 0

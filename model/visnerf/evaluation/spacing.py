@@ -60,11 +60,13 @@ class SpacingChoice:
     agreement_db: dict[float, float] = field(default_factory=dict)
     """Mean PSNR of the frames at each candidate against the exhaustive frames."""
 
-    def describe(self) -> str:
+    def describe(self, training_frames: bool = False) -> str:
+        """The choice and what each candidate scored; ``training_frames``: it was made on training
+        frames because none were held out, and the note says so."""
         tried = ", ".join(f"{r:g} voxel {p:.3f} dB ({self.agreement_db.get(r, float('nan')):.1f} dB from exhaustive)"
                           for r, p in self.candidate_psnr.items())
         return (f"full-quality spacing {self.ratio:g} voxel (exhaustive {self.exhaustive_psnr:.3f} dB; {tried}; "
-                f"mean over {self.frames} frames)")
+                f"mean over {self.frames} frames)" + (", training frames (none held out)" if training_frames else ""))
 
 
 @torch.no_grad()

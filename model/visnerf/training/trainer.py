@@ -489,7 +489,7 @@ class Trainer:
             frames = self.val_scene if held_out else self.scene
             choice = choose_full_spacing(self.field, frames, self.render_cfg, cfg.validate_max_images)
             self.render_cfg = replace(self.render_cfg, full_step_ratio=choice.ratio)
-            self.spacing_note = choice.describe() + ("" if held_out else ", training frames (none held out)")
+            self.spacing_note = choice.describe(training_frames=not held_out)
             if progress_bar:
                 tqdm.write(self.spacing_note)
         self._record(mse_to_psnr(self.ema_mse) if self.ema_mse else float("nan"), wall0, on_validate, compared)
