@@ -15,8 +15,8 @@ on its validation frames, or on its training frames where none are held out: the
 sampling error, which training frames show as well; ``visnerf calibrate`` does it for an existing
 checkpoint.
 
-The exhaustive reference here marches the checkpoint's occupancy grid, as the candidates do: the
-grid a training run leaves is part of the model (the cells it kept fitting, ``Trainer.finish_occupancy``),
+The exhaustive reference (``RenderSettings.from_config(..., "exhaustive")``) marches the
+checkpoint's occupancy grid, as the candidates do: the grid a training run leaves is part of the model (the cells it kept fitting, ``Trainer.finish_occupancy``),
 and outside it the density has had no photometric loss since the grid was last narrowed. Without
 the grid, the reference of the 60-minute Nyx model whose refined grids hold no ring of empty cells
 rendered that untrained density: 26.195 dB on 6 frames against 26.849 dB at three quarters of a
@@ -109,8 +109,7 @@ def choose_full_spacing(
     was_training = field.training
     field.eval()
     try:
-        exhaustive_settings = RenderSettings.from_config(render_cfg, scene.background, "exhaustive")
-        reference = render_all(replace(exhaustive_settings, use_occupancy=True))  # the model's grid (above)
+        reference = render_all(RenderSettings.from_config(render_cfg, scene.background, "exhaustive"))
         exhaustive = mean_psnr(reference, truth)
         full = RenderSettings.from_config(render_cfg, scene.background, "full")
         tried: dict[float, float] = {}

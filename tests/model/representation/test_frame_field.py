@@ -181,7 +181,8 @@ def test_qualities_derive_from_the_checkpoint_render_config() -> None:
     plain = RenderSettings.from_config(cfg, (1.0, 1.0, 1.0), "exhaustive")
     preview = RenderSettings.from_config(cfg, (1.0, 1.0, 1.0), "preview")
     assert (full.step_ratio, full.use_occupancy, full.early_termination, full.bf16) == (1.0, True, True, True)
-    assert (plain.step_ratio, plain.use_occupancy, plain.early_termination, plain.bf16) == (0.5, False, False, False)
+    # the exhaustive reference marches the model's occupancy grid (part of the model), every sample in it
+    assert (plain.step_ratio, plain.use_occupancy, plain.early_termination, plain.bf16) == (0.5, True, False, False)
     assert plain.weight_threshold_per_voxel == 0.0
     assert (preview.step_ratio, preview.resolution_scale) == (1.0, 0.5)
     with pytest.raises(ValueError, match="quality must be"):
