@@ -114,8 +114,8 @@ class RenderSettings:
             bf16=cfg.bf16,
         )
         if quality == "exhaustive":
-            settings = replace(settings, step_ratio=exhaustive_step_ratio(cfg), early_termination=False, weight_threshold_per_voxel=0.0, bf16=False,
-                               chunk_rays=EXHAUSTIVE_CHUNK_RAYS)
+            settings = replace(settings, step_ratio=exhaustive_step_ratio(cfg), early_termination=False,
+                               weight_threshold_per_voxel=0.0, bf16=False, chunk_rays=EXHAUSTIVE_CHUNK_RAYS)
         elif quality == "preview":
             settings = replace(
                 settings,
