@@ -17,11 +17,12 @@ checkpoint.
 
 The exhaustive reference (``RenderSettings.from_config(..., "exhaustive")``) marches the
 checkpoint's occupancy grid, as the candidates do: the grid a training run leaves is part of the
-model (the cells it kept fitting, ``Trainer.finish_occupancy``), and outside it the density has had no photometric loss since the grid was last narrowed. Without
-the grid, the reference of the 60-minute Nyx model whose refined grids hold no ring of empty cells
-rendered that untrained density: 26.195 dB on 6 frames against 26.849 dB at three quarters of a
-voxel, every candidate only 33 to 34 dB from it, so the choice fell back to half a voxel. Only the
-spacing differs between the reference and the candidates this way.
+model (the cells it kept fitting, ``Trainer.finish_occupancy``), and outside it the density has
+had no photometric loss since the grid was last narrowed. Without the grid, the reference of the
+60-minute Nyx model whose refined grids hold no ring of empty cells rendered that untrained
+density: 26.195 dB on 6 frames against 26.849 dB at three quarters of a voxel, every candidate
+only 33 to 34 dB from it, so the choice fell back to half a voxel. Only the spacing differs
+between the reference and the candidates this way.
 """
 
 from dataclasses import dataclass, field, replace
