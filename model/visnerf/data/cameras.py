@@ -86,12 +86,16 @@ def rays_from_pixels(
 
 
 def image_rays(
-    c2w: Float[Tensor, "4 4"], intrinsics: Intrinsics
+    c2w: Float[Tensor, "4 4"], intrinsics: Intrinsics, rows: tuple[int, int] | None = None
 ) -> tuple[Float[Tensor, "h w 3"], Float[Tensor, "h w 3"]]:
-    """Rays through every pixel centre of one image, row-major (v, u)."""
-    h, w = intrinsics.height, intrinsics.width
+    """Rays through every pixel centre of one image, row-major (v, u); ``rows = (start, stop)``:
+    those of image rows ``start`` to ``stop - 1`` only (``h = stop - start``)."""
+    start, stop = (0, intrinsics.height) if rows is None else rows
+    if not 0 <= start < stop <= intrinsics.height:
+        raise ValueError(f"rows {start}..{stop} are not within the image's {intrinsics.height} rows")
+    h, w = stop - start, intrinsics.width
     vv, uu = torch.meshgrid(
-        torch.arange(h, dtype=c2w.dtype, device=c2w.device) + 0.5,
+        torch.arange(start, stop, dtype=c2w.dtype, device=c2w.device) + 0.5,
         torch.arange(w, dtype=c2w.dtype, device=c2w.device) + 0.5,
         indexing="ij",
     )

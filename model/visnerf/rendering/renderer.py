@@ -48,6 +48,13 @@ buffers grow with its rays times its segment. With two threads on the 170^3 Nyx 
 3.6 s (the end of training renders such frames to choose the spacing)."""
 
 
+BLOCK_RAYS = 262144
+"""Rays of a frame made, walked and marched at a time (``render_image``), about 256x256 pixels: the
+empty-space walk runs on all of a block's rays at once, so a whole 1440x1440 frame at once
+(2 million rays) took 1.0 to 1.3 GB beside the model; a frame of at most this many rays is one
+block, as before (bench/results/render_memory.md)."""
+
+
 def rays_per_chunk(settings: "RenderSettings", device: torch.device) -> int:
     """Rays a chunk of a frame holds on ``device``: ``settings.chunk_rays`` on the CPU, where
     chunks go to one thread per core; more on a GPU (``runtime.batch_factor``)."""
@@ -455,30 +462,40 @@ def render_image(
     ``rendering.setting_occupancy``); it is ignored when the settings use no occupancy.
     ``cancel`` is asked between the jumps of the empty-space walk that finds the rays' sample
     windows and before each chunk of rays; once it answers True the render stops with
-    ``RenderCancelled`` (``rendering.cancel``)."""
-    rays_o, rays_d = image_rays(c2w, intrinsics)
-    rays_o, rays_d = rays_o.reshape(-1, 3), rays_d.reshape(-1, 3)
-    raise_if_cancelled(cancel)  # a 2048x2048 frame's rays take a while on a busy CPU
-    background = torch.tensor(settings.background, dtype=rays_o.dtype, device=rays_o.device)
+    ``RenderCancelled`` (``rendering.cancel``).
+
+    The frame goes in blocks of whole image rows, about ``BLOCK_RAYS`` rays each: a block's rays
+    are made, walked and marched before the next block's, so the memory a frame needs beside its
+    output does not grow with the frame."""
+    height, width = intrinsics.height, intrinsics.width
+    raise_if_cancelled(cancel)
+    ray_dtype, device = c2w.dtype, c2w.device
+    background = torch.tensor(settings.background, dtype=ray_dtype, device=device)
     empty = None
     if settings.use_occupancy:
         empty = empty_space if empty_space is not None else empty_space_of(field)
-    q_d, q_a = field.param_features(params[None].to(rays_o.dtype))  # [1, c] each
-    dtype = torch.bfloat16 if settings.bf16 and bf16_native(rays_o.device) else rays_o.dtype
+    q_d, q_a = field.param_features(params[None].to(ray_dtype))  # [1, c] each
+    dtype = torch.bfloat16 if settings.bf16 and bf16_native(device) else ray_dtype
     frame = FrameField(field, q_d, q_a, dtype)
     step = field.voxel_size() * settings.step_ratio
-    windows = ray_windows(field, rays_o, rays_d, step, settings.max_samples, empty, cancel=cancel)
-    out = torch.empty_like(rays_o)
-    chunk = rays_per_chunk(settings, rays_o.device)
+    out = torch.empty(height * width, 3, dtype=ray_dtype, device=device)
+    chunk = rays_per_chunk(settings, device)
+    workers = chunk_workers(device) if settings.threaded_chunks else 1
+    rows_per_block = max(1, BLOCK_RAYS * batch_factor(device) // width)
+    for start in range(0, height, rows_per_block):
+        stop = min(height, start + rows_per_block)
+        rays_o, rays_d = (r.reshape(-1, 3) for r in image_rays(c2w, intrinsics, (start, stop)))  # [b, 3]
+        windows = ray_windows(field, rays_o, rays_d, step, settings.max_samples, empty, cancel=cancel)
+        block = out[start * width:stop * width]  # [b, 3], a view
 
-    def march_chunk(i: int) -> None:
-        raise_if_cancelled(cancel)
-        sl = slice(i * chunk, (i + 1) * chunk)
-        out[sl] = march_rays(field, rays_o[sl], rays_d[sl], frame, background, settings, empty, windows[sl])
+        def march_chunk(i: int, rays_o: Tensor = rays_o, rays_d: Tensor = rays_d, windows: RayWindows = windows,
+                        block: Tensor = block) -> None:
+            raise_if_cancelled(cancel)
+            sl = slice(i * chunk, (i + 1) * chunk)
+            block[sl] = march_rays(field, rays_o[sl], rays_d[sl], frame, background, settings, empty, windows[sl])
 
-    workers = chunk_workers(rays_o.device) if settings.threaded_chunks else 1
-    map_chunks(march_chunk, math.ceil(rays_o.shape[0] / chunk), workers)
-    return out.reshape(intrinsics.height, intrinsics.width, 3)
+        map_chunks(march_chunk, math.ceil(rays_o.shape[0] / chunk), workers)
+    return out.reshape(height, width, 3)
 
 
 def render_image_scaled(
