@@ -12,8 +12,10 @@ from dataclasses import dataclass
 import numpy as np
 from PIL import Image
 
+from visnerf import inference
 from visnerf.data.cameras import orbit_c2w
 from visnerf.rendering.empty_space import EmptySpace
+from visnerf.runtime import release_free_memory
 from visnerf_server.costs import FrameLimits
 from visnerf_server.frame_cache import CachedFrame, FrameCache
 from visnerf_server.metrics import Metrics
@@ -163,6 +165,16 @@ class FrameRenderer:
 
     def _work(self, job: FrameJob, submitted: float, cancel: threading.Event):
         def run() -> Frame:
+            try:
+                return render_and_encode()
+            finally:
+                # The scene's render trims once the frame is drawn (``inference.TRIM_AFTER_PIXELS``);
+                # the frame's 8-bit copy and its encoding come after that. Four clients asking for
+                # 1440x1440 frames left a server at 981 MB, 654 MB once trimmed again, 455 loaded.
+                if job.width * job.height >= inference.TRIM_AFTER_PIXELS:
+                    release_free_memory()
+
+        def render_and_encode() -> Frame:
             started = time.perf_counter()
             image = job.scene.renderer.render(
                 job.c2w,

@@ -21,6 +21,7 @@ the queued ones with QueueFullError, so a stop never waits for a large frame to 
 import asyncio
 import concurrent.futures
 import threading
+import weakref
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -131,11 +132,18 @@ class RenderQueue:
                 self._preview_threads.append(thread)
                 thread.start()
             self._cond.notify_all()  # a preview-only worker woken for a full frame would leave it
-        job.future.add_done_callback(lambda _: self._forget_if_dropped(job))
+        # a weak reference: a future keeps its callbacks once done, and the job holds the future,
+        # whose exception holds the render's frames (the cycle ``_work`` explains); a job dropped
+        # before it started is still in its lane when the callback runs
+        dropped = weakref.ref(job)
+        job.future.add_done_callback(lambda _: self._forget_if_dropped(dropped()))
         return job.future
 
-    def _forget_if_dropped(self, job: _Job) -> None:
-        """A job cancelled before it started gives its slot back at once."""
+    def _forget_if_dropped(self, job: _Job | None) -> None:
+        """A job cancelled before it started gives its slot back at once (None: a job no longer
+        held anywhere, so in no lane)."""
+        if job is None:
+            return
         with self._cond:
             if job.started or not job.future.cancelled():
                 return
@@ -175,10 +183,20 @@ class RenderQueue:
                 result = job.fn()
             except BaseException as exc:  # noqa: BLE001 - handed to whoever waits on the future
                 self._finish(job)
+                if isinstance(exc, RenderCancelled):  # a stop that was asked for: its frames tell
+                    exc.with_traceback(None)  # nothing, and asyncio's waits keep cycles of their own
                 job.future.set_exception(exc)
             else:
                 self._finish(job)
                 job.future.set_result(result)
+            finally:
+                # An exception holds in its traceback every frame it passed; where such a frame
+                # holds the future that holds the exception, the two form a cycle that only the
+                # garbage collector frees, with every tensor of the render's frames. A server
+                # collects that rarely and never trims what it frees late: cancelled 1440x1440
+                # renders left hundreds of megabytes behind. So the frames that hand on or wait
+                # for a job's outcome drop the job and its futures before they end.
+                job = result = None  # noqa: F841
 
     def _finish(self, job: _Job) -> None:
         with self._cond:
@@ -214,6 +232,8 @@ class RenderQueue:
             if self._closed:
                 raise QueueFullError("server is shutting down") from None
             raise
+        finally:
+            future = None  # no cycle through the future (``_work``)
 
     async def run_async(
         self,
@@ -241,6 +261,8 @@ class RenderQueue:
             if self._closed:
                 raise QueueFullError("server is shutting down") from None
             raise
+        finally:
+            future = waiter = None  # no cycle through the futures (``_work``)
 
     def close(self) -> None:
         """Refuse new work, fail the queued jobs with QueueFullError (the server answers 503) and

@@ -376,3 +376,32 @@ def test_range_ends_read_back_from_float32_are_accepted_and_clamped() -> None:
     assert scene.resolve_params({"p": high}) == [0.155]
     with pytest.raises(ValueError, match="outside its range"):
         scene.resolve_params({"p": 0.1199})
+
+
+def test_large_frames_give_their_memory_back_after_encoding(client: TestClient, monkeypatch) -> None:  # noqa: ANN001
+    """The trim comes after the frame is encoded (the scene's own trim ran before the 8-bit copy
+    and the encoder's buffers), for large frames only, and also when the frame fails."""
+    from visnerf import inference
+    from visnerf_server import frames
+
+    events: list[str] = []
+    encode = frames.encode_image
+
+    def encoded(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+        events.append("encode")
+        return encode(*args, **kwargs)
+
+    monkeypatch.setattr(frames, "encode_image", encoded)
+    monkeypatch.setattr(frames, "release_free_memory", lambda: events.append("trim") or True)
+    monkeypatch.setattr(inference, "release_free_memory", lambda: True)  # the scene's own trim
+    monkeypatch.setattr(inference, "TRIM_AFTER_PIXELS", 16 * 12)
+    assert client.post("/api/scenes/tiny/render", json={**SMALL, "width": 15}).status_code == 200
+    assert events == ["encode"]
+    events.clear()
+    assert client.post("/api/scenes/tiny/render", json=SMALL).status_code == 200
+    assert events == ["encode", "trim"]
+    events.clear()
+    monkeypatch.setattr(frames, "encode_image", lambda *a, **k: (_ for _ in ()).throw(RuntimeError("encoder broke")))
+    with pytest.raises(RuntimeError, match="encoder broke"):
+        client.post("/api/scenes/tiny/render", json={**SMALL, "height": 13})
+    assert events == ["trim"]

@@ -67,5 +67,11 @@ def map_chunks(fn: Callable[[int], None], n_chunks: int, workers: int) -> None:
                     future.cancel()
                 wait(futures)
                 raise
+            finally:
+                # The failed chunk's exception holds this frame in its traceback, and the frame the
+                # futures that hold the exceptions: a cycle only the garbage collector frees, with
+                # every tensor of the render's frames (65 MB a cancelled 1440x1440 frame, which a
+                # server collected rarely and never trimmed).
+                futures = future = None  # noqa: F841
         finally:
             torch.set_num_threads(previous)

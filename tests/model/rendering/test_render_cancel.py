@@ -3,6 +3,7 @@ after the first chunk ends the frame there, on one thread or several; the empty-
 the chunks stops between its jumps; a chunk already running finishes before the caller goes on; a scene render refuses to start once cancelled; occupancy
 grid builds handed to a runner that refuses or drops them leave the union grid serving."""
 
+import gc
 import math
 import threading
 import time
@@ -112,6 +113,30 @@ def test_map_chunks_lets_running_chunks_end_and_skips_the_rest(two_threads) -> N
         map_chunks(chunk, 50, workers=2)
     assert finished.is_set()  # chunk 1 was running: it ended before the caller went on
     assert len(ran) < 10  # the chunks not started were skipped
+
+
+@pytest.mark.parametrize("threaded", [True, False])
+def test_a_cancelled_render_leaves_nothing_for_the_garbage_collector(two_threads, threaded: bool) -> None:  # noqa: ANN001
+    """Once the caller drops the exception, reference counting frees the frame's tensors: no cycle
+    through the chunks' futures keeps them (a server's collector runs rarely, and what it frees
+    late is not trimmed)."""
+    field, _ = make_tiny_field([("a", [0.0, 1.0])], seed=2, resolution=12)
+    field.eval()
+    intr = Intrinsics.from_fov(64, 64, math.radians(40.0))
+    c2w = torch.from_numpy(orbit_c2w(20.0, 30.0, 2.2)).float()
+    settings = replace(RenderSettings(chunk_rays=128), threaded_chunks=threaded)
+    torch.set_num_threads(2 if threaded else 1)
+    gc.collect()
+    gc.disable()
+    try:
+        with torch.inference_mode():
+            for allowed in (0, 3, 9):
+                with pytest.raises(RenderCancelled):
+                    render_image(field, c2w, intr, torch.tensor([0.3]), settings, cancel=CancelAfter(allowed))
+        left = [type(o).__name__ for o in gc.get_objects() if isinstance(o, RenderCancelled | Future)]
+    finally:
+        gc.enable()
+    assert left == []
 
 
 def test_a_scene_render_cancelled_before_it_starts_renders_nothing(tmp_path) -> None:  # noqa: ANN001
