@@ -169,8 +169,9 @@ class FrameRenderer:
                 return render_and_encode()
             finally:
                 # The scene's render trims once the frame is drawn (``inference.TRIM_AFTER_PIXELS``);
-                # the frame's 8-bit copy and its encoding come after that. Four clients asking for
-                # 1440x1440 frames left a server at 981 MB, 654 MB once trimmed again, 455 loaded.
+                # the frame's 8-bit copy and its encoding come after that. A server that four
+                # clients had asked for 1440x1440 frames stood at 981 MB and at 654 MB once trimmed
+                # again (455 MB loaded).
                 if job.width * job.height >= inference.TRIM_AFTER_PIXELS:
                     release_free_memory()
 

@@ -49,10 +49,11 @@ buffers grow with its rays times its segment. With two threads on the 170^3 Nyx 
 
 
 BLOCK_RAYS = 262144
-"""Rays of a frame made, walked and marched at a time (``render_image``), about 256x256 pixels: the
-empty-space walk runs on all of a block's rays at once, so a whole 1440x1440 frame at once
-(2 million rays) took 1.0 to 1.3 GB beside the model; a frame of at most this many rays is one
-block, as before (bench/results/render_memory.md)."""
+"""Rays of a frame made, walked and marched at a time (``render_image``), 512x512 pixels: the
+empty-space walk runs on all of a block's rays at once, and a whole 1440x1440 frame at once
+(2 million rays) raised peak memory by 1.0 to 1.3 GB over the loaded model, in blocks by 0.35 to
+0.40 GB, in about the same time; a frame of at most this many rays is one block, as before
+(bench/results/render_memory.md)."""
 
 
 def rays_per_chunk(settings: "RenderSettings", device: torch.device) -> int:
