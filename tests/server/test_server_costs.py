@@ -226,9 +226,15 @@ def test_a_jobs_outcome_is_freed_without_the_garbage_collector() -> None:
         with pytest.raises(RenderTimeoutError):
             queue.run(stopping(cancel), timeout=0.1, cancel=cancel)
         assert queue.run(finishing, timeout=5) is not None
-        asyncio.run(wait_async(failing, 5.0, threading.Event()))
         cancel = threading.Event()
-        asyncio.run(wait_async(stopping(cancel), 0.1, cancel))
+
+        def both_async() -> None:  # a thread of its own: asyncio.run refuses a thread whose loop runs
+            asyncio.run(wait_async(failing, 5.0, threading.Event()))
+            asyncio.run(wait_async(stopping(cancel), 0.1, cancel))
+
+        runner = threading.Thread(target=both_async)
+        runner.start()
+        runner.join(timeout=30)
         assert queue.run(lambda: 0, timeout=5) == 0  # the stopped job has ended
         alive = [ref for ref in seen if ref() is not None]
     finally:
