@@ -19,7 +19,9 @@ waits for its ``Retry-After``.
   the heavy clients' answers, RSS. Targets: health median under 100 ms, previews p95 under 1 s,
   RSS flat (the last 10 s of a phase within 10 % of its first 10 s). Before the phases the probes
   run ``--warm-up`` seconds alone, unmeasured but for RSS: a fresh server grew from 420 to 638 MB
-  over its first 45 s of previews and stayed there for the next three minutes.
+  over its first 45 s of previews and stayed there for the next three minutes. Phases of 120 s hold
+  several 1440x1440 frames (15 to 25 s each); one of 30 s holds about two, and its first 10 s catch
+  the first frame's rise (826 to 966 MB in one such run, flat over 120 s).
 
 - ``replicas`` (not part of ``both``): the throughput load through nginx (the shipped
   docker/nginx.conf, on loopback) in front of 1 and then ``--replicas`` servers sharing the
@@ -29,7 +31,7 @@ waits for its ``Retry-After``.
 
 Results go to bench/results/server_load.json and .md (``replicas``: server_replicas), with the CPU named.
 
-    python bench/server_load.py --duration 30                      # both modes, bundled checkpoints
+    python bench/server_load.py --duration 120                     # both modes, bundled checkpoints
     python bench/server_load.py --mode throughput --clients 8 --duration 30
     python bench/server_load.py --tiny --mode heavy --duration 10  # tiny random models
     python bench/server_load.py --mode replicas --replicas 2 --rounds 2 --duration 20
