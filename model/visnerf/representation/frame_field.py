@@ -33,6 +33,7 @@ import torch.nn.functional as F
 from jaxtyping import Float, Int
 from torch import Tensor
 
+from visnerf.representation import vm_kernel
 from visnerf.representation.decoders import Decoder, encode_position_into, encode_sh, padded_rows
 from visnerf.representation.field import (
     N_PROBES,
@@ -125,19 +126,23 @@ class SampleTaps:
 
     points: Float[Tensor, "m 3"]
     coords: Float[Tensor, "m 3"]
-    taps: VMTaps
+    taps: VMTaps | None
+    """None where the compiled pass (``vm_kernel``) reads the grids: it interpolates from ``coords``."""
 
     def __len__(self) -> int:
         return self.points.shape[0]
 
     def select(self, index: Int[Tensor, " k"] | slice) -> "SampleTaps":
-        return SampleTaps(take_rows(self.points, index), take_rows(self.coords, index), self.taps.select(index))
+        taps = None if self.taps is None else self.taps.select(index)
+        return SampleTaps(take_rows(self.points, index), take_rows(self.coords, index), taps)
 
 
 class FrameField:
     """Density and colour of ``field`` at parameter features (q_density, q_appearance), no grad.
 
-    ``dtype`` is the compute type of the decoders' matrix products (float32 or bfloat16).
+    ``dtype`` is the compute type of the decoders' matrix products (float32 or bfloat16). On the
+    CPU the decoders' input rows are written by one compiled pass per sample (``vm_kernel``);
+    ``compiled=False`` takes the torch operations every device has.
     """
 
     def __init__(
@@ -146,6 +151,7 @@ class FrameField:
         q_density: Float[Tensor, "1 d"],
         q_appearance: Float[Tensor, "1 c"],
         dtype: torch.dtype = torch.float32,
+        compiled: bool = True,
     ) -> None:
         self.field = field
         self.dtype = dtype
@@ -159,8 +165,17 @@ class FrameField:
         sharpness = 1.0 if field.levels is None else float(field.levels.sharpness().detach())
         self._density_shift = cfg.density_shift - (0.0 if level is None else sharpness * float(level[0].detach()))
         self.color_layer = fold_first_layer(field.color_decoder, q_appearance[0], cfg.n_appearance_components, dtype)
-        self.density_tables = ModeTables.of(field.density_grid, dtype)
-        self.appearance_tables = ModeTables.of(field.appearance_grid, dtype)
+        self.compiled = compiled and vm_kernel.available(q_density.device)
+        """Whether the compiled pass fills the decoders' input rows (else ``ModeTables``)."""
+        self.density_tables = self.appearance_tables = None
+        self.density_kernel = self.appearance_kernel = None
+        if self.compiled:
+            self.density_kernel = vm_kernel.KernelTables.of(*field.density_grid.row_tables(), field.density_grid.resolution)
+            self.appearance_kernel = vm_kernel.KernelTables.of(*field.appearance_grid.row_tables(),
+                                                               field.appearance_grid.resolution)
+        else:
+            self.density_tables = ModeTables.of(field.density_grid, dtype)
+            self.appearance_tables = ModeTables.of(field.appearance_grid, dtype)
         if field.appearance_grid.resolution != field.density_grid.resolution:
             raise ValueError(f"density grid {field.density_grid.resolution} and appearance grid "
                              f"{field.appearance_grid.resolution} differ in resolution")
@@ -179,6 +194,8 @@ class FrameField:
     def lookup(self, points: Float[Tensor, "m 3"]) -> SampleTaps:
         """Grid coordinates and VM taps of ``points``, shared by density and colour."""
         coords = self.field.to_grid(points)
+        if self.density_tables is None:
+            return SampleTaps(points, coords, None)
         return SampleTaps(points, coords, self.density_tables.taps(coords))
 
     def density(self, points: Float[Tensor, "m 3"]) -> Float[Tensor, " m"]:
@@ -192,21 +209,24 @@ class FrameField:
         out = torch.empty(len(samples), dtype=samples.points.dtype, device=samples.points.device)
         for start in range(0, len(samples), self.sub_chunk):
             sl = slice(start, start + self.sub_chunk)
-            out[sl] = self._density(samples.coords[sl], samples.taps.select(sl))
+            out[sl] = self._density(samples.coords[sl], samples.select(sl).taps)
         return out
 
-    def _density(self, coords: Float[Tensor, "m 3"], taps: VMTaps) -> Float[Tensor, " m"]:
+    def _density(self, coords: Float[Tensor, "m 3"], taps: VMTaps | None) -> Float[Tensor, " m"]:
         return F.softplus(self._raw_density(coords, taps) + self._density_shift) * self.field.cfg.density_scale
 
-    def _raw_density(self, coords: Float[Tensor, "m 3"], taps: VMTaps) -> Float[Tensor, " m"]:
+    def _raw_density(self, coords: Float[Tensor, "m 3"], taps: VMTaps | None) -> Float[Tensor, " m"]:
         """The density decoder's output (a level axis's ``g`` times its sharpness), float32."""
         cfg = self.field.cfg
         m = coords.shape[0]
-        n_spatial = 3 * self.density_tables.n_components
         x = torch.empty(padded_rows(m), self.density_layer.weight.shape[1], dtype=self.dtype, device=coords.device)
         x[m:].zero_()
-        self.density_tables.features_into(taps, x[:m])
-        encode_position_into(coords, cfg.pos_encoding_freqs, x[:m, n_spatial:])
+        if self.density_kernel is not None:
+            self.density_kernel.write_rows(coords, x[:m], cfg.pos_encoding_freqs)
+        else:
+            assert self.density_tables is not None and taps is not None
+            self.density_tables.features_into(taps, x[:m])
+            encode_position_into(coords, cfg.pos_encoding_freqs, x[:m, 3 * self.density_tables.n_components:])
         hidden = linear_relu(x, self.density_layer.weight, self.density_layer.bias)  # [padded, h]
         return F.linear(hidden, *self._density_out)[:m, 0].to(coords.dtype)
 
@@ -240,16 +260,19 @@ class FrameField:
         raw = torch.empty(len(probes), dtype=points.dtype, device=points.device)
         for start in range(0, len(probes), self.sub_chunk):
             sl = slice(start, start + self.sub_chunk)
-            raw[sl] = self._raw_density(probes.coords[sl], probes.taps.select(sl))
+            raw[sl] = self._raw_density(probes.coords[sl], probes.select(sl).taps)
         return level_cosines(raw.view(-1, N_PROBES), directions, self.field.cfg.level_cosine_powers)
 
     def _color(self, samples: SampleTaps, ray_terms: Float[Tensor, "m e"]) -> Float[Tensor, "m 3"]:
-        taps = samples.taps
-        m = len(taps)
-        n_spatial = 3 * self.appearance_tables.n_components
+        m = len(samples)
+        n_spatial = 3 * self.field.cfg.n_appearance_components
         x = torch.empty(padded_rows(m), self.color_layer.weight.shape[1], dtype=self.dtype, device=ray_terms.device)
         x[m:].zero_()
-        self.appearance_tables.features_into(taps, x[:m])  # [m, 3c]
+        if self.appearance_kernel is not None:
+            self.appearance_kernel.write_rows(samples.coords, x[:m])  # [m, 3c]
+        else:
+            assert self.appearance_tables is not None and samples.taps is not None
+            self.appearance_tables.features_into(samples.taps, x[:m])  # [m, 3c]
         if not self._with_directions:
             x[:m, n_spatial:] = ray_terms
         else:

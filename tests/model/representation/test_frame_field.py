@@ -10,6 +10,7 @@ import torch
 from visnerf.config import RenderConfig
 from visnerf.data.cameras import Intrinsics, image_rays, orbit_c2w
 from visnerf.rendering.renderer import RenderSettings, render_image, render_rays
+from visnerf.representation import vm_kernel
 from visnerf.representation.frame_field import FrameField, ModeTables
 from visnerf.testing import make_tiny_field
 
@@ -60,14 +61,16 @@ def test_table_lookups_reject_a_grid_with_a_single_node() -> None:
         ModeTables.of(VMGrid(4, (8, 1, 8), 0.1))
 
 
+@pytest.mark.parametrize("compiled", [True, False], ids=["compiled", "torch"])
 @pytest.mark.parametrize("params", [(-1.0, -1.0), (0.3, -0.2), (1.0, 1.0)])
-def test_folded_decoders_equal_the_field(field, params) -> None:
+def test_folded_decoders_equal_the_field(field, params, compiled) -> None:
     g = torch.Generator().manual_seed(1)
     points = torch.rand(400, 3, generator=g) - 0.5
     dirs = torch.nn.functional.normalize(torch.randn(400, 3, generator=g), dim=-1)
     p = torch.tensor([params])
     q_d, q_a = field.param_features(p)
-    frame = FrameField(field, q_d, q_a)
+    frame = FrameField(field, q_d, q_a, compiled=compiled)
+    assert frame.compiled == (compiled and vm_kernel.available(points.device))
     with torch.no_grad():
         assert torch.allclose(frame.density(points), field.density(points, q_d.expand(400, -1)), rtol=1e-5, atol=1e-6)
         colour = frame.color(points, frame.direction_terms(dirs))
@@ -129,15 +132,16 @@ def test_scaled_render_is_the_small_render_upsampled(field) -> None:
     assert scaled.shape == (14, 20, 3) and torch.allclose(scaled, expected)
 
 
+@pytest.mark.parametrize("compiled", [True, False], ids=["compiled", "torch"])
 @pytest.mark.parametrize("params", [(-1.0, -1.0), (0.3, -0.2)])
-def test_bf16_decoders_differ_from_float32_only_by_rounding(field, params) -> None:
+def test_bf16_decoders_differ_from_float32_only_by_rounding(field, params, compiled) -> None:
     """bfloat16 products keep 8 significant bits: a relative error of a few 1e-3 per value."""
     g = torch.Generator().manual_seed(2)
     n = 40000  # more than one SUB_CHUNK pass
     points = torch.rand(n, 3, generator=g) - 0.5
     dirs = torch.nn.functional.normalize(torch.randn(n, 3, generator=g), dim=-1)
     q_d, q_a = field.param_features(torch.tensor([params]))
-    exact, rounded = FrameField(field, q_d, q_a), FrameField(field, q_d, q_a, torch.bfloat16)
+    exact, rounded = FrameField(field, q_d, q_a), FrameField(field, q_d, q_a, torch.bfloat16, compiled=compiled)
     with torch.no_grad():
         sigma, sigma_b = exact.density(points), rounded.density(points)
         colour = exact.color(points, exact.direction_terms(dirs))
