@@ -19,6 +19,7 @@ import torch.nn.functional as F
 from jaxtyping import Bool, Float, Int, UInt8
 from torch import Tensor
 
+from visnerf.rendering import empty_space_kernel
 from visnerf.rendering.cancel import CancelCheck, raise_if_cancelled
 
 MAX_DISTANCE = 16
@@ -139,7 +140,13 @@ class EmptySpace:
         from its lattice point, with the step no larger than a cell, lies in the lattice point's
         cell or a neighbour, so every such sample in an occupied cell has its lattice point in
         the window. ``cancel`` is asked between jumps (``rendering.cancel``): the walk of a large
-        frame's rays takes seconds."""
+        frame's rays takes seconds.
+
+        On the CPU each ray walks in one compiled loop instead (``rendering.empty_space_kernel``:
+        no cap on the jumps, ``cancel`` asked between calls of its ``RAYS_PER_CALL`` rays)."""
+        if empty_space_kernel.available(rays_o.device):
+            grid = empty_space_kernel.GridTables(self.distance, self.lower, self.cells_per_unit, self.last_cell, self.strides)
+            return empty_space_kernel.sample_windows(grid, rays_o, rays_d, t_near, step, first, last, near, cancel)
         n = first.shape[0]
         sign = torch.cat([torch.ones(n, dtype=first.dtype, device=first.device), -torch.ones_like(first)])
         ends = self.walk(rays_o.repeat(2, 1), rays_d.repeat(2, 1), t_near.repeat(2), step,

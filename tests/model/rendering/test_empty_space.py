@@ -8,6 +8,7 @@ import pytest
 import torch
 
 from visnerf.data.cameras import Intrinsics, image_rays, orbit_c2w
+from visnerf.rendering import empty_space_kernel
 from visnerf.rendering.aabb import intersect_aabb
 from visnerf.rendering.empty_space import EmptySpace, distance_to_content
 from visnerf.rendering.renderer import RenderSettings, march_rays, ray_windows
@@ -24,6 +25,16 @@ def _blobs(shape: tuple[int, int, int], n: int, seed: int) -> torch.Tensor:
         size = [int(torch.randint(1, 4, (1,), generator=g)) for _ in shape]
         grid[lo[0]:lo[0] + size[0], lo[1]:lo[1] + size[1], lo[2]:lo[2] + size[2]] = True
     return grid
+
+
+@pytest.fixture(params=["compiled", "torch"])
+def walk(request, monkeypatch):
+    """The compiled walk (the CPU's) or the batched torch walk (every other device's)."""
+    if request.param == "compiled" and not empty_space_kernel.available(torch.device("cpu")):
+        pytest.skip("numba is not installed")
+    if request.param == "torch":
+        monkeypatch.setattr(empty_space_kernel, "available", lambda device: False)
+    return request.param
 
 
 def test_distances_equal_the_brute_force_chebyshev_distance() -> None:
@@ -51,7 +62,7 @@ def _every_sample_window(space: EmptySpace, rays_o, rays_d, t_near, step, first,
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
-def test_sample_windows_hold_every_occupied_sample_and_little_else(seed: int) -> None:
+def test_sample_windows_hold_every_occupied_sample_and_little_else(seed: int, walk: str) -> None:
     aabb = torch.tensor([[-0.5, -0.4, -0.6], [0.5, 0.4, 0.6]])
     grid = _blobs((10, 8, 12), 4, seed)
     space = EmptySpace.of(grid, aabb)
@@ -74,6 +85,9 @@ def test_sample_windows_hold_every_occupied_sample_and_little_else(seed: int) ->
     lo, hi, any_occ = _every_sample_window(space, rays_o, rays_d, t_near, step, first0, last0)
     # Never cut an occupied sample: the window holds [lo, hi].
     assert (first[any_occ] <= lo[any_occ]).all() and (last[any_occ] >= hi[any_occ]).all()
+    if walk == "compiled":  # its jumps never run out: the window is exactly [lo, hi], or empty
+        assert torch.equal(first[any_occ], lo[any_occ]) and torch.equal(last[any_occ], hi[any_occ])
+        assert (first[~any_occ] > last[~any_occ]).all()
     # Rays that meet no occupied cell walk nothing (or, if their jumps ran out, very little).
     assert (first[~any_occ] > last[~any_occ]).float().mean() > 0.95
     # And the window is tight: where there is content it is exactly [lo, hi] but for rays that
@@ -84,7 +98,7 @@ def test_sample_windows_hold_every_occupied_sample_and_little_else(seed: int) ->
 
 
 @pytest.mark.parametrize("azimuth", [10.0, 130.0])
-def test_frames_with_jumps_equal_frames_walking_every_sample(azimuth: float) -> None:
+def test_frames_with_jumps_equal_frames_walking_every_sample(azimuth: float, walk: str) -> None:
     field, _ = make_tiny_field([("a", [0.0, 1.0])], seed=4, resolution=12)
     field.eval()
     grid = _blobs((12, 12, 12), 5, seed=7)
@@ -110,7 +124,7 @@ def test_frames_with_jumps_equal_frames_walking_every_sample(azimuth: float) -> 
     assert float((a - b).abs().max()) < 1e-5
 
 
-def test_a_window_near_content_is_the_window_of_the_grid_grown_by_one_cell() -> None:
+def test_a_window_near_content_is_the_window_of_the_grid_grown_by_one_cell(walk: str) -> None:
     aabb = torch.tensor([[-0.5, -0.5, -0.5], [0.5, 0.5, 0.5]])
     grid = _blobs((12, 12, 12), 3, seed=5)
     grown = torch.nn.functional.max_pool3d(grid.float()[None, None], 3, 1, 1)[0, 0] > 0
@@ -125,5 +139,8 @@ def test_a_window_near_content_is_the_window_of_the_grid_grown_by_one_cell() -> 
     lo, hi, any_occ = _every_sample_window(EmptySpace.of(grown, aabb), rays_o, rays_d, t_near, step, first0, last0)
     assert any_occ.float().mean() > 0.2
     assert (near[0][any_occ] <= lo[any_occ]).all() and (near[1][any_occ] >= hi[any_occ]).all()
+    if walk == "compiled":
+        assert torch.equal(near[0][any_occ], lo[any_occ]) and torch.equal(near[1][any_occ], hi[any_occ])
+        assert (near[0][~any_occ] > near[1][~any_occ]).all()
     assert (near[0][any_occ] == lo[any_occ]).float().mean() > 0.95
     assert (near[1][any_occ] == hi[any_occ]).float().mean() > 0.95

@@ -1,6 +1,6 @@
 """Stopping a render between chunks of rays (``rendering.cancel``): a cancel check that turns True
 after the first chunk ends the frame there, on one thread or several; the empty-space walk before
-the chunks stops between its jumps; a chunk already running finishes before the caller goes on; a scene render refuses to start once cancelled; occupancy
+the chunks stops between its jumps (or calls); a chunk already running finishes before the caller goes on; a scene render refuses to start once cancelled; occupancy
 grid builds handed to a runner that refuses or drops them leave the union grid serving."""
 
 import gc
@@ -72,9 +72,19 @@ def test_a_cancelled_render_stops_after_the_chunk_it_was_in(two_threads, monkeyp
     assert 1 <= marched["chunks"] <= (2 if threaded else 1), marched
 
 
-def test_the_empty_space_walk_stops_between_jumps() -> None:
-    """The sample windows of a large frame's rays take seconds to find, before any chunk: the
-    walk asks the cancel check between its jumps, and a check that stays False changes nothing."""
+@pytest.mark.parametrize("compiled", [True, False], ids=["compiled", "torch"])
+def test_the_empty_space_walk_stops_between_jumps(compiled: bool, monkeypatch) -> None:  # noqa: ANN001
+    """The sample windows of a large frame's rays take a while to find, before any chunk: the
+    torch walk asks the cancel check between its jumps, the compiled walk between its calls of
+    ``RAYS_PER_CALL`` rays, and a check that stays False changes nothing."""
+    from visnerf.rendering import empty_space_kernel
+
+    if compiled and not empty_space_kernel.available(torch.device("cpu")):
+        pytest.skip("numba is not installed")
+    if compiled:
+        monkeypatch.setattr(empty_space_kernel, "RAYS_PER_CALL", 256)  # 1200 rays: five calls
+    else:
+        monkeypatch.setattr(empty_space_kernel, "available", lambda device: False)
     field, _ = make_tiny_field([("a", [0.0, 1.0])], seed=4, resolution=8)
     field.eval()
     grid = torch.zeros(8, 8, 8, dtype=torch.bool)
@@ -91,7 +101,7 @@ def test_the_empty_space_walk_stops_between_jumps() -> None:
         with pytest.raises(RenderCancelled):
             ray_windows(field, rays_o, rays_d, step, 1024, empty, cancel=cancel)
     assert torch.equal(plain.first, asked.first) and torch.equal(plain.last, asked.last)
-    assert cancel.let_through == 1  # stopped at the second jump
+    assert cancel.let_through == 1  # stopped at the second jump or call
 
 
 def test_map_chunks_lets_running_chunks_end_and_skips_the_rest(two_threads) -> None:  # noqa: ANN001
