@@ -20,6 +20,7 @@ from torch import Tensor
 
 from visnerf.config import RenderConfig
 from visnerf.data.cameras import Intrinsics, image_rays
+from visnerf.rendering import march_kernel
 from visnerf.rendering.aabb import intersect_aabb
 from visnerf.rendering.cancel import CancelCheck, raise_if_cancelled
 from visnerf.rendering.colour_sampling import ColourSampling, pick_coloured
@@ -228,6 +229,32 @@ def _shade_frame_samples(
         shaded = valid_weights.index_select(0, shade)[:, None]  # [k, 1]
         rgbw.index_add_(0, ray_idx, torch.cat([shaded * colors, shaded], dim=1))
     return tau.sum(dim=-1)
+
+
+def _shade_placed_samples(
+    frame: FrameField,
+    ray_terms: Float[Tensor, "n h"],
+    rays: Int[Tensor, " a"],
+    points: Float[Tensor, "m 3"],
+    flat: Int[Tensor, " m"],
+    seg: int,
+    step: float,
+    tau: Float[Tensor, " a"],
+    weight_threshold: float,
+    rgbw: Float[Tensor, "n 4"],
+) -> None:
+    """``_shade_frame_samples`` for the compacted valid samples of a segment (``march_kernel.place``:
+    ``flat`` is ``ray * seg + j``): composited by ``march_kernel.composite``, which advances ``tau``
+    in place."""
+    if flat.numel() == 0:
+        return
+    samples = frame.lookup(points)
+    weights, shade = march_kernel.composite(flat, frame.density_at(samples), seg, step, tau, weight_threshold)
+    if shade.numel() > 0:
+        ray_idx = rays.index_select(0, flat.index_select(0, shade) // seg)
+        colors = frame.color_at(samples.select(shade), ray_terms.index_select(0, ray_idx))  # [k, 3]
+        shaded = weights.index_select(0, shade)[:, None]  # [k, 1]
+        rgbw.index_add_(0, ray_idx, torch.cat([shaded * colors, shaded], dim=1))
 
 
 @dataclass(frozen=True)
@@ -555,22 +582,33 @@ def march_rays(
     tau_stop = -math.log(settings.early_stop_eps) if settings.early_termination else math.inf
     weight_threshold = settings.weight_threshold_per_voxel * settings.step_ratio  # per sample at this spacing
     all_offsets = torch.arange(seg_max, device=rays_o.device)
+    compiled = march_kernel.available(rays_o.device) and rays_o.dtype == torch.float32
+    occupancy = None
+    if compiled and empty_space is not None:
+        occupancy = march_kernel.Occupancy(empty_space.occupied, empty_space.lower, empty_space.cells_per_unit,
+                                           empty_space.last_cell, empty_space.strides)
     s0 = 0
     while s0 < longest:
-        idx = (first + s0)[:, None] + all_offsets[None, :seg]  # [a, s]
+        if compiled:  # the same segment in two compiled loops (``rendering.march_kernel``)
+            points, flat = march_kernel.place(origins, directions, t_near, t_far, first, last, s0, seg, step, occupancy)
+            _shade_placed_samples(frame, ray_terms, active, points, flat, seg, step, tau_active, weight_threshold, rgbw)
+            segment_end = first + (s0 + seg - 1)  # [a]
+        else:
+            idx = (first + s0)[:, None] + all_offsets[None, :seg]  # [a, s]
+            t = t_near[:, None] + step * (idx.to(rays_o.dtype) + 0.5)
+            valid = (idx <= last[:, None]) & (t < t_far[:, None])
+            points = origins[:, None, :] + directions[:, None, :] * t[..., None]  # [a, s, 3]
+            if empty_space is not None:
+                flat = valid.view(-1).nonzero()[:, 0]
+                valid = torch.zeros_like(valid).view(-1).index_copy_(
+                    0, flat, empty_space.occupied_at(points.view(-1, 3).index_select(0, flat))).view_as(valid)
+            tau_active += _shade_frame_samples(
+                frame, ray_terms, active, points, step, valid, tau_active, weight_threshold, rgbw,
+            )
+            segment_end = idx[:, -1]
         s0 += seg
         seg = min(seg_max, 2 * seg)
-        t = t_near[:, None] + step * (idx.to(rays_o.dtype) + 0.5)
-        valid = (idx <= last[:, None]) & (t < t_far[:, None])
-        points = origins[:, None, :] + directions[:, None, :] * t[..., None]  # [a, s, 3]
-        if empty_space is not None:
-            flat = valid.view(-1).nonzero()[:, 0]
-            valid = torch.zeros_like(valid).view(-1).index_copy_(
-                0, flat, empty_space.occupied_at(points.view(-1, 3).index_select(0, flat))).view_as(valid)
-        tau_active += _shade_frame_samples(
-            frame, ray_terms, active, points, step, valid, tau_active, weight_threshold, rgbw,
-        )
-        keep = ((tau_active < tau_stop) & (idx[:, -1] < last)).nonzero()[:, 0]
+        keep = ((tau_active < tau_stop) & (segment_end < last)).nonzero()[:, 0]
         if keep.numel() < active.numel():
             tau_total.index_copy_(0, active, tau_active)
             if keep.numel() == 0:

@@ -1,0 +1,158 @@
+"""The per-segment bookkeeping of ``renderer.march_rays`` as two compiled loops (CPU, numba).
+
+A segment of the inference march places ``seg`` lattice samples on every active ray, keeps those
+inside the ray's window and box and in an occupied cell, evaluates their densities, composites
+them and picks the samples whose colour matters. The decoders and the lookups are one call each
+(``FrameField``); the rest was about thirty torch operations over ``[a, seg]`` arrays a segment
+(index grids, a mask, a nonzero, gathers, a cumulative sum, exponentials). Here:
+
+- ``place``: the valid samples of a segment, compacted in ray-major order (the order of
+  ``valid.view(-1).nonzero()``), with their flat index ``ray * seg + j``;
+- ``composite``: their weights ``exp(-tau_before) * -expm1(-tau)`` (log-space transmittance,
+  the exclusive running sum as ``volume.exclusive_optical_depth``), each ray's optical depth
+  advanced, and the samples whose weight exceeds the threshold.
+
+Both use the torch path's float32 arithmetic in the same order (a sample's position, its cell as
+``EmptySpace.occupied_at``), so the frames agree to float rounding (tested); both release the GIL.
+"""
+
+import math
+from typing import no_type_check
+
+import numpy as np
+import torch
+from jaxtyping import Float, Int, UInt8
+from torch import Tensor
+
+try:
+    import numba
+except ImportError:  # pragma: no cover - numba is a core dependency
+    numba = None
+
+
+def available(device: torch.device) -> bool:
+    return numba is not None and device.type == "cpu"
+
+
+@no_type_check  # compiled by numba
+def _place(origins, directions, t_near, t_far, first, last, s0, seg, step64, use_occupancy, occupied, lower, cpu,  # noqa: ANN001, ANN202
+           last_cell, strides, out_points, out_flat):
+    """Valid samples ``s0 .. s0 + seg - 1`` of each ray's window into ``out_points`` / ``out_flat``;
+    returns their count."""
+    step = np.float32(step64)
+    half = np.float32(0.5)
+    m = 0
+    for r in range(origins.shape[0]):
+        for j in range(seg):
+            i = first[r] + s0 + j
+            if i > last[r]:
+                break
+            t = t_near[r] + step * (np.float32(i) + half)
+            if not t < t_far[r]:
+                break
+            p0 = origins[r, 0] + directions[r, 0] * t
+            p1 = origins[r, 1] + directions[r, 1] * t
+            p2 = origins[r, 2] + directions[r, 2] * t
+            if use_occupancy:
+                flat = 0
+                for a, p in enumerate((p0, p1, p2)):
+                    whole = min(max(math.floor((p - lower[a]) * cpu[a]), np.float32(0.0)), last_cell[a])
+                    flat += int(whole) * strides[a]
+                if occupied[flat] == 0:
+                    continue
+            out_points[m, 0], out_points[m, 1], out_points[m, 2] = p0, p1, p2
+            out_flat[m] = r * seg + j
+            m += 1
+    return m
+
+
+@no_type_check
+def _composite(flat, sigma, seg, step64, tau, threshold64, out_weights, out_shade):  # noqa: ANN001, ANN202
+    """Weights of samples ``flat`` (ray-major) with densities ``sigma``; adds each ray's optical
+    depth to ``tau``; writes the indices of the samples heavier than ``threshold`` to
+    ``out_shade`` and returns their count."""
+    step = np.float32(step64)
+    threshold = np.float32(threshold64)
+    k = 0
+    s = 0
+    m = flat.shape[0]
+    while s < m:
+        r = flat[s] // seg
+        before = tau[r]
+        running = np.float32(0.0)  # optical depth of this segment's earlier samples
+        while s < m and flat[s] // seg == r:
+            depth = sigma[s] * step
+            w = np.float32(math.exp(-(running + before))) * -np.float32(math.expm1(-depth))
+            out_weights[s] = w
+            if w > threshold:
+                out_shade[k] = s
+                k += 1
+            running += depth
+            s += 1
+        tau[r] = before + running
+    return k
+
+
+if numba is not None:
+    def _jit(fn):  # noqa: ANN001, ANN202
+        try:
+            return numba.njit(nogil=True, cache=True, boundscheck=False)(fn)
+        except RuntimeError:  # no writable cache directory
+            return numba.njit(nogil=True, boundscheck=False)(fn)
+
+    _place_compiled, _composite_compiled = _jit(_place), _jit(_composite)
+else:  # pragma: no cover
+    _place_compiled = _composite_compiled = None
+
+
+class Occupancy:
+    """An occupancy grid's flat cells and geometry as ``place`` reads them (``EmptySpace``'s)."""
+
+    def __init__(self, occupied: UInt8[Tensor, " cells"], lower: Float[Tensor, " 3"], cells_per_unit: Float[Tensor, " 3"],
+                 last_cell: Float[Tensor, " 3"], strides: Float[Tensor, " 3"]) -> None:
+        self.arrays = (occupied.contiguous().numpy(), *(t.float().contiguous().numpy() for t in (lower, cells_per_unit, last_cell)),
+                       np.asarray([int(s) for s in strides.tolist()], np.int64))
+
+
+_NO_OCCUPANCY = (np.zeros(1, np.uint8), np.zeros(3, np.float32), np.zeros(3, np.float32), np.zeros(3, np.float32),
+                 np.zeros(3, np.int64))
+
+
+def place(
+    origins: Float[Tensor, "a 3"],
+    directions: Float[Tensor, "a 3"],
+    t_near: Float[Tensor, " a"],
+    t_far: Float[Tensor, " a"],
+    first: Int[Tensor, " a"],
+    last: Int[Tensor, " a"],
+    s0: int,
+    seg: int,
+    step: float,
+    occupancy: Occupancy | None,
+) -> tuple[Float[Tensor, "m 3"], Int[Tensor, " m"]]:
+    """World positions and flat indices (``ray * seg + j``) of the valid samples of a segment."""
+    a = origins.shape[0]
+    points = torch.empty(a * seg, 3, dtype=torch.float32)
+    flat = torch.empty(a * seg, dtype=torch.int64)
+    tables = _NO_OCCUPANCY if occupancy is None else occupancy.arrays
+    arrays = [t.contiguous().numpy() for t in (origins, directions, t_near, t_far, first, last)]
+    m = _place_compiled(*arrays, int(s0), int(seg), float(step), occupancy is not None, *tables, points.numpy(), flat.numpy())
+    return points[:m], flat[:m]
+
+
+def composite(
+    flat: Int[Tensor, " m"],
+    sigma: Float[Tensor, " m"],
+    seg: int,
+    step: float,
+    tau: Float[Tensor, " a"],
+    threshold: float,
+) -> tuple[Float[Tensor, " m"], Int[Tensor, " k"]]:
+    """(weights of the samples, indices of those above ``threshold``); ``tau`` (contiguous) is
+    advanced in place by each ray's optical depth in this segment."""
+    m = flat.shape[0]
+    weights = torch.empty(m, dtype=torch.float32)
+    shade = torch.empty(m, dtype=torch.int64)
+    k = _composite_compiled(flat.numpy(), sigma.contiguous().numpy(), int(seg), float(step), tau.numpy(), float(threshold),
+                            weights.numpy(), shade.numpy())
+    return weights, shade[:k]
