@@ -3,7 +3,8 @@
 Within a frame most operations are small (a few thousand samples per segment): too small for
 torch's intra-op threads to share well, and each costs a fixed dispatch overhead. The chunks of
 rays are independent, so on the CPU they go to one Python thread per core, each running its
-operations on a single intra-op thread (torch releases the GIL inside an operation).
+operations on a single intra-op thread (torch releases the GIL inside an operation, and so do
+the compiled passes of ``march_kernel`` and ``vm_kernel``).
 bench/results/render_speed.md measures it against intra-op threads.
 
 The intra-op thread count is process-wide in torch, so it is set to one for the length of the

@@ -5,7 +5,10 @@ one differentiable pass). ``render_image`` is the inference path: deterministic 
 one step apart; each ray walks only the window between its first and last sample in an occupied
 cell (found by jumping over empty blocks, ``rendering.empty_space``), in segments, testing each
 sample's cell, until it leaves the window or its transmittance falls below ``early_stop_eps``.
-Chunks of rays are marched on one thread per core (``rendering.parallel``).
+Chunks of rays are marched on one thread per core (``rendering.parallel``). On the CPU the walk,
+each segment's placing and compositing, and the decoders' input rows are compiled loops
+(``empty_space_kernel``, ``march_kernel``, ``representation.vm_kernel``); other devices run the
+same steps as torch operations.
 """
 
 import math

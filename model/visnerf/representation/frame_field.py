@@ -20,7 +20,11 @@ Two more things are done once per frame:
   frames of the bundled checkpoints 12 to 15 % faster than float32 tables, 64 dB apart (8-bit
   frames, measured side by side).
 
-bench/results/render_speed.md measures the whole renderer against the exhaustive float32 one.
+On the CPU the tables are not copied: one compiled pass per sample (``vm_kernel``) interpolates
+the grid's own float32 tables and writes the decoder's input row (features, and the positional
+encoding for density), rounded once to the compute dtype; ``ModeTables`` and ``TapLayout`` serve
+every other device. bench/results/render_speed.md measures the whole renderer against the
+exhaustive float32 one.
 
 With float32 the result equals ``VisNerfField.density`` / ``color`` up to float rounding; with
 bfloat16 it differs by the rounding of the products (both tested).
