@@ -5,7 +5,7 @@ three modes) and, for density, its positional encoding. As torch operations that
 passes over ``[m, k]`` arrays: the taps' rows and weights (``TapLayout.taps``), two
 ``embedding_bag`` sums, their product, a cast and the encoding's product and sine. Here one loop
 over the samples computes the interpolation, reads the rows and writes the finished row: on the
-bundled cosmo_sim density grid, 16384 samples along rays, one thread, 1.3 ms against 3.2 to
+bundled cosmo_sim density grid, 16384 samples along rays, one thread, 1.3 to 1.5 ms against 3.2 to
 4.3 ms for the torch operations. The loop releases the GIL, so the chunk threads of a frame run it
 side by side.
 
@@ -98,7 +98,10 @@ def _kernel(coords, plane, line, res, plane_off, line_off, n_freqs, out, out_bit
             bits = out_bits[s]
             for j in range(width):
                 b = scratch_bits[0, j]
-                bits[j] = np.uint16((b + np.uint32(0x7FFF) + ((b >> np.uint32(16)) & np.uint32(1))) >> np.uint32(16))
+                if (b & np.uint32(0x7FFFFFFF)) > np.uint32(0x7F800000):  # NaN stays NaN (rounding could carry it to 0)
+                    bits[j] = np.uint16(0x7FC0)
+                else:
+                    bits[j] = np.uint16((b + np.uint32(0x7FFF) + ((b >> np.uint32(16)) & np.uint32(1))) >> np.uint32(16))
 
 
 @no_type_check

@@ -80,6 +80,10 @@ def test_bfloat16_rows_are_the_float32_rows_rounded_once() -> None:
     padded = torch.zeros(1024, 18 + 15, dtype=torch.bfloat16)
     _tables(grid).write_rows(coords, padded[:1000], 2)
     assert torch.equal(padded[:1000], exact.to(torch.bfloat16))  # round to nearest even, as torch
+    # a NaN coordinate gives NaN encodings, still NaN in bfloat16
+    nan_row = torch.zeros(1, 33, dtype=torch.bfloat16)
+    _tables(grid).write_rows(torch.tensor([[float("nan"), 0.0, 0.5]]), nan_row, 2)
+    assert torch.isnan(nan_row[0, 18]) and torch.isnan(nan_row[0, 21]) and torch.isfinite(nan_row[0, :18]).all()
     assert torch.equal(padded[1000:], torch.zeros(24, 33, dtype=torch.bfloat16))
 
 
