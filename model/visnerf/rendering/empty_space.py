@@ -83,6 +83,10 @@ class EmptySpace:
             strides=strides,
         )
 
+    def tables(self, cells: UInt8[Tensor, " cells"]) -> empty_space_kernel.GridTables:
+        """``cells`` (``distance`` or ``occupied``) with the cell geometry, for the compiled loops."""
+        return empty_space_kernel.GridTables(cells, self.lower, self.cells_per_unit, self.last_cell, self.strides)
+
     def min_cell_size(self) -> float:
         """World size of the smallest cell edge."""
         return float((1.0 / self.cells_per_unit).min())
@@ -145,7 +149,7 @@ class EmptySpace:
         On the CPU each ray walks in one compiled loop instead (``rendering.empty_space_kernel``:
         no cap on the jumps, ``cancel`` asked between calls of its ``RAYS_PER_CALL`` rays)."""
         if empty_space_kernel.available(rays_o.device):
-            grid = empty_space_kernel.GridTables(self.distance, self.lower, self.cells_per_unit, self.last_cell, self.strides)
+            grid = self.tables(self.distance)
             return empty_space_kernel.sample_windows(grid, rays_o, rays_d, t_near, step, first, last, near, cancel)
         n = first.shape[0]
         sign = torch.cat([torch.ones(n, dtype=first.dtype, device=first.device), -torch.ones_like(first)])

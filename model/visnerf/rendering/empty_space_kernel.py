@@ -18,12 +18,8 @@ import torch
 from jaxtyping import Float, Int, UInt8
 from torch import Tensor
 
+from visnerf import compiled
 from visnerf.rendering.cancel import CancelCheck, raise_if_cancelled
-
-try:
-    import numba
-except ImportError:  # pragma: no cover - numba is a core dependency
-    numba = None
 
 GUARD = 1e-3
 """Lattice steps kept before the edge of an empty block (``empty_space._GUARD``)."""
@@ -32,7 +28,8 @@ RAYS_PER_CALL = 16384
 
 
 def available(device: torch.device) -> bool:
-    return numba is not None and device.type == "cpu"
+    """Whether the compiled walk serves ``device`` (``compiled.serves``)."""
+    return compiled.serves(device)
 
 
 @no_type_check  # compiled by numba
@@ -94,25 +91,26 @@ def _windows(rays_o, rays_d, t_near, step64, first, last, near, distance, lower,
         out_first[r], out_last[r] = a, b
 
 
-if numba is not None:
-    first_near = numba.njit(inline="always", boundscheck=False)(_first_near)
-    try:
-        _compiled = numba.njit(nogil=True, cache=True, boundscheck=False)(_windows)
-    except RuntimeError:  # no writable cache directory
-        _compiled = numba.njit(nogil=True, boundscheck=False)(_windows)
-else:  # pragma: no cover
-    first_near, _compiled = _first_near, None
+first_near = compiled.jit(_first_near, inline=True)
+_compiled = compiled.jit(_windows)
 
 
 @dataclass(frozen=True)
 class GridTables:
-    """An ``EmptySpace``'s distances and cell geometry as the compiled walk reads them."""
+    """A table of ``EmptySpace``'s cells (its distances, or its occupancy) and the cell geometry,
+    as the compiled loops read them (``arrays``)."""
 
-    distance: UInt8[Tensor, " cells"]
+    cells: UInt8[Tensor, " cells"]
     lower: Float[Tensor, " 3"]
     cells_per_unit: Float[Tensor, " 3"]
     last_cell: Float[Tensor, " 3"]
     strides: Float[Tensor, " 3"]
+
+    def arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(cells uint8, lower, cells per unit, last cell as float32, flat strides as int64)."""
+        return (self.cells.contiguous().numpy(),
+                *(t.float().contiguous().numpy() for t in (self.lower, self.cells_per_unit, self.last_cell)),
+                np.asarray([int(s) for s in self.strides.tolist()], np.int64))
 
 
 def sample_windows(
@@ -126,15 +124,14 @@ def sample_windows(
     near: int,
     cancel: CancelCheck | None = None,
 ) -> tuple[Int[Tensor, " n"], Int[Tensor, " n"]]:
-    """``EmptySpace.sample_window`` on the CPU, asking ``cancel`` between calls of
-    ``RAYS_PER_CALL`` rays."""
-    if _compiled is None:  # pragma: no cover
+    """``EmptySpace.sample_window`` on the CPU (``grid`` holds its distances), asking ``cancel``
+    between calls of ``RAYS_PER_CALL`` rays."""
+    if compiled.numba is None:  # pragma: no cover
         raise RuntimeError("numba is not installed: the compiled empty-space walk is unavailable")
     n = first.shape[0]
     out_first, out_last = torch.empty(n, dtype=torch.int64), torch.empty(n, dtype=torch.int64)
     arrays = [t.detach().contiguous().numpy() for t in (rays_o.float(), rays_d.float(), t_near.float(), first.long(), last.long())]
-    tables = (grid.distance.contiguous().numpy(), *(t.float().contiguous().numpy() for t in (grid.lower, grid.cells_per_unit, grid.last_cell)),
-              np.asarray([int(s) for s in grid.strides.tolist()], np.int64))
+    tables = grid.arrays()
     of, ol = out_first.numpy(), out_last.numpy()
     for start in range(0, n, RAYS_PER_CALL):
         raise_if_cancelled(cancel)

@@ -21,17 +21,15 @@ from typing import no_type_check
 
 import numpy as np
 import torch
-from jaxtyping import Float, Int, UInt8
+from jaxtyping import Float, Int
 from torch import Tensor
 
-try:
-    import numba
-except ImportError:  # pragma: no cover - numba is a core dependency
-    numba = None
+from visnerf import compiled
 
 
 def available(device: torch.device) -> bool:
-    return numba is not None and device.type == "cpu"
+    """Whether the compiled loops serve ``device`` (``compiled.serves``)."""
+    return compiled.serves(device)
 
 
 @no_type_check  # compiled by numba
@@ -93,25 +91,7 @@ def _composite(flat, sigma, seg, step64, tau, threshold64, out_weights, out_shad
     return k
 
 
-if numba is not None:
-    def _jit(fn):  # noqa: ANN001, ANN202
-        try:
-            return numba.njit(nogil=True, cache=True, boundscheck=False)(fn)
-        except RuntimeError:  # no writable cache directory
-            return numba.njit(nogil=True, boundscheck=False)(fn)
-
-    _place_compiled, _composite_compiled = _jit(_place), _jit(_composite)
-else:  # pragma: no cover
-    _place_compiled = _composite_compiled = None
-
-
-class Occupancy:
-    """An occupancy grid's flat cells and geometry as ``place`` reads them (``EmptySpace``'s)."""
-
-    def __init__(self, occupied: UInt8[Tensor, " cells"], lower: Float[Tensor, " 3"], cells_per_unit: Float[Tensor, " 3"],
-                 last_cell: Float[Tensor, " 3"], strides: Float[Tensor, " 3"]) -> None:
-        self.arrays = (occupied.contiguous().numpy(), *(t.float().contiguous().numpy() for t in (lower, cells_per_unit, last_cell)),
-                       np.asarray([int(s) for s in strides.tolist()], np.int64))
+_place_compiled, _composite_compiled = compiled.jit(_place), compiled.jit(_composite)
 
 
 _NO_OCCUPANCY = (np.zeros(1, np.uint8), np.zeros(3, np.float32), np.zeros(3, np.float32), np.zeros(3, np.float32),
@@ -128,13 +108,14 @@ def place(
     s0: int,
     seg: int,
     step: float,
-    occupancy: Occupancy | None,
+    occupancy: tuple[np.ndarray, ...] | None,
 ) -> tuple[Float[Tensor, "m 3"], Int[Tensor, " m"]]:
-    """World positions and flat indices (``ray * seg + j``) of the valid samples of a segment."""
+    """World positions and flat indices (``ray * seg + j``) of the valid samples of a segment;
+    ``occupancy`` is ``GridTables(occupied, ...).arrays()`` of the ``EmptySpace`` marched, or None."""
     a = origins.shape[0]
     points = torch.empty(a * seg, 3, dtype=torch.float32)
     flat = torch.empty(a * seg, dtype=torch.int64)
-    tables = _NO_OCCUPANCY if occupancy is None else occupancy.arrays
+    tables = _NO_OCCUPANCY if occupancy is None else occupancy
     arrays = [t.contiguous().numpy() for t in (origins, directions, t_near, t_far, first, last)]
     m = _place_compiled(*arrays, int(s0), int(seg), float(step), occupancy is not None, *tables, points.numpy(), flat.numpy())
     return points[:m], flat[:m]

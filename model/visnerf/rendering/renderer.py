@@ -34,7 +34,7 @@ from visnerf.rendering.parallel import chunk_workers, map_chunks
 from visnerf.rendering.sampling import uniform_noise, uniform_samples
 from visnerf.rendering.volume import exclusive_optical_depth, optical_depths, weights_from_optical_depth
 from visnerf.representation.field import VisNerfField
-from visnerf.representation.frame_field import FrameField
+from visnerf.representation.frame_field import FrameField, SampleTaps
 from visnerf.runtime import batch_factor, bf16_native
 
 if TYPE_CHECKING:
@@ -226,12 +226,29 @@ def _shade_frame_samples(
     weights = weights_from_optical_depth(tau, tau_before)  # [a, s]
     valid_weights = weights.view(-1).index_select(0, flat)  # [m]
     shade = (valid_weights > weight_threshold).nonzero()[:, 0]  # into the valid samples
-    if shade.numel() > 0:
-        ray_idx = rays.index_select(0, flat.index_select(0, shade) // s)
-        colors = frame.color_at(samples.select(shade), ray_terms.index_select(0, ray_idx))  # [k, 3]
-        shaded = valid_weights.index_select(0, shade)[:, None]  # [k, 1]
-        rgbw.index_add_(0, ray_idx, torch.cat([shaded * colors, shaded], dim=1))
+    _add_shaded_colours(frame, ray_terms, rays, samples, flat, s, valid_weights, shade, rgbw)
     return tau.sum(dim=-1)
+
+
+def _add_shaded_colours(
+    frame: FrameField,
+    ray_terms: Float[Tensor, "n h"],
+    rays: Int[Tensor, " a"],
+    samples: SampleTaps,
+    flat: Int[Tensor, " m"],
+    seg: int,
+    weights: Float[Tensor, " m"],
+    shade: Int[Tensor, " k"],
+    rgbw: Float[Tensor, "n 4"],
+) -> None:
+    """Add the weighted colour and the weight of samples ``shade`` (indices into the segment's
+    valid ``samples``, whose flat indices are ``flat``: ``ray * seg + j``) into ``rgbw``."""
+    if shade.numel() == 0:
+        return
+    ray_idx = rays.index_select(0, flat.index_select(0, shade) // seg)
+    colors = frame.color_at(samples.select(shade), ray_terms.index_select(0, ray_idx))  # [k, 3]
+    shaded = weights.index_select(0, shade)[:, None]  # [k, 1]
+    rgbw.index_add_(0, ray_idx, torch.cat([shaded * colors, shaded], dim=1))
 
 
 def _shade_placed_samples(
@@ -253,11 +270,7 @@ def _shade_placed_samples(
         return
     samples = frame.lookup(points)
     weights, shade = march_kernel.composite(flat, frame.density_at(samples), seg, step, tau, weight_threshold)
-    if shade.numel() > 0:
-        ray_idx = rays.index_select(0, flat.index_select(0, shade) // seg)
-        colors = frame.color_at(samples.select(shade), ray_terms.index_select(0, ray_idx))  # [k, 3]
-        shaded = weights.index_select(0, shade)[:, None]  # [k, 1]
-        rgbw.index_add_(0, ray_idx, torch.cat([shaded * colors, shaded], dim=1))
+    _add_shaded_colours(frame, ray_terms, rays, samples, flat, seg, weights, shade, rgbw)
 
 
 @dataclass(frozen=True)
@@ -588,8 +601,7 @@ def march_rays(
     compiled = march_kernel.available(rays_o.device) and rays_o.dtype == torch.float32
     occupancy = None
     if compiled and empty_space is not None:
-        occupancy = march_kernel.Occupancy(empty_space.occupied, empty_space.lower, empty_space.cells_per_unit,
-                                           empty_space.last_cell, empty_space.strides)
+        occupancy = empty_space.tables(empty_space.occupied).arrays()
     s0 = 0
     while s0 < longest:
         if compiled:  # the same segment in two compiled loops (``rendering.march_kernel``)

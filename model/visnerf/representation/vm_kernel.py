@@ -27,17 +27,13 @@ import torch
 from jaxtyping import Float
 from torch import Tensor
 
+from visnerf import compiled
 from visnerf.representation.vm_taps import MODES
-
-try:
-    import numba
-except ImportError:  # pragma: no cover - numba is a core dependency; a broken install falls back
-    numba = None
 
 
 def available(device: torch.device) -> bool:
-    """Whether the compiled pass serves ``device`` (the CPU, with numba importable)."""
-    return numba is not None and device.type == "cpu"
+    """Whether the compiled pass serves ``device`` (``compiled.serves``)."""
+    return compiled.serves(device)
 
 
 @no_type_check  # compiled by numba: no runtime type checks (tests run jaxtyping's import hook)
@@ -114,15 +110,8 @@ def _plane_axes(i):  # noqa: ANN001, ANN202
     return MODES[2][0][0], MODES[2][0][1], MODES[2][1]
 
 
-if numba is not None:
-    plane_axes = numba.njit(inline="always")(_plane_axes)
-    try:
-        _compiled = numba.njit(nogil=True, cache=True, boundscheck=False)(_kernel)
-    except RuntimeError:  # no writable cache directory: compile in every process
-        _compiled = numba.njit(nogil=True, boundscheck=False)(_kernel)
-else:  # pragma: no cover
-    plane_axes = _plane_axes
-    _compiled = None
+plane_axes = compiled.jit(_plane_axes, inline=True)
+_compiled = compiled.jit(_kernel)
 
 
 @dataclass(frozen=True)
@@ -162,7 +151,7 @@ class KernelTables:
         and, for ``n_freqs >= 0``, their positional encoding into the next ``3 + 6 n_freqs``
         columns. ``out`` is float32 or bfloat16 with unit column stride (a row slice of a
         decoder's input)."""
-        if _compiled is None:  # pragma: no cover
+        if compiled.numba is None:  # pragma: no cover
             raise RuntimeError("numba is not installed: the compiled VM lookup is unavailable")
         m = coords.shape[0]
         width = 3 * self.n_components + (0 if n_freqs < 0 else 3 + 6 * n_freqs)
@@ -190,7 +179,7 @@ _NO_BITS = np.empty((1, 1), np.uint16)
 def warm_up() -> None:
     """Compile (or load from numba's cache) both variants of the pass, float32 and bfloat16 rows,
     so that a server's first frame does not pay for it (about a second each when nothing is cached)."""
-    if _compiled is None:  # pragma: no cover
+    if compiled.numba is None:  # pragma: no cover
         return
     tables = KernelTables.of(torch.zeros(3 * 4, 1), torch.zeros(3 * 2, 1), (2, 2, 2))
     coords = torch.zeros(1, 3)

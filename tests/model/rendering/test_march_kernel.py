@@ -34,7 +34,7 @@ def test_placed_samples_are_the_valid_lattice_samples_in_order(with_grid: bool) 
     last = torch.where(hit, first + torch.randint(-2, 60, (500,), generator=g), -1)
     grid = torch.rand(10, 8, 12, generator=g) < 0.3
     space = EmptySpace.of(grid, aabb)
-    occupancy = march_kernel.Occupancy(space.occupied, space.lower, space.cells_per_unit, space.last_cell, space.strides)
+    occupancy = space.tables(space.occupied).arrays()
     for s0, seg in ((0, 16), (16, 32), (20, 7)):
         points, flat = march_kernel.place(rays_o, rays_d, t_near, t_far, first, last, s0, seg, step,
                                           occupancy if with_grid else None)
