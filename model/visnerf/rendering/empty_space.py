@@ -26,9 +26,6 @@ MAX_DISTANCE = 16
 """Distances are counted up to this many cells; farther cells hold this value."""
 MAX_JUMPS = 24
 """Jumps per ray and direction; a ray that needs more starts its walk where the jumps ended."""
-_GUARD = 1e-3
-"""Lattice steps kept before the edge of an empty block, so float rounding never skips a sample
-that a hair's breadth lies in the next (occupied) cell."""
 
 
 def distance_to_content(grid: Bool[Tensor, "x y z"], max_distance: int = MAX_DISTANCE) -> Int[Tensor, "x y z"]:
@@ -189,7 +186,7 @@ class EmptySpace:
             raise_if_cancelled(cancel)
             t = tn + step * ((s * u).to(tn.dtype) + 0.5)
             occupied, exit_t = self._jump(o + d * t[:, None], w, near)
-            target = torch.ceil(u.to(tn.dtype) + exit_t / step - _GUARD)
+            target = torch.ceil(u.to(tn.dtype) + exit_t / step - empty_space_kernel.GUARD)
             nxt = torch.maximum(torch.minimum(target, cap).long(), u + 1)  # at least one sample on
             going = ~occupied & (nxt <= b)
             nxt = torch.where(occupied, u, nxt)

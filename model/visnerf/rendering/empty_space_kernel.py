@@ -22,7 +22,8 @@ from visnerf import compiled
 from visnerf.rendering.cancel import CancelCheck, raise_if_cancelled
 
 GUARD = 1e-3
-"""Lattice steps kept before the edge of an empty block (``empty_space._GUARD``)."""
+"""Lattice steps kept before the edge of an empty block, so float rounding never skips a sample
+that a hair's breadth lies in the next (occupied) cell (both walks)."""
 RAYS_PER_CALL = 16384
 """Rays walked between two cancel checks."""
 
@@ -33,6 +34,17 @@ def available(device: torch.device) -> bool:
 
 
 @no_type_check  # compiled by numba
+def _flat_cell(cells, last_cell, strides):  # noqa: ANN001, ANN202
+    """Flat index of the cell holding continuous cell coordinates ``cells`` (a 3-tuple), clamped
+    to the grid: ``EmptySpace.cell_index`` in the compiled loops (the walk and ``march_kernel``)."""
+    flat = 0
+    for a in range(3):
+        whole = min(max(math.floor(cells[a]), np.float32(0.0)), last_cell[a])
+        flat += int(whole) * strides[a]
+    return flat
+
+
+@no_type_check
 def _first_near(o, d, tn, step, u, bound, sign, near, distance, lower, cpu, last_cell, strides):  # noqa: ANN001, ANN202
     """From lattice index ``sign * u`` (``u`` grows), the first index whose cell is within
     ``near`` cells of content, or an index past ``sign * bound`` where there is none."""
@@ -41,15 +53,11 @@ def _first_near(o, d, tn, step, u, bound, sign, near, distance, lower, cpu, last
     while u <= bound:
         t = tn + step * (f32(sign * u) + f32(0.5))
         exit_t = f32(np.inf)
-        flat = 0
         c0 = (o[0] + d[0] * t - lower[0]) * cpu[0]
         c1 = (o[1] + d[1] * t - lower[1]) * cpu[1]
         c2 = (o[2] + d[2] * t - lower[2]) * cpu[2]
         cells = (c0, c1, c2)
-        for a in range(3):
-            whole = min(max(math.floor(cells[a]), f32(0.0)), last_cell[a])
-            flat += int(whole) * strides[a]
-        k = distance[flat]
+        k = distance[flat_cell(cells, last_cell, strides)]
         if k <= near:
             return sign * u
         reach = f32(k) - one - f32(near)
@@ -91,6 +99,7 @@ def _windows(rays_o, rays_d, t_near, step64, first, last, near, distance, lower,
         out_first[r], out_last[r] = a, b
 
 
+flat_cell = compiled.jit(_flat_cell, inline=True)
 first_near = compiled.jit(_first_near, inline=True)
 _compiled = compiled.jit(_windows)
 

@@ -25,6 +25,7 @@ from jaxtyping import Float, Int
 from torch import Tensor
 
 from visnerf import compiled
+from visnerf.rendering.empty_space_kernel import flat_cell
 
 
 def available(device: torch.device) -> bool:
@@ -52,11 +53,8 @@ def _place(origins, directions, t_near, t_far, first, last, s0, seg, step64, use
             p1 = origins[r, 1] + directions[r, 1] * t
             p2 = origins[r, 2] + directions[r, 2] * t
             if use_occupancy:
-                flat = 0
-                for a, p in enumerate((p0, p1, p2)):
-                    whole = min(max(math.floor((p - lower[a]) * cpu[a]), np.float32(0.0)), last_cell[a])
-                    flat += int(whole) * strides[a]
-                if occupied[flat] == 0:
+                cells = ((p0 - lower[0]) * cpu[0], (p1 - lower[1]) * cpu[1], (p2 - lower[2]) * cpu[2])
+                if occupied[flat_cell(cells, last_cell, strides)] == 0:
                     continue
             out_points[m, 0], out_points[m, 1], out_points[m, 2] = p0, p1, p2
             out_flat[m] = r * seg + j
