@@ -8,7 +8,6 @@
 Nothing here reaches into training code.
 """
 
-import contextlib
 import math
 import threading
 from collections.abc import Mapping
@@ -21,7 +20,7 @@ import torch
 
 from visnerf.checkpoint import CheckpointError, CheckpointMeta, load_checkpoint
 from visnerf.data.cameras import Intrinsics, check_rigid_c2w
-from visnerf.rendering.cancel import CancelCheck, RenderCancelled, raise_if_cancelled
+from visnerf.rendering.cancel import CancelCheck, RenderCancelled
 from visnerf.rendering.renderer import RenderSettings, render_image_scaled
 from visnerf.rendering.setting_occupancy import BackgroundRunner, SettingOccupancy, SettingOccupancyConfig
 from visnerf.representation import vm_kernel
@@ -99,8 +98,8 @@ takes milliseconds; smaller frames reuse the same blocks frame after frame."""
 
 
 class SceneRenderer:
-    """A loaded scene. ``render`` is thread safe: full frames are serialised by a lock, previews run
-    beside them."""
+    """A loaded scene. ``render`` is thread safe: frames of any quality render at once (they read the
+    field; the cache of setting grids is behind a lock)."""
 
     def __init__(
         self,
@@ -176,16 +175,13 @@ class SceneRenderer:
         c2w_t = torch.as_tensor(m, dtype=torch.float32, device=self.device)
         normalized = [axis.normalize(v) for axis, v in zip(self.meta.param_axes, values, strict=True)]
         params_t = torch.tensor(normalized, dtype=torch.float32, device=self.device)
-        # Full frames are serialised (the setting grids' cache is shared state); a preview only
-        # reads the field, so it never waits behind a full frame of the same scene.
-        lock = self._lock if quality == "full" else contextlib.nullcontext()
         try:
-            with lock, torch.inference_mode():
-                raise_if_cancelled(cancel)  # it may have waited for the lock
+            with torch.inference_mode():
                 own = None
                 if quality == "full" and settings.use_occupancy:
                     step = self.field.voxel_size() * settings.step_ratio
-                    own = self.setting_occupancy.lookup(params_t, step, background)
+                    with self._lock:  # the setting grids' cache is shared state; rendering only reads
+                        own = self.setting_occupancy.lookup(params_t, step, background)
                 rgb = render_image_scaled(self.field, c2w_t, intrinsics, params_t, settings, own, cancel)  # [h, w, 3]
                 return (rgb.clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
         finally:  # a frame stopped early allocated as much as a finished one

@@ -64,11 +64,13 @@ def _lifespan(settings: Settings, metrics: Metrics):
             )
         elif removed := remove_stale_uploads(settings.checkpoints_dir):
             logger.info("removed %d stale upload temporaries", removed)
-        queue = RenderQueue(settings.render_workers, settings.render_queue_size, metrics, settings.preview_workers)
+        threads = apply_threads(settings.threads)
+        workers = settings.render_workers or threads
+        logger.info("rendering with %d torch thread(s)%s, %d render(s) at once", threads,
+                    "" if settings.threads else " (CPU quota or cores)", workers)
+        queue = RenderQueue(workers, settings.render_queue_size, metrics, settings.preview_workers)
         cache = FrameCache(settings.frame_cache_bytes, settings.frame_cache_entries)
         metrics.watch_cache(cache)
-        threads = apply_threads(settings.threads)
-        logger.info("rendering with %d torch thread(s)%s", threads, "" if settings.threads else " (CPU quota or cores)")
         jobs = MovieJobs(MovieLimits.from_settings(settings), queue, registry, metrics, settings.movie_dir)
         server = ServerState(
             settings, metrics, registry, queue, cache, token, limiter=limiter_from_settings(settings), movies=jobs

@@ -1,5 +1,6 @@
 """Chunks of a frame marched on several threads: the same frame as one thread, the intra-op
-thread count restored, and the caller's autograd mode in the workers."""
+thread count restored, the caller's autograd mode in the helpers, and the cores shared between
+frames rendered at once."""
 
 import math
 import threading
@@ -9,7 +10,7 @@ import pytest
 import torch
 
 from visnerf.data.cameras import Intrinsics, orbit_c2w
-from visnerf.rendering.parallel import map_chunks
+from visnerf.rendering.parallel import busy_threads, map_chunks
 from visnerf.rendering.renderer import RenderSettings, render_image
 from visnerf.testing import make_tiny_field
 
@@ -40,8 +41,10 @@ def test_workers_run_one_intra_op_thread_in_the_callers_mode_and_the_count_comes
         map_chunks(chunk, 8, workers=2)
     assert len(seen) == 8
     assert {s[:3] for s in seen} == {(1, True, False)}
-    assert all(s[3].startswith("visnerf-chunk") for s in seen)
+    caller = threading.current_thread().name
+    assert all(s[3] == caller or s[3].startswith("visnerf-chunk") for s in seen)
     assert torch.get_num_threads() == 2
+    assert busy_threads() == 0
     seen.clear()
     with torch.no_grad():
         map_chunks(chunk, 3, workers=2)
@@ -55,4 +58,40 @@ def test_an_error_in_a_chunk_reaches_the_caller_and_the_count_comes_back(two_thr
 
     with pytest.raises(ValueError, match="chunk 3 failed"):
         map_chunks(chunk, 6, workers=2)
+    assert torch.get_num_threads() == 2
+    assert busy_threads() == 0
+
+
+def test_a_frame_alone_borrows_a_helper_and_a_frame_beside_it_marches_on_its_own_thread(two_threads) -> None:
+    """Two cores: frame A, alone, marches on its caller and a helper; frame B, started while A's
+    two threads march, gets no helper (every chunk on its caller's thread), and A's chunks are
+    not held up by B's."""
+    names: dict[str, set[str]] = {"a": set(), "b": set()}
+    a_running, b_done = threading.Event(), threading.Event()
+    lock = threading.Lock()
+
+    def chunk_a(i: int) -> None:
+        with lock:
+            names["a"].add(threading.current_thread().name)
+        a_running.set()
+        assert b_done.wait(5.0)  # A's chunks hold their cores until B has finished
+
+    def chunk_b(i: int) -> None:
+        with lock:
+            names["b"].add(threading.current_thread().name)
+
+    def frame_b() -> None:
+        assert a_running.wait(5.0)
+        while busy_threads() < 2:  # both of A's threads have taken a chunk
+            threading.Event().wait(0.001)
+        map_chunks(chunk_b, 6, workers=2)
+        b_done.set()
+
+    other = threading.Thread(target=frame_b, name="frame-b")
+    other.start()
+    map_chunks(chunk_a, 2, workers=2)
+    other.join(5.0)
+    assert names["b"] == {"frame-b"}
+    assert len(names["a"]) == 2 and threading.current_thread().name in names["a"]
+    assert busy_threads() == 0
     assert torch.get_num_threads() == 2
