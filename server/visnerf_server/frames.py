@@ -24,6 +24,10 @@ from visnerf_server.registry import Scene, default_view
 from visnerf_server.render_queue import Lane, QueueFullError, RenderQueue
 from visnerf_server.schemas import MEDIA_TYPES, MatrixCamera, RenderRequest
 
+LARGE_FRAME_PIXELS = inference.TRIM_AFTER_PIXELS
+"""Full frames of at least this many pixels (512x512) run one at a time (``render_queue``): a
+1440x1440 frame holds 350 to 400 MB while it renders (bench/results/render_memory.md)."""
+
 
 @dataclass(frozen=True)
 class FrameJob:
@@ -40,6 +44,11 @@ class FrameJob:
     format: str
     cost: float = 0.0
     """Rate-limit price: the frame's pixels, a preview pixel at ``FrameLimits.preview_pixel_cost``."""
+
+    @property
+    def large(self) -> bool:
+        """A full frame of ``LARGE_FRAME_PIXELS`` or more: the render queue runs one such at a time."""
+        return self.quality == "full" and self.width * self.height >= LARGE_FRAME_PIXELS
 
     def key(self) -> tuple:
         """Identical requests (same scene version) give identical keys; starts with the scene id."""
@@ -218,7 +227,8 @@ class FrameRenderer:
         cancel = threading.Event()
         try:
             return self.queue.run(
-                self._work(job, time.perf_counter(), cancel), self.timeout_s, Lane.of_quality(job.quality), cancel
+                self._work(job, time.perf_counter(), cancel), self.timeout_s, Lane.of_quality(job.quality), cancel,
+                job.large,
             )
         except QueueFullError:
             self._refund(job, client)
@@ -233,7 +243,7 @@ class FrameRenderer:
         cancel = threading.Event()
         work = self._work(job, time.perf_counter(), cancel)
         try:
-            return await self.queue.run_async(work, self.timeout_s, Lane.of_quality(job.quality), cancel)
+            return await self.queue.run_async(work, self.timeout_s, Lane.of_quality(job.quality), cancel, job.large)
         except QueueFullError:
             self._refund(job, client)
             raise

@@ -9,6 +9,11 @@ only, so that a preview does not wait for the full frames running either: 1440x1
 kept every general worker busy for seconds each left previews unanswered (server_load.md). A
 steady stream of previews delays full frames; each client's share is bounded by its rate limit.
 
+A job marked ``large`` (a frame of many pixels) never runs beside another large one: two at once
+would each take twice as long and hold twice the memory, while small frames beside a large one
+keep the other cores busy. A worker passes over a large job that must wait and takes the next
+small one; the large job starts as soon as the large one running ends.
+
 Each job may carry a ``threading.Event`` its work polls (a render asks it between chunks of rays,
 ``visnerf.rendering.cancel``). Callers wait with a time limit: a job still queued when the limit
 passes is dropped (503); one running is told to stop through its event (504), which frees the
@@ -70,6 +75,7 @@ class _Job:
     cancel: threading.Event
     future: concurrent.futures.Future = field(default_factory=concurrent.futures.Future)
     started: bool = False
+    large: bool = False
 
 
 class RenderQueue:
@@ -88,6 +94,7 @@ class RenderQueue:
         self._threads: list[threading.Thread] = []
         self._waiting = 0
         self._running = 0
+        self._large_running = 0
         self._closed = False
 
     @property
@@ -107,14 +114,15 @@ class RenderQueue:
         self._metrics.in_flight.set(self._running)
 
     def submit(
-        self, fn: Callable[[], T], lane: Lane = Lane.FULL, cancel: threading.Event | None = None
+        self, fn: Callable[[], T], lane: Lane = Lane.FULL, cancel: threading.Event | None = None, large: bool = False
     ) -> "concurrent.futures.Future[T]":
         """Queue ``fn`` in ``lane``; raises QueueFullError when no slot is free (never blocks).
 
         ``cancel`` is set when the job should stop (its caller's deadline passed or it left, or the
         queue shuts down); ``fn`` should poll it. Cancelling the future drops a job not yet started.
+        A ``large`` job never runs beside another large one.
         """
-        job = _Job(fn, lane, cancel if cancel is not None else threading.Event())
+        job = _Job(fn, lane, cancel if cancel is not None else threading.Event(), large=large)
         with self._cond:
             if self._closed or self._waiting + self._running >= self.capacity:
                 self._metrics.rejected.inc()
@@ -163,12 +171,18 @@ class RenderQueue:
         with self._cond:
             while True:
                 for lane in lanes:
-                    while lane:
-                        job = lane.popleft()
+                    i = 0
+                    while i < len(lane):
+                        job = lane[i]
+                        if job.large and self._large_running and not job.future.cancelled():
+                            i += 1  # waits for the large one running; a small one behind it may go
+                            continue
+                        del lane[i]
                         if job.future.set_running_or_notify_cancel():
                             job.started = True
                             self._waiting -= 1
                             self._running += 1
+                            self._large_running += job.large
                             self._active.add(job)
                             self._update_gauges()
                             return job
@@ -202,7 +216,10 @@ class RenderQueue:
         with self._cond:
             self._active.discard(job)
             self._running -= 1
+            self._large_running -= job.large
             self._update_gauges()
+            if job.large:
+                self._cond.notify_all()  # a large job waiting may start now
 
     def _stopped(self, future: concurrent.futures.Future, cancel: threading.Event) -> bool:
         """Stop a job its caller gave up on: drop it if queued, else tell it to stop. True when
@@ -219,11 +236,12 @@ class RenderQueue:
         timeout: float,
         lane: Lane = Lane.FULL,
         cancel: threading.Event | None = None,
+        large: bool = False,
     ) -> T:
         """Run ``fn`` and wait for it at most ``timeout`` seconds (blocking; for sync callers).
         Past the limit the job is dropped or stopped and RenderTimeoutError raised."""
         cancel = cancel if cancel is not None else threading.Event()
-        future = self.submit(fn, lane, cancel)
+        future = self.submit(fn, lane, cancel, large)
         try:
             return future.result(timeout=timeout)
         except _TIMEOUT_ERRORS:
@@ -241,11 +259,12 @@ class RenderQueue:
         timeout: float,
         lane: Lane = Lane.FULL,
         cancel: threading.Event | None = None,
+        large: bool = False,
     ) -> T:
         """``run`` for coroutines: waits without blocking the event loop. When the waiting task is
         cancelled (its client left), the job is dropped or stopped too."""
         cancel = cancel if cancel is not None else threading.Event()
-        future = self.submit(fn, lane, cancel)
+        future = self.submit(fn, lane, cancel, large)
         waiter = asyncio.wrap_future(future)
         waiter.add_done_callback(lambda f: f.cancelled() or f.exception())  # never "unretrieved"
         try:

@@ -14,9 +14,11 @@ import threading
 import time
 import weakref
 from collections.abc import Callable
+from functools import partial
 from pathlib import Path
 
 import httpx
+import numpy as np
 import pytest
 import torch
 from fastapi.testclient import TestClient
@@ -24,6 +26,7 @@ from server_helpers import AUTH, ORBIT, image_size, make_settings, serve_process
 
 from visnerf.inference import RenderCancelled
 from visnerf_server.app import create_app
+from visnerf_server.frames import FrameJob
 from visnerf_server.metrics import Metrics
 from visnerf_server.render_queue import Lane, QueueFullError, RenderQueue, RenderTimeoutError
 
@@ -380,6 +383,43 @@ def test_a_client_that_leaves_and_a_sigterm_stop_large_renders(ckpt_dir: Path, t
         assert isinstance(answer, httpx.Response) and answer.status_code == 503, answer
         assert "shutting down" in answer.json()["detail"] and answer.headers["retry-after"] == "1"
         assert "render queue shut down" in server.log()
+
+
+def test_a_large_frame_waits_for_the_large_one_running_and_small_ones_pass_it() -> None:
+    """Two workers: a large job holds one; a second large job waits (it would run beside it) while
+    a small one behind it takes the free worker; the second large job starts once the first ends."""
+    queue = RenderQueue(workers=2, queue_size=4, metrics=Metrics())
+    release_first = threading.Event()
+    first = queue.submit(lambda: release_first.wait(10), Lane.FULL, large=True)
+    while queue.running == 0:
+        time.sleep(0.002)
+    started: list[str] = []
+    second = queue.submit(lambda: started.append("large 2") or "large 2", Lane.FULL, large=True)
+    small = queue.submit(lambda: started.append("small") or "small", Lane.FULL)
+    assert small.result(timeout=5) == "small"
+    time.sleep(0.05)
+    assert not second.done() and queue.waiting == 1 and started == ["small"]
+    release_first.set()
+    assert first.result(timeout=5) is True
+    assert second.result(timeout=5) == "large 2" and started == ["small", "large 2"]
+    # a large job cancelled while it waits gives its slot back, and large jobs run again after
+    release_first.clear()
+    first = queue.submit(lambda: release_first.wait(10), Lane.FULL, large=True)
+    while queue.running == 0:
+        time.sleep(0.002)
+    dropped = queue.submit(lambda: "never", Lane.FULL, large=True)
+    assert dropped.cancel() and queue.waiting == 0
+    release_first.set()
+    assert queue.submit(lambda: "after", Lane.FULL, large=True).result(timeout=5) == "after"
+    queue.shutdown()
+    assert queue.waiting == queue.running == 0
+
+
+def test_large_frames_are_full_frames_of_512_by_512_or_more() -> None:
+    scene = object()
+    job = partial(FrameJob, scene, np.eye(4), 40.0, params={}, format="jpeg")
+    assert job(512, 512, quality="full").large and job(1440, 1440, quality="full").large
+    assert not job(511, 512, quality="full").large and not job(512, 512, quality="preview").large
 
 
 def test_a_preview_worker_answers_previews_while_full_frames_hold_the_others() -> None:
