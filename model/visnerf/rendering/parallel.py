@@ -12,7 +12,8 @@ caller of ``map_chunks`` marches chunks itself and borrows helper threads only f
 other frame's marching holds: a frame alone spreads over every core, two frames at once on two
 cores march one core each, with no thread waiting for another frame's chunks to finish. On two
 cores, 128x128 frames of the bundled scenes in two threads at once made 14.6 to 16.0 frames/s
-against 13.4 to 13.6 for one thread of frames on both cores (bench/results/server_load.md).
+against 12.8 to 13.6 for one thread of frames on both cores (the notes of
+bench/results/server_load.md).
 
 A participating thread runs one intra-op thread while it marches (``torch.set_num_threads`` acts
 on the calling thread's OpenMP team, so frames at once do not disturb each other); the caller's
