@@ -22,14 +22,16 @@ grad / inference mode.
 """
 
 import itertools
+import os
 import threading
 from collections.abc import Callable
 from concurrent.futures import Future, ThreadPoolExecutor, wait
 
 import torch
 
-MAX_HELPERS = 64
-"""Helper threads at most, over every frame at once (a thread is made when first needed)."""
+MAX_HELPERS = max(64, os.cpu_count() or 1)
+"""Helper threads at most, over every frame at once (a thread is made when first needed); at
+most ``workers - 1`` are borrowed at any time."""
 
 _lock = threading.Lock()
 _busy = 0
