@@ -241,7 +241,7 @@ class RenderQueue:
         """Run ``fn`` and wait for it at most ``timeout`` seconds (blocking; for sync callers).
         Past the limit the job is dropped or stopped and RenderTimeoutError raised."""
         cancel = cancel if cancel is not None else threading.Event()
-        future = self.submit(fn, lane, cancel, large)
+        future = self.submit(fn, lane, cancel, large=large)
         try:
             return future.result(timeout=timeout)
         except _TIMEOUT_ERRORS:
@@ -264,7 +264,7 @@ class RenderQueue:
         """``run`` for coroutines: waits without blocking the event loop. When the waiting task is
         cancelled (its client left), the job is dropped or stopped too."""
         cancel = cancel if cancel is not None else threading.Event()
-        future = self.submit(fn, lane, cancel, large)
+        future = self.submit(fn, lane, cancel, large=large)
         waiter = asyncio.wrap_future(future)
         waiter.add_done_callback(lambda f: f.cancelled() or f.exception())  # never "unretrieved"
         try:

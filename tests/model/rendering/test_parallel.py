@@ -4,6 +4,7 @@ frames rendered at once."""
 
 import math
 import threading
+import time
 from dataclasses import replace
 
 import pytest
@@ -82,8 +83,14 @@ def test_a_frame_alone_borrows_a_helper_and_a_frame_beside_it_marches_on_its_own
 
     def frame_b() -> None:
         assert a_running.wait(5.0)
-        while busy_threads() < 2:  # both of A's threads have taken a chunk
-            threading.Event().wait(0.001)
+        deadline = time.monotonic() + 5.0
+        while True:  # until both of A's threads hold a chunk (the helper may start late)
+            with lock:
+                if len(names["a"]) == 2:
+                    break
+            assert time.monotonic() < deadline, "A's helper never took a chunk"
+            time.sleep(0.001)
+        assert busy_threads() == 2
         map_chunks(chunk_b, 6, workers=2)
         b_done.set()
 
