@@ -61,8 +61,7 @@ class Settings(BaseSettings):
     render_workers: int | None = Field(default=None, ge=1, le=64)
     """Renders running at once (threads), of any quality; None: one per render thread
     (``threads``). A frame alone marches its rays on every render thread, frames at once share
-    them (``visnerf.rendering.parallel``): on two cores, two at once made 1.16 to 1.22 times the
-    frames of one at a time."""
+    them (``visnerf.rendering.parallel``, which gives the figures)."""
     preview_workers: int = Field(default=1, ge=0, le=8)
     """More render threads that take previews only, so that a drag is answered while full frames
     occupy the other workers."""
