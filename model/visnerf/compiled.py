@@ -21,15 +21,18 @@ def serves(device: torch.device) -> bool:
     return numba is not None and device.type == "cpu"
 
 
-def jit(fn: Callable[..., Any], inline: bool = False) -> Callable[..., Any]:
+def jit(fn: Callable[..., Any], inline: bool = False, fastmath: set[str] | None = None) -> Callable[..., Any]:
     """``fn`` compiled in nopython mode, releasing the GIL, cached on disk by numba where a cache
     directory is writable (else compiled once per process); ``inline=True`` for a helper that the
-    loops inline (not callable from Python on its own). Returns ``fn`` itself without numba."""
+    loops inline (not callable from Python on its own); ``fastmath``: LLVM's fast-math flags for the
+    loop (numba's names, e.g. ``{"reassoc"}`` to sum in vector lanes). Returns ``fn`` itself
+    without numba."""
     if numba is None:  # pragma: no cover
         return fn
     if inline:
         return numba.njit(inline="always", boundscheck=False)(fn)
+    flags = {"fastmath": fastmath} if fastmath else {}
     try:
-        return numba.njit(nogil=True, cache=True, boundscheck=False)(fn)
+        return numba.njit(nogil=True, cache=True, boundscheck=False, **flags)(fn)
     except RuntimeError:  # no writable cache directory
-        return numba.njit(nogil=True, boundscheck=False)(fn)
+        return numba.njit(nogil=True, boundscheck=False, **flags)(fn)

@@ -23,7 +23,7 @@ from visnerf.data.cameras import Intrinsics, check_rigid_c2w
 from visnerf.rendering.cancel import CancelCheck, RenderCancelled
 from visnerf.rendering.renderer import RenderSettings, render_image_scaled
 from visnerf.rendering.setting_occupancy import BackgroundRunner, SettingOccupancy, SettingOccupancyConfig
-from visnerf.representation import vm_kernel
+from visnerf.representation import output_kernel, vm_kernel
 from visnerf.representation.field import VisNerfField
 from visnerf.runtime import release_free_memory
 
@@ -111,6 +111,7 @@ class SceneRenderer:
         self.field = field.eval()
         if vm_kernel.available(device):
             vm_kernel.warm_up()
+            output_kernel.warm_up()
         self.meta = meta
         self.device = device
         self.info = _scene_info(meta)

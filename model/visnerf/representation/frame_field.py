@@ -23,7 +23,9 @@ Two more things are done once per frame:
 On the CPU the tables are not copied: one compiled pass per sample (``vm_kernel``) interpolates
 the grid's own float32 tables and writes the decoder's input row (features, and the positional
 encoding for density), rounded once to the compute dtype; ``ModeTables`` and ``TapLayout`` serve
-every other device. bench/results/render_speed.md measures the whole renderer against the
+every other device. There too, in bfloat16, each decoder's output layer sums the activations in
+float32 and is written in float32 (``output_kernel``): oneDNN's product rounds its output to
+bfloat16. bench/results/render_speed.md measures the whole renderer against the
 exhaustive float32 one.
 
 With float32 the result equals ``VisNerfField.density`` / ``color`` up to float rounding; with
@@ -37,7 +39,7 @@ import torch.nn.functional as F
 from jaxtyping import Float, Int
 from torch import Tensor
 
-from visnerf.representation import vm_kernel
+from visnerf.representation import output_kernel, vm_kernel
 from visnerf.representation.decoders import Decoder, encode_position_into, encode_sh, padded_rows
 from visnerf.representation.field import (
     N_PROBES,
@@ -145,8 +147,9 @@ class FrameField:
     """Density and colour of ``field`` at parameter features (q_density, q_appearance), no grad.
 
     ``dtype`` is the compute type of the decoders' matrix products (float32 or bfloat16). On the
-    CPU the decoders' input rows are written by one compiled pass per sample (``vm_kernel``);
-    ``compiled=False`` takes the torch operations every device has.
+    CPU the decoders' input rows are written by one compiled pass per sample (``vm_kernel``) and a
+    bfloat16 output layer by another (``output_kernel``); ``compiled=False`` takes the torch
+    operations every device has.
     """
 
     def __init__(
@@ -192,6 +195,11 @@ class FrameField:
         dd, cd = field.density_decoder.out, field.color_decoder.out
         self._density_out = ((dd.weight.detach() * sharpness).to(dtype), (dd.bias.detach() * sharpness).to(dtype))
         self._color_out = (cd.weight.detach().to(dtype), cd.bias.detach().to(dtype))
+        self._density_out_f32 = self._color_out_f32 = None
+        """The output layers in float32 on bfloat16 activations (``output_kernel``): the compiled path."""
+        if dtype == torch.bfloat16 and self.compiled and output_kernel.available(q_density.device):
+            self._density_out_f32 = output_kernel.OutputLayer(dd.weight.detach() * sharpness, dd.bias.detach() * sharpness)
+            self._color_out_f32 = output_kernel.OutputLayer(cd.weight, cd.bias)
         self._level_step = None if field.levels is None else cfg.level_normal_step * field.voxel_size()
         self._with_directions = self._facing is not None or self._level_step is not None
 
@@ -232,6 +240,8 @@ class FrameField:
             self.density_tables.features_into(taps, x[:m])
             encode_position_into(coords, cfg.pos_encoding_freqs, x[:m, 3 * self.density_tables.n_components:])
         hidden = linear_relu(x, self.density_layer.weight, self.density_layer.bias)  # [padded, h]
+        if self._density_out_f32 is not None:
+            return self._density_out_f32(hidden[:m])[:, 0]
         return F.linear(hidden, *self._density_out)[:m, 0].to(coords.dtype)
 
     def direction_terms(self, directions: Float[Tensor, "a 3"]) -> Float[Tensor, "a e"]:
@@ -295,5 +305,7 @@ class FrameField:
                 level = self._level_cosines(samples.points, directions)  # [m, 1 + powers]
                 x[:m, column:column + level.shape[1]] = level.to(self.dtype)
         hidden = linear_relu(x, self.color_layer.weight, self.color_layer.bias)  # [padded, h]
+        if self._color_out_f32 is not None:
+            return torch.sigmoid(self._color_out_f32(hidden[:m]))
         raw = F.linear(hidden, *self._color_out)[:m]
         return torch.sigmoid(raw.float())

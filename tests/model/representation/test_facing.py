@@ -129,4 +129,7 @@ def test_every_colour_product_runs_on_padded_rows(facing_field, dtype, monkeypat
         with torch.no_grad():
             got = frame.color(points, frame.direction_terms(dirs))
         torch.testing.assert_close(got, want, atol=2e-2 if dtype == torch.bfloat16 else 1e-5, rtol=0)
-    assert len(rows) >= 8 and all(r == padded_rows(r) for r in rows), rows
+    # the facing map and the output layer each once a case; a bf16 output layer on the CPU is the
+    # compiled one (``output_kernel``), which builds no oneDNN kernel
+    products = 4 if frame._color_out_f32 is not None else 8
+    assert len(rows) >= products and all(r == padded_rows(r) for r in rows), rows
