@@ -5,7 +5,7 @@ settings), waits until it is ready, runs, and stops it with SIGTERM. Meanwhile i
 server's resident memory (VmRSS in /proc/PID/status) four times a second. Every client connects from
 its own loopback address (127.0.0.10, .11, ...; the probes from 127.0.0.2 and .3), so that the
 server's per-address rate limit sees separate clients, as it would on a network; a client told 429
-waits for its ``Retry-After``.
+or 503 waits for its ``Retry-After``.
 
 - ``throughput``: ``--clients`` threads, each with its own ``httpx.Client``, request frames
   (``--width`` x ``--height``, ``--quality``, ``--format``) from random viewpoints and random
@@ -224,14 +224,15 @@ def random_query(rng: random.Random, scene: dict, ask: FrameAsk) -> dict[str, ob
 
 
 def timed_get(http: httpx.Client, path: str, params: dict | None, t0: float) -> tuple[Sample, float]:
-    """One request: its sample, and the seconds the server asked to wait (``Retry-After`` of a 429)."""
+    """One request: its sample, and the seconds the server asked to wait (``Retry-After`` of a 429
+    or a 503)."""
     start = time.perf_counter()
     retry_after = 0.0
     try:
         response = http.get(path, params=params)
         response.read()
         status = response.status_code
-        if status == 429:
+        if status in (429, 503):
             retry_after = float(response.headers.get("retry-after", "1"))
     except httpx.HTTPError:
         status = 0
@@ -576,7 +577,7 @@ def heavy_lines(mode: dict[str, Any]) -> list[str]:
         "",
         f"{warm_up_line(mode)}Two phases of {c['duration_s_per_phase']} s on one server: probes alone, then probes beside "
         f"{c['heavy_clients']} anonymous clients, each from its own address, asking back to back for the "
-        f"largest full frame allowed ({c['heavy_frame']}), waiting out each 429's Retry-After. "
+        f"largest full frame allowed ({c['heavy_frame']}), waiting out each 429's or 503's Retry-After. "
         f"Probes: `/api/health` every {c['health_every_s']} s, a {c['preview']}. "
         f"Scenes {', '.join(mode['scenes'])}; server exit status after SIGTERM {mode['server_exit_code']}.",
         "",

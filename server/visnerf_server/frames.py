@@ -228,7 +228,7 @@ class FrameRenderer:
         try:
             return self.queue.run(
                 self._work(job, time.perf_counter(), cancel), self.timeout_s, Lane.of_quality(job.quality), cancel,
-                job.large,
+                job.large, job.cost,
             )
         except QueueFullError:
             self._refund(job, client)
@@ -243,7 +243,8 @@ class FrameRenderer:
         cancel = threading.Event()
         work = self._work(job, time.perf_counter(), cancel)
         try:
-            return await self.queue.run_async(work, self.timeout_s, Lane.of_quality(job.quality), cancel, job.large)
+            return await self.queue.run_async(work, self.timeout_s, Lane.of_quality(job.quality), cancel, job.large,
+                                              job.cost)
         except QueueFullError:
             self._refund(job, client)
             raise

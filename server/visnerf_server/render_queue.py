@@ -12,7 +12,13 @@ steady stream of previews delays full frames; each client's share is bounded by 
 A job marked ``large`` (a frame of many pixels) never runs beside another large one: two at once
 would each take twice as long and hold twice the memory, while small frames beside a large one
 keep the other cores busy. A worker passes over a large job that must wait and takes the next
-small one; the large job starts as soon as the large one running ends.
+small one; the large job starts as soon as the large one running ends. Large jobs thus wait for
+each other in turn, so ``run`` and ``run_async`` refuse a large job at once
+(``WouldOutwaitError``, a QueueFullError with the wait as its Retry-After) when the large jobs
+ahead of it would hold it past its caller's limit: its caller would otherwise wait out the
+limit and get a 504 for a frame stopped half drawn, its cores spent for nothing. The wait is
+estimated from the seconds per unit of cost of the large jobs finished so far (none yet: no
+refusal), and a large job with nothing ahead of it is never refused.
 
 Each job may carry a ``threading.Event`` its work polls (a render asks it between chunks of rays,
 ``visnerf.rendering.cancel``). Callers wait with a time limit: a job still queued when the limit
@@ -26,6 +32,7 @@ the queued ones with QueueFullError, so a stop never waits for a large frame to 
 import asyncio
 import concurrent.futures
 import threading
+import time
 import weakref
 from collections import deque
 from collections.abc import Callable
@@ -43,6 +50,20 @@ _TIMEOUT_ERRORS = (TimeoutError, asyncio.TimeoutError, concurrent.futures.Timeou
 
 class QueueFullError(RuntimeError):
     """Every render slot is taken (or the server is stopping)."""
+
+
+class WouldOutwaitError(QueueFullError):
+    """A large job would wait behind the large jobs ahead of it past its caller's limit."""
+
+    def __init__(self, wait_s: float, limit_s: float) -> None:
+        super().__init__(f"a large frame would wait about {wait_s:.0f} s for the large frames ahead of it "
+                         f"and not be done within the limit of {limit_s:g} s")
+        self.retry_after_s = wait_s
+        """Seconds until the large frames ahead are estimated to be done."""
+
+
+LARGE_RATE_WEIGHT = 0.5
+"""Weight of the newest finished large job in the estimate of seconds per unit of cost."""
 
 
 class RenderTimeoutError(RuntimeError):
@@ -76,6 +97,9 @@ class _Job:
     future: concurrent.futures.Future = field(default_factory=concurrent.futures.Future)
     started: bool = False
     large: bool = False
+    cost: float = 0.0
+    """What the job costs (a frame's pixels, ``costs.FrameLimits.cost``); 0: unknown."""
+    started_at: float = 0.0
 
 
 class RenderQueue:
@@ -95,6 +119,8 @@ class RenderQueue:
         self._waiting = 0
         self._running = 0
         self._large_running = 0
+        self._large_rate: float | None = None
+        """Seconds per unit of cost of the large jobs finished so far (weighted to the newest)."""
         self._closed = False
 
     @property
@@ -114,19 +140,32 @@ class RenderQueue:
         self._metrics.in_flight.set(self._running)
 
     def submit(
-        self, fn: Callable[[], T], lane: Lane = Lane.FULL, cancel: threading.Event | None = None, large: bool = False
+        self,
+        fn: Callable[[], T],
+        lane: Lane = Lane.FULL,
+        cancel: threading.Event | None = None,
+        large: bool = False,
+        cost: float = 0.0,
+        limit_s: float | None = None,
     ) -> "concurrent.futures.Future[T]":
         """Queue ``fn`` in ``lane``; raises QueueFullError when no slot is free (never blocks).
 
         ``cancel`` is set when the job should stop (its caller's deadline passed or it left, or the
         queue shuts down); ``fn`` should poll it. Cancelling the future drops a job not yet started.
-        A ``large`` job never runs beside another large one.
+        A ``large`` job never runs beside another large one; with its ``cost`` and its caller's
+        ``limit_s`` it is refused (WouldOutwaitError) when the large jobs ahead would hold it past
+        that limit.
         """
-        job = _Job(fn, lane, cancel if cancel is not None else threading.Event(), large=large)
+        job = _Job(fn, lane, cancel if cancel is not None else threading.Event(), large=large, cost=cost)
         with self._cond:
             if self._closed or self._waiting + self._running >= self.capacity:
                 self._metrics.rejected.inc()
                 raise QueueFullError("server is shutting down" if self._closed else "render queue is full")
+            if large and limit_s is not None and cost > 0.0 and self._large_rate is not None:
+                wait = self._large_wait_s()
+                if wait > 0.0 and wait + cost * self._large_rate > limit_s:
+                    self._metrics.rejected.inc()
+                    raise WouldOutwaitError(wait, limit_s)
             self._lanes[lane].append(job)
             self._waiting += 1
             self._update_gauges()
@@ -146,6 +185,16 @@ class RenderQueue:
         dropped = weakref.ref(job)
         job.future.add_done_callback(lambda _: self._forget_if_dropped(dropped()))
         return job.future
+
+    def _large_wait_s(self) -> float:
+        """Seconds until the large jobs running and queued are estimated to be done (under the lock)."""
+        assert self._large_rate is not None
+        now = time.monotonic()
+        running = sum(max(0.0, job.cost * self._large_rate - (now - job.started_at))
+                      for job in self._active if job.large)
+        queued = sum(job.cost * self._large_rate for lane in self._lanes.values() for job in lane
+                     if job.large and not job.future.cancelled())
+        return running + queued
 
     def _forget_if_dropped(self, job: _Job | None) -> None:
         """A job cancelled before it started gives its slot back at once (None: a job no longer
@@ -180,6 +229,7 @@ class RenderQueue:
                         del lane[i]
                         if job.future.set_running_or_notify_cancel():
                             job.started = True
+                            job.started_at = time.monotonic()
                             self._waiting -= 1
                             self._running += 1
                             self._large_running += job.large
@@ -196,12 +246,12 @@ class RenderQueue:
             try:
                 result = job.fn()
             except BaseException as exc:  # noqa: BLE001 - handed to whoever waits on the future
-                self._finish(job)
+                self._finish(job, done=False)
                 if isinstance(exc, RenderCancelled):  # a stop that was asked for: its frames tell
                     exc.with_traceback(None)  # nothing, and asyncio's waits keep cycles of their own
                 job.future.set_exception(exc)
             else:
-                self._finish(job)
+                self._finish(job, done=True)
                 job.future.set_result(result)
             finally:
                 # An exception holds in its traceback every frame it passed; where such a frame
@@ -212,8 +262,14 @@ class RenderQueue:
                 # for a job's outcome drop the job and its futures before they end.
                 job = result = None  # noqa: F841
 
-    def _finish(self, job: _Job) -> None:
+    def _finish(self, job: _Job, done: bool) -> None:
+        """Account for a job that ended (``done``: it returned; a large one's time then updates the
+        estimate of seconds per unit of cost)."""
         with self._cond:
+            if done and job.large and job.cost > 0.0:
+                rate = (time.monotonic() - job.started_at) / job.cost
+                old = self._large_rate
+                self._large_rate = rate if old is None else LARGE_RATE_WEIGHT * rate + (1 - LARGE_RATE_WEIGHT) * old
             self._active.discard(job)
             self._running -= 1
             self._large_running -= job.large
@@ -237,11 +293,13 @@ class RenderQueue:
         lane: Lane = Lane.FULL,
         cancel: threading.Event | None = None,
         large: bool = False,
+        cost: float = 0.0,
     ) -> T:
         """Run ``fn`` and wait for it at most ``timeout`` seconds (blocking; for sync callers).
-        Past the limit the job is dropped or stopped and RenderTimeoutError raised."""
+        Past the limit the job is dropped or stopped and RenderTimeoutError raised. A ``large``
+        job of ``cost`` that would wait past the limit is refused at once (WouldOutwaitError)."""
         cancel = cancel if cancel is not None else threading.Event()
-        future = self.submit(fn, lane, cancel, large=large)
+        future = self.submit(fn, lane, cancel, large=large, cost=cost, limit_s=timeout)
         try:
             return future.result(timeout=timeout)
         except _TIMEOUT_ERRORS:
@@ -260,11 +318,12 @@ class RenderQueue:
         lane: Lane = Lane.FULL,
         cancel: threading.Event | None = None,
         large: bool = False,
+        cost: float = 0.0,
     ) -> T:
         """``run`` for coroutines: waits without blocking the event loop. When the waiting task is
         cancelled (its client left), the job is dropped or stopped too."""
         cancel = cancel if cancel is not None else threading.Event()
-        future = self.submit(fn, lane, cancel, large=large)
+        future = self.submit(fn, lane, cancel, large=large, cost=cost, limit_s=timeout)
         waiter = asyncio.wrap_future(future)
         waiter.add_done_callback(lambda f: f.cancelled() or f.exception())  # never "unretrieved"
         try:

@@ -73,23 +73,23 @@ class Settings(BaseSettings):
     """``Retry-After`` sent with 503 answers."""
     # Costs per request and per client
     # (ms per megapixel from bench/results/render_speed.md, 2-core AMD EPYC, 256x256 frames,
-    # slowest scenes: full quality 4890 median / 5630 p95 (cosmo_sim), preview 1890 / 2200
+    # slowest scenes: full quality 4490 median / 4920 p95 (cosmo_sim), preview 1650 / 2170
     # (plume_time).)
     threads: int | None = Field(default=None, ge=1, le=1024)
     """Torch threads for rendering (``VISNERF_THREADS``, ``--threads``); None: the CPU quota of
     the server's cgroup where there is one, else the cores it may run on."""
     max_preview_pixels: int = Field(default=512 * 512, ge=MIN_FRAME_PIXELS)
-    """Largest width x height of a preview frame: 512x512 renders in about 0.5 s (0.58 s at the
-    p95 rate). Previews go ahead of queued full frames, so they must stay cheap."""
+    """Largest width x height of a preview frame: 512x512 renders in about 0.43 s (0.57 s at
+    the p95 rate). Previews go ahead of queued full frames, so they must stay cheap."""
     max_full_pixels: int = Field(default=1920 * 1080, ge=MIN_FRAME_PIXELS)
-    """Largest width x height of a full-quality frame: 1920x1080 renders in about 10 s (11.7 s at
+    """Largest width x height of a full-quality frame: 1920x1080 renders in about 9.3 s (10.2 s at
     the p95 rate), a third of ``render_timeout_s``."""
     preview_pixel_cost: float = Field(default=0.3, gt=0.0, le=1.0)
-    """What a preview pixel costs against a full-quality one (rate limit): 0.21 to 0.40 measured
+    """What a preview pixel costs against a full-quality one (rate limit): 0.19 to 0.37 measured
     at 256x256, 0.34 on the slowest scene."""
     rate_limit_pixels_per_s: float = Field(default=100_000.0, ge=0.0)
     """Full-quality pixels each client may have rendered per second, sustained (cache hits are
-    free): about 0.49 s of rendering per second on the slowest scene. 0 turns the limit off."""
+    free): about 0.45 s of rendering per second on the slowest scene. 0 turns the limit off."""
     rate_limit_burst_pixels: int = Field(default=1920 * 1080, ge=1)
     """Pixels a client may spend at once from a full bucket (one largest full frame); a frame that
     costs more waits for a full bucket."""

@@ -28,7 +28,7 @@ from visnerf.inference import RenderCancelled
 from visnerf_server.app import create_app
 from visnerf_server.frames import FrameJob
 from visnerf_server.metrics import Metrics
-from visnerf_server.render_queue import Lane, QueueFullError, RenderQueue, RenderTimeoutError
+from visnerf_server.render_queue import Lane, QueueFullError, RenderQueue, RenderTimeoutError, WouldOutwaitError
 
 SMALL = {"camera": ORBIT, "width": 16, "height": 12}
 BIG = 2048
@@ -413,6 +413,57 @@ def test_a_large_frame_waits_for_the_large_one_running_and_small_ones_pass_it() 
     assert queue.submit(lambda: "after", Lane.FULL, large=True).result(timeout=5) == "after"
     queue.shutdown()
     assert queue.waiting == queue.running == 0
+
+
+def test_a_large_frame_that_would_wait_past_its_limit_is_refused_at_once() -> None:
+    """The large jobs ahead of a large job hold it for their estimated seconds (cost times the
+    seconds per unit of cost of the large jobs finished so far); one that would then not be done
+    within its caller's limit is refused with that wait, not left to time out half drawn."""
+    queue = RenderQueue(workers=2, queue_size=4, metrics=Metrics())
+    release = threading.Event()
+    # before any large job finished there is no estimate: nothing is refused
+    held = queue.submit(lambda: release.wait(10), Lane.FULL, large=True, cost=1000.0)
+    while queue.running == 0:
+        time.sleep(0.002)
+    queued = queue.submit(lambda: "queued", Lane.FULL, large=True, cost=100.0, limit_s=0.01)
+    release.set()
+    assert held.result(timeout=5) is True and queued.result(timeout=5) == "queued"
+    # a large job of cost 100 that took 0.2 s: 2 ms per unit, weighted with the two before (faster)
+    release.clear()
+    assert queue.run(lambda: time.sleep(0.2) or "timed", 5.0, large=True, cost=100.0) == "timed"
+    rate = queue._large_rate
+    assert rate is not None and 5e-4 < rate < 5e-3
+    held = queue.submit(lambda: release.wait(10), Lane.FULL, large=True, cost=5000.0)  # 2.5 s or more
+    while queue.running == 0:
+        time.sleep(0.002)
+    with pytest.raises(WouldOutwaitError, match="not be done within the limit of 1 s") as refused:
+        queue.run(lambda: "never", 1.0, large=True, cost=100.0)
+    assert 0.8 * 5000 * rate < refused.value.retry_after_s <= 5000 * rate
+    assert isinstance(refused.value, QueueFullError)  # a 503 to the caller, its cost refunded
+    assert queue.waiting == 0
+    # a limit that leaves time for the wait is taken, and so is every small job
+    later = queue.submit(lambda: "later", Lane.FULL, large=True, cost=100.0, limit_s=60.0)
+    assert queue.run(lambda: "small", 1.0, cost=5000.0) == "small"
+    release.set()
+    assert held.result(timeout=5) is True and later.result(timeout=5) == "later"
+    # a large job with nothing ahead of it is never refused, however long it is estimated to take
+    assert queue.run(lambda: "alone", 1.0, large=True, cost=1e9) == "alone"
+    queue.shutdown()
+
+
+def test_a_refused_large_frame_answers_503_with_the_estimated_wait(
+    ckpt_dir: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from visnerf_server.frames import FrameRenderer
+
+    async def refuse(self, job, client=None):  # noqa: ANN001, ANN202
+        raise WouldOutwaitError(7.2, 30.0)
+
+    monkeypatch.setattr(FrameRenderer, "render_async", refuse)
+    with TestClient(create_app(make_settings(ckpt_dir, tmp_path / "state"))) as client:
+        answer = client.post("/api/scenes/tiny/render", json={"camera": ORBIT, "width": 64, "height": 64})
+    assert answer.status_code == 503 and answer.headers["retry-after"] == "8"
+    assert "would wait about 7 s" in answer.json()["detail"]
 
 
 def test_large_frames_are_full_frames_of_512_by_512_or_more() -> None:

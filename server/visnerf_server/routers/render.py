@@ -2,6 +2,7 @@
 caches work). Render handlers are ``async``: they wait on the bounded render queue without a
 thread, and a client that disconnects meanwhile stops its render (``disconnect``)."""
 
+import math
 from typing import Annotated, Any
 
 from fastapi import APIRouter, HTTPException, Query, Request, Response
@@ -14,7 +15,7 @@ from visnerf_server.dependencies import ClientKeyDep, FrameRendererDep, Registry
 from visnerf_server.disconnect import ClientDisconnected, until_disconnected
 from visnerf_server.frames import FrameJob, FrameRenderer, prepare_frame
 from visnerf_server.rate_limit import RateLimited
-from visnerf_server.render_queue import QueueFullError, RenderTimeoutError
+from visnerf_server.render_queue import QueueFullError, RenderTimeoutError, WouldOutwaitError
 from visnerf_server.routers.scenes import ERRORS, SceneIdPath, find_scene
 from visnerf_server.schemas import MEDIA_TYPES, ImageFormat, Quality, RenderRequest
 from visnerf_server.settings import Settings
@@ -67,6 +68,9 @@ async def render_response(
         raise HTTPException(429, str(exc), {"Retry-After": exc.retry_after_header}) from None
     except RenderCancelled:
         raise HTTPException(503, "render cancelled; retry shortly", retry) from None
+    except WouldOutwaitError as exc:
+        wait = {"Retry-After": str(max(1, math.ceil(exc.retry_after_s)))}
+        raise HTTPException(503, f"{exc}; retry later", wait) from None
     except QueueFullError as exc:
         raise HTTPException(503, f"{exc}; retry shortly", retry) from None
     except RenderTimeoutError as exc:
