@@ -15,7 +15,7 @@ from visnerf_server.frame_cache import FrameCache
 from visnerf_server.frames import FrameRenderer
 from visnerf_server.metrics import Metrics
 from visnerf_server.registry import Scene
-from visnerf_server.render_queue import RenderQueue
+from visnerf_server.render_queue import RenderQueue, WouldOutwaitError
 
 
 def message(seq: int, **overrides: object) -> str:
@@ -161,6 +161,27 @@ def test_repeated_view_comes_from_the_cache(client: TestClient) -> None:
     assert first == second
     assert header["render_ms"] == 0.0
     assert "visnerf_frame_cache_hits_total 1.0" in client.get("/metrics").text
+
+
+def test_a_large_frame_refused_for_its_wait_is_a_503_with_that_wait(client: TestClient, monkeypatch) -> None:
+    """A frame the queue refuses because the large frames ahead would hold it past the limit is
+    answered at once with the estimated wait (no retries until the deadline); the session stays open."""
+    calls: list[int] = []
+
+    async def refuse(self, job, client=None):  # noqa: ANN001, ANN202
+        calls.append(job.width)
+        raise WouldOutwaitError(12.3456, 30.0)
+
+    monkeypatch.setattr(FrameRenderer, "render_async", refuse)
+    with client.websocket_connect("/api/scenes/tiny/stream") as ws:
+        ws.send_text(message(1))
+        error = ws.receive_json()
+        assert error["status"] == 503 and error["seq"] == 1 and error["retry_after"] == 12.346
+        assert "would wait about 12 s" in error["detail"]
+        monkeypatch.undo()
+        ws.send_text(message(2))
+        assert receive_frame(ws)[0]["seq"] == 2
+    assert len(calls) == 1
 
 
 def test_overload_errors_keep_the_session_open(client: TestClient) -> None:

@@ -62,7 +62,7 @@ from visnerf_server.metrics import Metrics
 from visnerf_server.origins import origin_allowed
 from visnerf_server.rate_limit import RateLimited
 from visnerf_server.registry import SceneRegistry
-from visnerf_server.render_queue import QueueFullError, RenderTimeoutError
+from visnerf_server.render_queue import QueueFullError, RenderTimeoutError, WouldOutwaitError
 from visnerf_server.routers.scenes import LOADING_RETRY_S
 from visnerf_server.schemas import StreamRequest
 from visnerf_server.settings import Settings
@@ -271,6 +271,10 @@ class StreamSession:
                             break
                         continue
                     await self.send_error(seq, RATE_LIMITED, str(exc), retry_after=round(exc.retry_after_s, 3))
+                    frame = None
+                    break
+                except WouldOutwaitError as exc:  # a large frame behind large ones: sooner is no use
+                    await self.send_error(seq, 503, str(exc), retry_after=round(exc.retry_after_s, 3))
                     frame = None
                     break
                 except QueueFullError:  # back off; a newer request may replace this one meanwhile
