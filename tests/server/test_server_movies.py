@@ -271,10 +271,10 @@ def test_interactive_renders_keep_priority(movies: TestClient) -> None:
     in_queue: list[int] = []  # movie frames already in the queue when one more was submitted
     outstanding = [0]
 
-    def spy(fn, lane=Lane.FULL, cancel=None, large=False):  # noqa: ANN001, ANN202
+    def spy(fn, lane=Lane.FULL, cancel=None, **frame):  # noqa: ANN001, ANN003, ANN202 - large, cost, limit_s
         lanes.append(lane)
         if lane != Lane.BACKGROUND:
-            return real_submit(fn, lane, cancel, large=large)
+            return real_submit(fn, lane, cancel, **frame)
         in_queue.append(outstanding[0])
         outstanding[0] += 1
 
