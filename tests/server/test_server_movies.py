@@ -5,6 +5,7 @@ renders kept ahead of the job's frames; a scene deleted under a running job."""
 import dataclasses
 import io
 import statistics
+import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -352,3 +353,33 @@ def test_shutdown_stops_a_running_job_and_removes_the_files(ckpt_dir: Path, tmp_
         started = time.perf_counter()
     assert time.perf_counter() - started < 5.0
     assert list((tmp_path / "movies").iterdir()) == []
+
+
+@pytest.mark.parametrize(("size", "quality", "large"), [(512, "full", True), (511, "full", False), (512, "preview", False)])
+def test_a_full_movie_frame_of_512_by_512_or_more_is_large(size: int, quality: str, large: bool) -> None:
+    """Large frames run one at a time in the render queue, a movie's as an interactive one's."""
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from visnerf_server.metrics import Metrics
+    from visnerf_server.movie_frames import render_frame
+    from visnerf_server.render_queue import RenderQueue
+
+    queue = RenderQueue(workers=1, queue_size=2, metrics=Metrics())
+    asked: list[bool] = []
+    real_submit = queue.submit
+
+    def spy(fn, lane=Lane.FULL, cancel=None, **frame):  # noqa: ANN001, ANN003, ANN202
+        asked.append(frame.get("large", False))
+        return real_submit(fn, lane, cancel, **frame)
+
+    queue.submit = spy
+    image = np.zeros((size, size, 3), np.uint8)
+    renderer = SimpleNamespace(render=lambda *args, **kwargs: image)
+    plan = SimpleNamespace(scene=SimpleNamespace(renderer=renderer),
+                           settings=SimpleNamespace(width=size, height=size, quality=quality))
+    spec = SimpleNamespace(c2w=None, fov_deg=40.0, params={})
+    assert render_frame(queue, plan, spec, threading.Event()) is image  # type: ignore[arg-type]
+    assert asked == [large]
+    queue.shutdown()
