@@ -7,8 +7,8 @@ colour) is oneDNN's, which rounds its output to bfloat16: a raw density of 20 th
 row of activations to float32 (a bfloat16 is the top half of a float32) and sums its products with
 float32 weights and bias, so the only bfloat16 rounding left is that of the activations. On the
 bundled checkpoints' 128x128 frames, one thread, interleaved frame by frame against the oneDNN
-product (bench/results/render_speed.md): 3 to 4 % faster frames, and tangle_iso's frames 1.4 dB
-closer to the float32 renderer's.
+product (bench/results/render_speed.md): 3 to 5 % faster frames, 1.5 to 2.6 dB closer to the
+float32 renderer's.
 
 The loop releases the GIL, like the other compiled passes (``representation.vm_kernel``).
 """
