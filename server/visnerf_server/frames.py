@@ -29,6 +29,11 @@ LARGE_FRAME_PIXELS = inference.TRIM_AFTER_PIXELS
 1440x1440 frame holds 350 to 400 MB while it renders (bench/results/render_memory.md)."""
 
 
+def is_large_frame(width: int, height: int, quality: str) -> bool:
+    """A full frame of ``LARGE_FRAME_PIXELS`` or more: the render queue runs one such at a time."""
+    return quality == "full" and width * height >= LARGE_FRAME_PIXELS
+
+
 @dataclass(frozen=True)
 class FrameJob:
     """A fully validated render request."""
@@ -47,8 +52,8 @@ class FrameJob:
 
     @property
     def large(self) -> bool:
-        """A full frame of ``LARGE_FRAME_PIXELS`` or more: the render queue runs one such at a time."""
-        return self.quality == "full" and self.width * self.height >= LARGE_FRAME_PIXELS
+        """``is_large_frame`` of this frame."""
+        return is_large_frame(self.width, self.height, self.quality)
 
     def key(self) -> tuple:
         """Identical requests (same scene version) give identical keys; starts with the scene id."""

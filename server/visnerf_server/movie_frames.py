@@ -1,6 +1,6 @@
 """The frames of a running movie job: rendered one at a time, each a task of the render queue's
 background lane, so an interactive render waits at most for the one movie frame being rendered.
-A full-quality movie frame of 512x512 or more is large (``frames.LARGE_FRAME_PIXELS``): it never
+A full-quality movie frame of 512x512 or more is large (``frames.is_large_frame``): it never
 runs beside a large interactive frame, nor one beside it.
 
 Before each frame the job's cancel event is asked, and whether its scene is still the one it started
@@ -17,7 +17,7 @@ import numpy as np
 
 from visnerf.animation.path import FrameSpec
 from visnerf.inference import RenderCancelled
-from visnerf_server.frames import LARGE_FRAME_PIXELS
+from visnerf_server.frames import is_large_frame
 from visnerf_server.movie_plans import MoviePlan
 from visnerf_server.registry import SceneRegistry
 from visnerf_server.render_queue import Lane, QueueFullError, RenderQueue
@@ -50,7 +50,7 @@ def render_frame(queue: RenderQueue, plan: MoviePlan, spec: FrameSpec, cancel: E
     work, dropped (queued) or stopped (running) once ``cancel`` is set."""
     renderer = plan.scene.renderer
     settings = plan.settings
-    large = settings.quality == "full" and settings.width * settings.height >= LARGE_FRAME_PIXELS
+    large = is_large_frame(settings.width, settings.height, settings.quality)
 
     def run() -> np.ndarray:
         return renderer.render(
