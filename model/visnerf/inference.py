@@ -110,7 +110,7 @@ class SceneRenderer:
     ) -> None:
         self.field = field.eval()
         if vm_kernel.available(device):
-            vm_kernel.warm_up()
+            vm_kernel.warm_up((field.cfg.n_density_components, field.cfg.n_appearance_components))
             output_kernel.warm_up()
         self.meta = meta
         self.device = device

@@ -8,6 +8,8 @@ them and picks the samples whose colour matters. The decoders and the lookups ar
 
 - ``place``: the valid samples of a segment, compacted in ray-major order (the order of
   ``valid.view(-1).nonzero()``), with their flat index ``ray * seg + j``;
+- ``accumulate``: the weighted colours of the samples picked added into their rays' sums (a
+  ``cat``, a product and an ``index_add_`` as torch operations);
 - ``composite``: their weights ``exp(-tau_before) * -expm1(-tau)`` (log-space transmittance,
   the exclusive running sum as ``volume.exclusive_optical_depth``), each ray's optical depth
   advanced, and the samples whose weight exceeds the threshold.
@@ -89,7 +91,21 @@ def _composite(flat, sigma, seg, step64, tau, threshold64, out_weights, out_shad
     return k
 
 
+@no_type_check
+def _accumulate(rgbw, ray_idx, weights, shade, colors):  # noqa: ANN001, ANN202
+    """``rgbw[ray_idx[k]] += (weights[shade[k]] * colors[k], weights[shade[k]])`` for each ``k`` in
+    order."""
+    for k in range(shade.shape[0]):
+        r = ray_idx[k]
+        w = weights[shade[k]]
+        rgbw[r, 0] += w * colors[k, 0]
+        rgbw[r, 1] += w * colors[k, 1]
+        rgbw[r, 2] += w * colors[k, 2]
+        rgbw[r, 3] += w
+
+
 _place_compiled, _composite_compiled = compiled.jit(_place), compiled.jit(_composite)
+_accumulate_compiled = compiled.jit(_accumulate)
 
 
 _NO_OCCUPANCY = (np.zeros(1, np.uint8), np.zeros(3, np.float32), np.zeros(3, np.float32), np.zeros(3, np.float32),
@@ -135,3 +151,22 @@ def composite(
     k = _composite_compiled(flat.numpy(), sigma.contiguous().numpy(), int(seg), float(step), tau.numpy(), float(threshold),
                             weights.numpy(), shade.numpy())
     return weights, shade[:k]
+
+
+def accumulate(
+    rgbw: Float[Tensor, "n 4"],
+    ray_idx: Int[Tensor, " k"],
+    weights: Float[Tensor, " m"],
+    shade: Int[Tensor, " s"],
+    colors: Float[Tensor, "c 3"],
+) -> None:
+    """Add ``weights[shade] * colors`` and ``weights[shade]`` into rows ``ray_idx`` of ``rgbw``
+    (columns r, g, b, weight; float32, contiguous), in place, in the order of the samples; the
+    three index and colour arrays must have one row per sample (``k``)."""
+    if rgbw.dtype != torch.float32 or not rgbw.is_contiguous() or colors.dtype != torch.float32:
+        raise ValueError(f"rgbw and colors must be float32 and rgbw contiguous, got {rgbw.dtype} and {colors.dtype}")
+    if not (ray_idx.shape[0] == shade.shape[0] == colors.shape[0]):
+        raise ValueError(f"{ray_idx.shape[0]} rays, {shade.shape[0]} samples and {colors.shape[0]} colours differ")
+    if shade.shape[0] > 0:
+        _accumulate_compiled(rgbw.numpy(), ray_idx.contiguous().numpy(), weights.contiguous().numpy(),
+                             shade.contiguous().numpy(), colors.contiguous().numpy())

@@ -247,6 +247,9 @@ def _add_shaded_colours(
         return
     ray_idx = rays.index_select(0, flat.index_select(0, shade) // seg)
     colors = frame.color_at(samples.select(shade), ray_terms.index_select(0, ray_idx))  # [k, 3]
+    if march_kernel.available(rgbw.device) and rgbw.dtype == torch.float32:
+        march_kernel.accumulate(rgbw, ray_idx, weights, shade, colors)
+        return
     shaded = weights.index_select(0, shade)[:, None]  # [k, 1]
     rgbw.index_add_(0, ray_idx, torch.cat([shaded * colors, shaded], dim=1))
 

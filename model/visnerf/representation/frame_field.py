@@ -201,11 +201,16 @@ class FrameField:
             self._density_out_f32 = output_kernel.OutputLayer(dd.weight.detach() * sharpness, dd.bias.detach() * sharpness)
             self._color_out_f32 = output_kernel.OutputLayer(cd.weight, cd.bias)
         self._level_step = None if field.levels is None else cfg.level_normal_step * field.voxel_size()
+        extent = (field.aabb[1] - field.aabb[0]).clamp_min(torch.finfo(field.aabb.dtype).eps)
+        self._grid_scale = 2.0 / extent  # [3], world units to grid coordinates (``to_grid``)
+        self._grid_offset = -field.aabb[0] * self._grid_scale - 1.0  # [3]
         self._with_directions = self._facing is not None or self._level_step is not None
 
     def lookup(self, points: Float[Tensor, "m 3"]) -> SampleTaps:
         """Grid coordinates and VM taps of ``points``, shared by density and colour."""
-        coords = self.field.to_grid(points)
+        # ``VisNerfField.to_grid`` as one fused multiply-add (four operations and the box's
+        # extent every call before); the coordinates differ by float rounding
+        coords = torch.addcmul(self._grid_offset.to(points.dtype), points, self._grid_scale.to(points.dtype))
         if self.density_tables is None:
             return SampleTaps(points, coords, None)
         return SampleTaps(points, coords, self.density_tables.taps(coords))

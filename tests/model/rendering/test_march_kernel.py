@@ -25,17 +25,20 @@ def _rays(n: int, seed: int, aabb: torch.Tensor):
     return rays_o, rays_d, t_near, t_far, hit, g
 
 
-@pytest.mark.parametrize("with_grid", [True, False])
-def test_placed_samples_are_the_valid_lattice_samples_in_order(with_grid: bool) -> None:
+@pytest.mark.parametrize("with_grid,occupied,step", [(True, 0.3, 0.031), (False, 0.3, 0.031), (True, 0.01, 0.004),
+                                                   (True, 0.002, 0.011), (True, 0.0, 0.02)])
+def test_placed_samples_are_the_valid_lattice_samples_in_order(with_grid: bool, occupied: float, step: float) -> None:
+    """Every lattice sample of the window in an occupied cell, and no other: with dense grids,
+    sparse ones (long empty runs that ``place`` jumps over, with steps a fraction of a cell) and
+    an empty one."""
     aabb = torch.tensor([[-0.5, -0.4, -0.6], [0.5, 0.4, 0.6]])
     rays_o, rays_d, t_near, t_far, hit, g = _rays(500, 0, aabb)
-    step = 0.031
     first = torch.randint(0, 8, (500,), generator=g)
-    last = torch.where(hit, first + torch.randint(-2, 60, (500,), generator=g), -1)
-    grid = torch.rand(10, 8, 12, generator=g) < 0.3
+    last = torch.where(hit, first + torch.randint(-2, round(1.9 / step), (500,), generator=g), -1)
+    grid = torch.rand(20, 16, 24, generator=g) < occupied
     space = EmptySpace.of(grid, aabb)
     occupancy = space.tables(space.occupied).arrays()
-    for s0, seg in ((0, 16), (16, 32), (20, 7)):
+    for s0, seg in ((0, 16), (16, 32), (20, 7), (0, 400)):
         points, flat = march_kernel.place(rays_o, rays_d, t_near, t_far, first, last, s0, seg, step,
                                           occupancy if with_grid else None)
         # the torch operations of ``march_rays``
@@ -46,7 +49,7 @@ def test_placed_samples_are_the_valid_lattice_samples_in_order(with_grid: bool) 
         if with_grid:
             valid = valid & space.occupied_at(every.view(-1, 3)).view_as(valid)
         expected_flat = valid.view(-1).nonzero()[:, 0]
-        assert expected_flat.numel() > 0
+        assert (expected_flat.numel() > 0) == (occupied > 0 or not with_grid)
         assert torch.equal(flat, expected_flat)
         assert torch.equal(points, every.view(-1, 3).index_select(0, expected_flat))
 
@@ -73,6 +76,36 @@ def test_composited_weights_equal_the_log_space_formula() -> None:
     untouched = tau.clone()
     w, s = march_kernel.composite(flat[:0], sigma[:0], seg, step, tau, threshold)
     assert w.numel() == s.numel() == 0 and torch.equal(tau, untouched)
+
+
+def test_accumulated_colours_equal_index_add() -> None:
+    g = torch.Generator().manual_seed(3)
+    n, m, k = 40, 500, 300
+    weights = torch.rand(m, generator=g)
+    shade = torch.randperm(m, generator=g)[:k].sort().values
+    ray_idx = torch.randint(0, n, (k,), generator=g)  # rays repeat: sums of several samples
+    colors = torch.rand(k, 3, generator=g)
+    start = torch.rand(n, 4, generator=g)
+    got = start.clone()
+    march_kernel.accumulate(got, ray_idx, weights, shade, colors)
+    shaded = weights.index_select(0, shade)[:, None]
+    expected = start.clone().index_add_(0, ray_idx, torch.cat([shaded * colors, shaded], dim=1))
+    assert torch.allclose(got, expected, rtol=1e-6, atol=1e-7)
+    untouched = got.clone()
+    march_kernel.accumulate(got, ray_idx[:0], weights, shade[:0], colors[:0])
+    assert torch.equal(got, untouched)
+
+
+def test_accumulate_refuses_mismatched_or_foreign_arrays_and_changes_nothing() -> None:
+    rgbw = torch.zeros(4, 4)
+    idx, w, colors = torch.tensor([0, 1]), torch.ones(3), torch.ones(2, 3)
+    with pytest.raises(ValueError, match="differ"):
+        march_kernel.accumulate(rgbw, idx, w, torch.tensor([0]), colors)
+    with pytest.raises(ValueError, match="float32"):
+        march_kernel.accumulate(rgbw.double(), idx, w, torch.tensor([0, 2]), colors)
+    with pytest.raises(ValueError, match="contiguous"):
+        march_kernel.accumulate(torch.zeros(4, 8)[:, ::2], idx, w, torch.tensor([0, 2]), colors)
+    assert torch.equal(rgbw, torch.zeros(4, 4))
 
 
 @pytest.mark.parametrize("with_grid", [True, False])
