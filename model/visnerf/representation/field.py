@@ -129,10 +129,13 @@ class VisNerfField(nn.Module):
         res = torch.tensor(self.resolution, dtype=extent.dtype, device=extent.device)
         return float((extent / (res - 1)).mean())
 
+    def grid_extent(self, dtype: torch.dtype) -> Float[Tensor, " 3"]:
+        """The box's size per axis, at least ``dtype``'s epsilon (``to_grid`` divides by it)."""
+        return (self.aabb[1] - self.aabb[0]).clamp_min(torch.finfo(dtype).eps)
+
     def to_grid(self, points: Float[Tensor, "n 3"]) -> Float[Tensor, "n 3"]:
         """World points -> grid coordinates in [-1, 1] (outside the box maps outside [-1, 1])."""
-        extent = (self.aabb[1] - self.aabb[0]).clamp_min(torch.finfo(points.dtype).eps)
-        return (points - self.aabb[0]) / extent * 2.0 - 1.0
+        return (points - self.aabb[0]) / self.grid_extent(points.dtype) * 2.0 - 1.0
 
     def param_features(
         self, params: Float[Tensor, "n k"]

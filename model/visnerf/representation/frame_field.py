@@ -201,8 +201,7 @@ class FrameField:
             self._density_out_f32 = output_kernel.OutputLayer(dd.weight.detach() * sharpness, dd.bias.detach() * sharpness)
             self._color_out_f32 = output_kernel.OutputLayer(cd.weight, cd.bias)
         self._level_step = None if field.levels is None else cfg.level_normal_step * field.voxel_size()
-        extent = (field.aabb[1] - field.aabb[0]).clamp_min(torch.finfo(field.aabb.dtype).eps)
-        self._grid_scale = 2.0 / extent  # [3], world units to grid coordinates (``to_grid``)
+        self._grid_scale = 2.0 / field.grid_extent(field.aabb.dtype)  # [3], world units to grid coordinates (``to_grid``)
         self._grid_offset = -field.aabb[0] * self._grid_scale - 1.0  # [3]
         self._with_directions = self._facing is not None or self._level_step is not None
 

@@ -185,10 +185,10 @@ class KernelTables:
         if out.dtype == torch.bfloat16:
             bits = out.view(torch.int16).numpy().view(np.uint16)
             kernel(pts, self.plane, self.line, self.resolution, self.plane_offsets, self.line_offsets,
-                      n_freqs, _NO_FLOATS, bits, True)
+                   n_freqs, _NO_FLOATS, bits, True)
         elif out.dtype == torch.float32:
             kernel(pts, self.plane, self.line, self.resolution, self.plane_offsets, self.line_offsets,
-                      n_freqs, out.numpy(), _NO_BITS, False)
+                   n_freqs, out.numpy(), _NO_BITS, False)
         else:
             raise ValueError(f"out must be float32 or bfloat16, got {out.dtype}")
 

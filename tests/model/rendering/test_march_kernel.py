@@ -29,8 +29,8 @@ def _rays(n: int, seed: int, aabb: torch.Tensor):
                                                    (True, 0.002, 0.011), (True, 0.0, 0.02)])
 def test_placed_samples_are_the_valid_lattice_samples_in_order(with_grid: bool, occupied: float, step: float) -> None:
     """Every lattice sample of the window in an occupied cell, and no other: with dense grids,
-    sparse ones (long empty runs that ``place`` jumps over, with steps a fraction of a cell) and
-    an empty one."""
+    sparse ones (long empty runs between occupied cells, with steps a fraction of a cell) and an
+    empty one."""
     aabb = torch.tensor([[-0.5, -0.4, -0.6], [0.5, 0.4, 0.6]])
     rays_o, rays_d, t_near, t_far, hit, g = _rays(500, 0, aabb)
     first = torch.randint(0, 8, (500,), generator=g)
