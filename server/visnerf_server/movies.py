@@ -5,7 +5,7 @@ jobs render at once and ``queued`` more wait, ``per_client`` of them from one cl
 job's thread drives the movie writer (``visnerf.animation.movie.write_movie``) with the generator of
 ``movie_frames``, which renders one frame at a time in the render queue's background lane.
 
-Finished files live in a temporary folder removed at shutdown; a finished job is forgotten, and its
+Finished files live in a temporary folder, made by the first job and removed at shutdown; a finished job is forgotten, and its
 file deleted, ``keep_s`` after it ended, or earlier when the files together pass ``max_disk_bytes``
 (oldest first). Jobs live in memory only: they do not survive a restart.
 """
@@ -124,14 +124,23 @@ class MovieJobs:
         self.registry = registry
         self.metrics = metrics
         self.clock = clock
-        if parent_dir is not None:
-            parent_dir.mkdir(parents=True, exist_ok=True)
-        self.folder = Path(tempfile.mkdtemp(prefix="visnerf-movies-", dir=parent_dir))
+        self._parent_dir = parent_dir
+        self._folder: Path | None = None  # made by the first job: a server that makes no movie leaves nothing
         self._jobs: dict[str, MovieJob] = {}
         self._queued: deque[MovieJob] = deque()
         self._cond = threading.Condition()
         self._threads: list[threading.Thread] = []
         self._closed = False
+
+    @property
+    def folder(self) -> Path:
+        """The folder of this server's movie files, made on first use."""
+        with self._cond:
+            if self._folder is None:
+                if self._parent_dir is not None:
+                    self._parent_dir.mkdir(parents=True, exist_ok=True)
+                self._folder = Path(tempfile.mkdtemp(prefix="visnerf-movies-", dir=self._parent_dir))
+            return self._folder
 
     # --- requests ------------------------------------------------------------------------------
 
@@ -216,7 +225,8 @@ class MovieJobs:
         self.close()
         for thread in list(self._threads):
             thread.join()
-        shutil.rmtree(self.folder, ignore_errors=True)
+        if self._folder is not None:
+            shutil.rmtree(self._folder, ignore_errors=True)
 
     # --- bookkeeping (callers hold ``_cond``) ---------------------------------------------------
 

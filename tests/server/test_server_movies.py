@@ -355,6 +355,30 @@ def test_shutdown_stops_a_running_job_and_removes_the_files(ckpt_dir: Path, tmp_
     assert list((tmp_path / "movies").iterdir()) == []
 
 
+def test_the_movie_folder_is_made_by_the_first_job_only(tmp_path: Path) -> None:
+    """A server that makes no movie leaves no folder behind, even one stopped without its
+    shutdown (a killed process)."""
+    from visnerf_server.metrics import Metrics
+    from visnerf_server.movie_plans import MovieLimits
+    from visnerf_server.movies import MovieJobs
+    from visnerf_server.render_queue import RenderQueue
+
+    metrics = Metrics()
+    queue = RenderQueue(workers=1, queue_size=2, metrics=metrics)
+    limits = MovieLimits(10, 10**6, 1, 1, 1, 60.0, 10**6)
+    parent = tmp_path / "movies"
+    jobs = MovieJobs(limits, queue, registry=None, metrics=metrics, parent_dir=parent)  # type: ignore[arg-type]
+    assert not parent.exists()
+    jobs.shutdown()
+    assert not parent.exists()
+    jobs = MovieJobs(limits, queue, registry=None, metrics=metrics, parent_dir=parent)  # type: ignore[arg-type]
+    folder = jobs.folder
+    assert folder.is_dir() and folder.parent == parent and jobs.folder == folder
+    jobs.shutdown()
+    assert not folder.exists()
+    queue.shutdown()
+
+
 @pytest.mark.parametrize(("size", "quality", "large"), [(512, "full", True), (511, "full", False), (512, "preview", False)])
 def test_a_full_movie_frame_of_512_by_512_or_more_is_large(size: int, quality: str, large: bool) -> None:
     """Large frames run one at a time in the render queue, a movie's as an interactive one's."""
