@@ -80,10 +80,11 @@ def make_tiny_checkpoint(
     return save_checkpoint(field, meta, path)
 
 
-def make_noise_scene(n_views: int = 6, size: int = 16) -> SceneData:
-    """``n_views`` orbit views of random pixels at alternating settings of one parameter ``t``."""
+def make_noise_scene(n_views: int = 6, size: int = 16, n_values: int = 2) -> SceneData:
+    """``n_views`` orbit views of random pixels at settings of one parameter ``t`` taking the
+    values 0, 1, ..., ``n_values - 1`` in turn."""
     g = torch.Generator().manual_seed(0)
-    values = np.array([[float(i % 2)] for i in range(n_views)])
+    values = np.array([[float(i % n_values)] for i in range(n_views)])
     _, axes = axes_from_values(["t"], values)
     c2w = torch.stack([torch.from_numpy(orbit_c2w(360.0 / n_views * i, 20.0, 2.0)).float() for i in range(n_views)])
     return SceneData(

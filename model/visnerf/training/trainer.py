@@ -52,7 +52,7 @@ from visnerf.representation.vm_taps import table_gradients_in_place
 from visnerf.runtime import bf16_native, keep_freed_blocks, release_free_memory
 from visnerf.training.distributed import Ranks
 from visnerf.training.ray_batches import RayBatchSampler
-from visnerf.training.regularizers import RegularizerWeights, backward_regularization, level_curvature
+from visnerf.training.regularizers import RegularizerWeights, backward_regularization, level_curvature, level_spacing
 from visnerf.training.run_state import (
     RunStateError,
     pack_optimizer,
@@ -411,14 +411,20 @@ class Trainer:
                                                                      self.generator)
             curvature.backward()
             terms["level_curvature"] = float(curvature.detach())
+        if cfg.level_spacing_weight > 0 and self.field.levels is not None:
+            spacing = cfg.level_spacing_weight * level_spacing(self.field, cfg.level_spacing_ratio)
+            if spacing.requires_grad:  # fewer than three levels: no neighbouring bands to hold
+                spacing.backward()
+                terms["level_spacing"] = float(spacing.detach())
         reg_value = sum(terms.values())
         if not math.isfinite(reg_value):  # before the step: the factors stay as they were
             raise FloatingPointError(f"non-finite regularization at iteration {self.state.iteration}")
         (sq_error,) = self.ranks.average_gradients(self.field.parameters(), sq_error)
         self.optimizer.step()
         stats = {"mse": sq_error, "loss": sq_error + reg_value, "samples": float(per_ray.sum())}
-        if "level_curvature" in terms:
-            stats["level_curvature"] = terms["level_curvature"]
+        for name in ("level_curvature", "level_spacing"):
+            if name in terms:
+                stats[name] = terms[name]
         return stats
 
     def run(
