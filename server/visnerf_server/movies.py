@@ -5,9 +5,10 @@ jobs render at once and ``queued`` more wait, ``per_client`` of them from one cl
 job's thread drives the movie writer (``visnerf.animation.movie.write_movie``) with the generator of
 ``movie_frames``, which renders one frame at a time in the render queue's background lane.
 
-Finished files live in a temporary folder, made by the first job and removed at shutdown; a finished job is forgotten, and its
-file deleted, ``keep_s`` after it ended, or earlier when the files together pass ``max_disk_bytes``
-(oldest first). Jobs live in memory only: they do not survive a restart.
+Finished files live in a temporary folder, made by the first job and removed at shutdown; a
+finished job is forgotten, and its file deleted, ``keep_s`` after it ended, or earlier when the
+files together pass ``max_disk_bytes`` (oldest first). Jobs live in memory only: they do not
+survive a restart.
 """
 
 import logging
