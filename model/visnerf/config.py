@@ -348,7 +348,9 @@ class TrainConfig:
     """Cells by which a refined grid (``occupancy_refine_at`` and the end of training) is grown
     around the cells that hold content. The ``occupancy_at`` grids keep one cell, room for content
     still forming; once formed, 0 leaves out a ring of near-empty cells that training would keep
-    sampling (Nyx: 2.6 times fewer density samples a step, 1.20 times faster)."""
+    sampling (Nyx: 2.6 times fewer density samples a step, 1.20 times faster). ``visnerf train``
+    keeps a ring of ``training.recipe.SURFACE_REFINE_DILATION`` cells for opaque surfaces, which
+    the grid's edge would otherwise cut."""
     occupancy_min_iterations: int = 300
     """Occupancy milestones wait for at least this many iterations (a time budget on a busy machine
     would otherwise reach them before the density has formed)."""
@@ -361,6 +363,10 @@ class TrainConfig:
     the box shrinks to the visual hull and samples are taken only inside it from the start."""
     carve_resolution: int = 64
     """Cells per axis of the carved grid."""
+    carve_dilation: int = 0
+    """Cells of the carved grid by which it is grown before training samples in it (the box stays
+    the hull's). ``visnerf train`` grows it by ``training.recipe.SURFACE_CARVE_DILATION`` cells for
+    opaque surfaces, which can otherwise settle on the hull's edge."""
     carve_tolerance: int = 2
     """Largest channel difference (0-255) from the background that still counts as background."""
     carve_min_seen_fraction: float = 0.0
@@ -491,6 +497,7 @@ class TrainConfig:
         _check_below_one(self, "stop_eps")
         _require(0.0 <= self.carve_min_seen_fraction <= 1.0,
                  f"carve_min_seen_fraction must be in [0, 1], got {self.carve_min_seen_fraction!r}")
+        _require(0 <= self.carve_dilation <= 16, f"carve_dilation must be in 0..16, got {self.carve_dilation!r}")
         _require(0 <= self.carve_tolerance <= 255, f"carve_tolerance must be in 0..255, got {self.carve_tolerance!r}")
         _check_fractions(self, "upsample_at", "occupancy_at", "occupancy_refine_at")
         _require(self.level_spacing_ratio > 1.0, f"level_spacing_ratio must be > 1, got {self.level_spacing_ratio!r}")

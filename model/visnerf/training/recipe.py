@@ -87,7 +87,8 @@ CHOSEN_FIELDS = frozenset({("TrainConfig", "resolution_final"), ("TrainConfig", 
                            ("FieldConfig", "density_scale"), ("FieldConfig", "density_shift"),
                            ("TrainConfig", "stop_eps"), ("FieldConfig", "facing_vectors"),
                            ("FieldConfig", "level_set_axis"), ("TrainConfig", "tv_weight_density"),
-                           ("TrainConfig", "tv_weight_appearance"), ("TrainConfig", "colour_weight_floor")})
+                           ("TrainConfig", "tv_weight_appearance"), ("TrainConfig", "colour_weight_floor"),
+                           ("TrainConfig", "carve_dilation"), ("TrainConfig", "occupancy_refine_dilation")})
 """The configuration fields ``choose_recipe`` sets from the data unless the user gives them."""
 NEST_TOLERANCE = 0.02
 """Largest share of one setting's visual hull outside its neighbour's for an axis to count as nested
@@ -115,6 +116,27 @@ ones (tangle_iso on two threads: 0.5 to 0.63 s a step from the start, 0.18 to 0.
 dB / 0.934 at 0 (880 steps), then in the next trio 26.98 at 0.01, 27.84 at 0.03, 28.11 / 0.952 at
 0.1 (1711 steps); in a third, 28.45 at 0.1 against 25.92 at 0.3, where a surface's own samples are
 drawn too (bench/results/nyx_history.md)."""
+SURFACE_CARVE_DILATION = 2
+"""``TrainConfig.carve_dilation`` of opaque scenes. Training samples only inside the carved grid,
+so its edge is a hard cut; at the visual hull, a density that fills the grid renders exactly the
+training views' silhouettes with the colours painted on, and training can settle there. tangle_iso's
+lowest isovalue did so in about one run in four (every grid cell inside its surface, its level run
+off to -113, 17 to 20 dB between the two lowest isovalues). Grown by two cells, a filled grid
+renders silhouettes two cells too wide in every view, and the surface has to come from the field:
+of two replayed failures (24 test-path frames), the one without the level bound went from 23.47 to
+30.42 dB; the other, with the bound, kept a filled grid whose edge was now the refined grid's
+until ``SURFACE_REFINE_DILATION`` was added (bench/results/nyx_history.md). Translucent content does not fit its images as a filled hull, and
+grown on Nyx the grid would take 33 % more cells of the content box (649,288 to 863,596 of 96^3)."""
+SURFACE_REFINE_DILATION = 1
+"""``TrainConfig.occupancy_refine_dilation`` of opaque scenes: refined grids keep a ring of one
+empty cell around the content, and a surface that grows into the ring gets a new one
+(``Trainer.refine_occupancy``). Without it, a surface pressed against the grid's edge is cut
+there, and its level can run past the images' surface at no cost while the cut hides it. The
+replayed failure that the grown carve alone left filled (`--iterations 18000 --seed 1`, lowest
+level held at the level bound, 25.71 dB on 24 test-path frames, 19.8 to 21.6 dB at isovalues 0.30
+to 0.34) ended with both at a healthy lowest level (-0.89) and 28.03 dB (26 to 28 there); with the ring alone
+the grid stayed the filled hull. Both on the replay that the grown carve mended: 30.41 dB against
+30.42 (bench/results/nyx_history.md)."""
 BORDER_PIXELS = 1
 """Width of the image border in which a foreground pixel means content cut by the frame."""
 
@@ -304,6 +326,14 @@ def choose_recipe(scene: SceneData, base: TrainConfig, base_field: FieldConfig,
          "opaque surfaces: each surface point is seen by a few views, whose fit total variation on the appearance "
          "factors carries over to its neighbours",
          "translucent content: its appearance is seen along every ray through it"),
+        (values, base, "carve_dilation", SURFACE_CARVE_DILATION,
+         "opaque surfaces: a density that fills the carved hull renders the training silhouettes exactly; grown, "
+         "the grid's edge cannot stand in for a surface",
+         "translucent content: a filled hull does not fit its images"),
+        (values, base, "occupancy_refine_dilation", SURFACE_REFINE_DILATION,
+         "opaque surfaces: refined grids keep a ring of empty cells, so the grid's edge never cuts a surface "
+         "that grows",
+         "translucent content: refined grids hold only the cells with content (fewer samples a step)"),
     )
     for chosen, given, name, value, opaque_reason, translucent_reason in opaque_only:
         if name in fixed:

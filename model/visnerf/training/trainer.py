@@ -34,6 +34,7 @@ from visnerf.rendering.empty_space import EmptySpace
 from visnerf.rendering.occupancy import (
     build_occupancy,
     cell_centres,
+    dilate,
     occupied_bounds,
     parameter_settings,
     query_occupancy,
@@ -186,7 +187,7 @@ class Trainer:
                 self.setup_seconds += time.perf_counter() - t0
                 bounds = occupied_bounds(grid, aabb)
                 if bounds is not None:
-                    self.carved = (grid, aabb.clone())
+                    self.carved = (dilate(grid, cfg.carve_dilation), aabb.clone())
                     aabb = bounds
             base = field_cfg or FieldConfig()
             resolution = resolution_for_box(aabb[1] - aabb[0], cfg.resolution_init)
@@ -296,20 +297,26 @@ class Trainer:
         if self.field.occupancy is None:
             self.update_occupancy(shrink=False)
             return
-        self.refine_occupancy()
+        self.refine_occupancy(grow=False)
 
     @torch.no_grad()
-    def refine_occupancy(self) -> None:
-        """Rebuild the grid from the density within the grid training samples now (cells can
-        leave, never join: a cell outside it has had no photometric loss, see
-        ``finish_occupancy``), dilated by ``occupancy_refine_dilation`` cells. Only its cells are
-        evaluated, so the dilation grows from cells that training fits, and the rebuild costs a
-        third of a whole box's on Nyx."""
+    def refine_occupancy(self, grow: bool = True) -> None:
+        """Rebuild the grid from the density within the cells training samples now, dilated by
+        ``occupancy_refine_dilation`` cells, and keep it within ``d`` cells of that grid (and of
+        the carve). So with ``d > 0`` a surface that has grown into the grid's ring of empty
+        cells gets a new ring: a surface pressed against the grid's edge would be cut there, and
+        a level or a density could run past the images' surface at no cost while the cut hid it.
+        ``grow=False`` (``finish_occupancy``) keeps the grid within itself: cells may leave, never
+        join, as a cell outside it has had no photometric loss. Only the cells within reach are
+        evaluated (the rebuild costs a third of a whole box's on Nyx, where ``d`` is 0)."""
         trained = self.field.occupancy
         if trained is None:
             return
-        grid = self.density_occupancy(tuple(trained.shape), within=trained,  # type: ignore[arg-type]
-                                      dilation=self.cfg.occupancy_refine_dilation) & trained
+        d = self.cfg.occupancy_refine_dilation
+        reach = dilate(trained, d) if grow else trained
+        if grow and self.carved is not None:
+            reach = reach & self._carved_on(tuple(trained.shape))  # type: ignore[arg-type]
+        grid = self.density_occupancy(tuple(trained.shape), within=reach, dilation=d) & reach  # type: ignore[arg-type]
         if bool(grid.any()):
             self.field.set_occupancy(grid)
 

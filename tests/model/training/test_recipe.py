@@ -11,7 +11,9 @@ from visnerf.config import FieldConfig, TrainConfig
 from visnerf.training.recipe import (
     CARVE_FRAMED_FRACTION,
     FACING_VECTORS,
+    SURFACE_CARVE_DILATION,
     SURFACE_COLOUR_FLOOR,
+    SURFACE_REFINE_DILATION,
     SURFACE_TV_APPEARANCE,
     SURFACE_TV_DENSITY,
     VOXEL_PER_PIXEL,
@@ -57,6 +59,13 @@ def test_opaque_surfaces_get_a_surface_density_and_volumes_do_not(surface_scene,
     assert surface.train.colour_weight_floor == SURFACE_COLOUR_FLOOR > volume.train.colour_weight_floor == 0.0
     assert "opaque" in next(c.reason for c in surface.choices if c.name == "colour_weight_floor")
     assert "translucent" in next(c.reason for c in volume.choices if c.name == "colour_weight_floor")
+    # Only opaque content samples a carved grid grown past the visual hull.
+    assert surface.train.carve_dilation == SURFACE_CARVE_DILATION > volume.train.carve_dilation == 0
+    assert "opaque" in next(c.reason for c in surface.choices if c.name == "carve_dilation")
+    assert "translucent" in next(c.reason for c in volume.choices if c.name == "carve_dilation")
+    # Only opaque content keeps a ring of empty cells around its refined grids.
+    assert surface.train.occupancy_refine_dilation == SURFACE_REFINE_DILATION > 0
+    assert volume.train.occupancy_refine_dilation == TrainConfig().occupancy_refine_dilation == 0
     # Only opaque content drops occluded samples from a training step.
     assert surface.train.stop_eps == TrainConfig().stop_eps > 0 and "stop_eps" not in choices_of(surface)
     assert volume.train.stop_eps == 0.0 and "translucent" in next(c.reason for c in volume.choices
@@ -105,13 +114,16 @@ def test_parameter_factors_are_left_out_only_without_parameters(surface_scene, v
 
 def test_settings_the_user_gave_are_kept(surface_scene):
     base = TrainConfig(resolution_final=40, carve_min_seen_fraction=0.1, tv_weight_density=0.0, tv_weight_appearance=0.0,
-                       colour_weight_floor=0.0)
+                       colour_weight_floor=0.0, carve_dilation=0,
+                       occupancy_refine_dilation=0)
     field = FieldConfig(density_scale=3.0, facing_vectors=0)
     recipe = choose_recipe(surface_scene, base, field,
                            frozenset({"resolution_final", "carve_min_seen_fraction", "density_scale", "facing_vectors",
-                                      "tv_weight_density", "tv_weight_appearance", "colour_weight_floor"}))
+                                      "tv_weight_density", "tv_weight_appearance", "colour_weight_floor",
+                                      "carve_dilation", "occupancy_refine_dilation"}))
     assert recipe.train.resolution_final == 40 and recipe.train.carve_min_seen_fraction == 0.1
-    assert recipe.train.colour_weight_floor == 0.0
+    assert recipe.train.colour_weight_floor == 0.0 and recipe.train.carve_dilation == 0
+    assert recipe.train.occupancy_refine_dilation == 0
     assert recipe.train.tv_weight_density == recipe.train.tv_weight_appearance == 0.0
     assert recipe.field.density_scale == 3.0 and recipe.field.facing_vectors == 0
     assert all(c.reason == "set by the user" for c in recipe.choices if c.name != "parameter_axes")
