@@ -410,9 +410,10 @@ class TrainConfig:
     training surface's level can drift off on fading gradients until the whole occupancy grid lies
     inside that surface (tangle_iso: the lowest level at -113 against about -1 in a 20-minute run,
     23.87 dB on the test path; at -52 in a 9000-step one, 23.47 dB). A pull toward even bands
-    instead of a bound cost 10 dB on held-out views at weight 1e-2. The bound does not keep every
-    run healthy: a seed-1 18000-step run ended with its lowest band held at the bound and the grid
-    frozen as in the failed runs, 26.10 dB (bench/results/nyx_history.md)."""
+    instead of a bound cost 10 dB on held-out views at weight 1e-2. What pushed the level is the
+    grid's edge cutting the surface (``training.recipe.SURFACE_CARVE_DILATION`` and
+    ``SURFACE_REFINE_DILATION`` answer it); with the bound alone a seed-1 18000-step run still
+    ended with its lowest band held at the bound, 26.10 dB (bench/results/nyx_history.md)."""
     level_spacing_ratio: float = 4.0
     """Factor by which neighbouring bands' slopes may differ at no cost (trained tangle_iso fields
     have 1.3 to 1.5)."""
