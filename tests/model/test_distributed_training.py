@@ -1,6 +1,7 @@
 """Training on several processes (``training.distributed``): real ``torchrun`` runs of two ranks on
 gloo, and the launch environments read without one."""
 
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -21,15 +22,17 @@ from visnerf.training.trainer import Trainer
 STEPS_SCRIPT = Path(__file__).with_name("distributed_steps.py")
 
 
-def torchrun(*args: str, timeout: float = 120.0) -> subprocess.CompletedProcess:
+def torchrun(tmp: Path, *args: str, timeout: float = 120.0) -> subprocess.CompletedProcess:
     """``torchrun --standalone --nproc-per-node 2``: its rendezvous on a free port of localhost that
-    it binds itself (no race with other jobs for a port chosen beforehand); one thread per rank."""
+    it binds itself (no race with other jobs for a port chosen beforehand); one thread per rank.
+    Its temporary files go under ``tmp`` (torchrun leaves a ``torchelastic_*`` folder behind)."""
     command = [sys.executable, "-m", "torch.distributed.run", "--standalone", "--nproc-per-node", "2", *args]
-    return subprocess.run(command, capture_output=True, text=True, timeout=timeout)
+    return subprocess.run(command, capture_output=True, text=True, timeout=timeout,
+                          env={**os.environ, "TMPDIR": str(tmp)})
 
 
 def test_two_ranks_with_half_the_batch_each_step_as_one_process_with_the_whole_batch(tmp_path) -> None:
-    run = torchrun(str(STEPS_SCRIPT), str(tmp_path))
+    run = torchrun(tmp_path, str(STEPS_SCRIPT), str(tmp_path))
     assert run.returncode == 0, run.stderr[-3000:]
     ranks = [load_file(tmp_path / f"rank{r}.safetensors") for r in (0, 1)]
     # A stop asked of rank 1 alone before step 2 stops both ranks there (rank 0 learns it in step).
@@ -62,7 +65,7 @@ def test_torchrun_train_writes_one_checkpoint_from_rank_0(tmp_path) -> None:
     out = tmp_path / "runs"
     out.mkdir()
     # A time budget: rank 0's clock decides every rank's progress, milestones and last step.
-    run = torchrun("-m", "visnerf", "train", str(data), "--out", str(out / "m.safetensors"), "--time-budget", "0.05",
+    run = torchrun(tmp_path, "-m", "visnerf", "train", str(data), "--out", str(out / "m.safetensors"), "--time-budget", "0.05",
                    "--resolution", "16", "--batch-rays", "512", "--holdout-views", "3", "--validate-every-s", "1000",
                    "--device", "cpu", "--quiet")
     assert run.returncode == 0, run.stderr[-3000:]
