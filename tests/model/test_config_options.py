@@ -12,7 +12,13 @@ from visnerf.checkpoint import read_checkpoint
 from visnerf.cli import build_parser
 from visnerf.config import FieldConfig, RenderConfig, TrainConfig
 from visnerf.config_options import CONFIG_CLASSES, NOT_OPTIONS, field_docs, option_of
-from visnerf.training.recipe import SURFACE_COLOUR_FLOOR, SURFACE_TV_APPEARANCE, SURFACE_TV_DENSITY
+from visnerf.training.recipe import (
+    SURFACE_CARVE_DILATION,
+    SURFACE_COLOUR_FLOOR,
+    SURFACE_REFINE_DILATION,
+    SURFACE_TV_APPEARANCE,
+    SURFACE_TV_DENSITY,
+)
 
 
 def train_parser() -> argparse.ArgumentParser:
@@ -75,7 +81,8 @@ def test_given_options_round_trip_through_the_checkpoint(tangle, tmp_path) -> No
                                  resolution_init=recipe.resolution_init,
                                  carve_min_seen_fraction=recipe.carve_min_seen_fraction,
                                  tv_weight_density=SURFACE_TV_DENSITY, tv_weight_appearance=SURFACE_TV_APPEARANCE,
-                                 colour_weight_floor=SURFACE_COLOUR_FLOOR)
+                                 colour_weight_floor=SURFACE_COLOUR_FLOOR, carve_dilation=SURFACE_CARVE_DILATION,
+                                 occupancy_refine_dilation=SURFACE_REFINE_DILATION)
 
 
 def test_options_not_given_keep_the_recipe(tangle, tmp_path) -> None:
@@ -88,6 +95,7 @@ def test_options_not_given_keep_the_recipe(tangle, tmp_path) -> None:
     assert meta.field.density_scale > 1.0  # tangle_static is opaque: the recipe's surface density
     assert (recipe.tv_weight_density, recipe.tv_weight_appearance) == (SURFACE_TV_DENSITY, SURFACE_TV_APPEARANCE)
     assert recipe.colour_weight_floor == SURFACE_COLOUR_FLOOR
+    assert (recipe.carve_dilation, recipe.occupancy_refine_dilation) == (SURFACE_CARVE_DILATION, SURFACE_REFINE_DILATION)
 
 
 @pytest.mark.parametrize(("options", "message"), [
