@@ -119,14 +119,15 @@ drawn too (bench/results/nyx_history.md)."""
 SURFACE_CARVE_DILATION = 2
 """``TrainConfig.carve_dilation`` of opaque scenes. Training samples only inside the carved grid,
 so its edge is a hard cut; at the visual hull, a density that fills the grid renders exactly the
-training views' silhouettes with the colours painted on, and training can settle there. tangle_iso's
-lowest isovalue did so in about one run in four (every grid cell inside its surface, its level run
-off to -113, 17 to 20 dB between the two lowest isovalues). Grown by two cells, a filled grid
-renders silhouettes two cells too wide in every view, and the surface has to come from the field:
-of two replayed failures (24 test-path frames), the one without the level bound went from 23.47 to
-30.42 dB; the other, with the bound, kept a filled grid whose edge was now the refined grid's
-until ``SURFACE_REFINE_DILATION`` was added (bench/results/nyx_history.md). Translucent content does not fit its images as a filled hull, and
-grown on Nyx the grid would take 33 % more cells of the content box (649,288 to 863,596 of 96^3)."""
+training views' silhouettes with the colours painted on, and training can settle there.
+tangle_iso's lowest isovalue did so in about one run in four (every grid cell inside its surface,
+its level run off to -113, 17 to 20 dB between the two lowest isovalues). Grown by two cells, a
+filled grid renders silhouettes two cells too wide in every view, and the surface has to come from
+the field: of two replayed failures (24 test-path frames), the one without the level bound went
+from 23.47 to 30.42 dB; the other, with the bound, kept a filled grid whose edge was now the
+refined grid's until ``SURFACE_REFINE_DILATION`` was added (bench/results/nyx_history.md).
+Translucent content does not fit its images as a filled hull, and grown on Nyx the grid would take
+33 % more cells of the content box (649,288 to 863,596 of 96^3)."""
 SURFACE_REFINE_DILATION = 1
 """``TrainConfig.occupancy_refine_dilation`` of opaque scenes: refined grids keep a ring of one
 empty cell around the content, and a surface that grows into the ring gets a new one
@@ -134,9 +135,9 @@ empty cell around the content, and a surface that grows into the ring gets a new
 there, and its level can run past the images' surface at no cost while the cut hides it. The
 replayed failure that the grown carve alone left filled (`--iterations 18000 --seed 1`, lowest
 level held at the level bound, 25.71 dB on 24 test-path frames, 19.8 to 21.6 dB at isovalues 0.30
-to 0.34) ended with both at a healthy lowest level (-0.89) and 28.03 dB (26 to 28 there); with the ring alone
-the grid stayed the filled hull. Both on the replay that the grown carve mended: 30.41 dB against
-30.42 (bench/results/nyx_history.md)."""
+to 0.34) ended with both at a healthy lowest level (-0.89) and 28.03 dB (26 to 28 there); with
+the ring alone the grid stayed the filled hull. Both on the replay that the grown carve mended:
+30.41 dB against 30.42 (bench/results/nyx_history.md)."""
 BORDER_PIXELS = 1
 """Width of the image border in which a foreground pixel means content cut by the frame."""
 

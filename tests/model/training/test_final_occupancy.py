@@ -3,6 +3,7 @@
 import torch
 
 from visnerf.config import TrainConfig
+from visnerf.rendering.occupancy import dilate
 from visnerf.testing import make_noise_scene, make_tiny_field
 from visnerf.training.trainer import Trainer
 
@@ -90,20 +91,15 @@ def test_milestones_count_as_training_time(monkeypatch) -> None:  # noqa: ANN001
     assert trainer.state.train_seconds >= 0.3
 
 
-def _ring_trainer(dilation: int) -> Trainer:
-    field, _ = make_tiny_field([("t", [0.0, 1.0])], seed=1, resolution=12)
-    cfg = TrainConfig(iterations=1, resolution_init=12, resolution_final=12, carve=False, occupancy_resolution=8,
-                      occupancy_refine_dilation=dilation)
-    return Trainer(make_noise_scene(), None, cfg, torch.device("cpu"), init_field=field)
-
-
 def test_a_refine_during_training_lets_content_at_the_edge_take_a_new_ring() -> None:
     """With a ring of ``d`` cells, the grid may take cells within ``d`` of itself where the density
     has grown (a surface pressed against the edge is not cut there), and no farther; the grid the
-    run ends with still keeps within the cells training sampled."""
-    from visnerf.rendering.occupancy import dilate
-
-    trainer = _ring_trainer(1)
+    run ends with still keeps within the cells training sampled (without a ring, a refine cannot
+    grow: ``test_occupancy.test_refined_grids_use_the_configured_dilation``)."""
+    field, _ = make_tiny_field([("t", [0.0, 1.0])], seed=1, resolution=12)
+    cfg = TrainConfig(iterations=1, resolution_init=12, resolution_final=12, carve=False, occupancy_resolution=8,
+                      occupancy_refine_dilation=1)
+    trainer = Trainer(make_noise_scene(), None, cfg, torch.device("cpu"), init_field=field)
     density_alone = trainer.density_occupancy((8, 8, 8), dilation=0)
     reach = dilate(_ball(), 1)
     assert (density_alone & reach & ~_ball()).any()  # dense cells next to the ball, outside it
@@ -117,10 +113,3 @@ def test_a_refine_during_training_lets_content_at_the_edge_take_a_new_ring() -> 
     trainer.finish_occupancy()
     assert not (trainer.field.occupancy & ~_ball()).any()
 
-
-def test_without_a_ring_a_refine_cannot_grow() -> None:
-    trainer = _ring_trainer(0)
-    trainer.field.set_occupancy(_ball())
-    trainer.refine_occupancy()
-    assert torch.equal(trainer.field.occupancy, trainer.density_occupancy((8, 8, 8), within=_ball(), dilation=0)
-                       & _ball())
