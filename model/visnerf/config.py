@@ -438,6 +438,10 @@ class TrainConfig:
     probability weight / floor, and then count with the floor's weight: an unbiased estimate of the
     rendered colour and its gradient that skips most of a faint fog's samples
     (``rendering.colour_sampling``). 0: every sample above the renderer's weight threshold."""
+    silhouette_ray_fraction: float = 0.0
+    """Share of each batch's rays drawn from the training images' silhouette band (pixels within
+    one pixel of a boundary between background and content, ``training.ray_batches``) instead of
+    from every pixel. An opaque surface's error lies almost all in that band. 0: every pixel alike."""
     weight_average_span: float = 0.03
     """Return the parameters' moving average over the end of the run instead of their last values
     (``training/weight_average.py``): the span of progress over which an old value's weight falls
@@ -480,6 +484,8 @@ class TrainConfig:
             raise ValueError(f"weight_average_from must be in [0, 1], got {self.weight_average_from}")
         if self.weight_average_every < 1:
             raise ValueError(f"weight_average_every must be at least 1 step, got {self.weight_average_every}")
+        if not 0.0 <= self.silhouette_ray_fraction < 1.0:
+            raise ValueError(f"silhouette_ray_fraction must be in [0, 1), got {self.silhouette_ray_fraction}")
         if not 0.0 <= self.colour_weight_floor < 1.0:
             raise ValueError(f"colour_weight_floor must be in [0, 1), got {self.colour_weight_floor}")
         if not 0.0 <= self.density_grad_floor < 1.0:

@@ -3,10 +3,12 @@
 from dataclasses import dataclass
 
 import torch
-from jaxtyping import Float, Int
+import torch.nn.functional as F
+from jaxtyping import Float, Int, UInt8
 from torch import Tensor
 
 from visnerf.data.cameras import rays_from_pixels
+from visnerf.data.carving import foreground_masks
 from visnerf.data.scene import SceneData
 from visnerf.rendering.aabb import intersect_aabb
 
@@ -23,11 +25,32 @@ class RayBatch:
     py: Int[Tensor, " n"]
 
 
+def silhouette_pixels(
+    images: UInt8[Tensor, "n h w 3"], background: tuple[float, float, float], tolerance: int, chunk: int = 64
+) -> Int[Tensor, " m"]:
+    """Flat indices (``frame * h * w + y * w + x``) of the pixels within one pixel (8-neighbourhood)
+    of a boundary between background and content: content pixels with a background neighbour and
+    background pixels with a content neighbour. Pixels farther than ``tolerance`` (0-255) from the
+    background in any channel are content; the image border is no boundary."""
+    n, h, w, _ = images.shape
+    out = []
+    for start in range(0, n, chunk):
+        fg = foreground_masks(images[start : start + chunk], background, tolerance, 0).float()[:, None]  # [c, 1, h, w]
+        any_fg = F.max_pool2d(fg, 3, stride=1, padding=1)  # a content pixel within the 3x3 window
+        any_bg = -F.max_pool2d(-fg, 3, stride=1, padding=1) < 1.0  # a background pixel within it
+        band = (any_fg[:, 0] > 0) & any_bg[:, 0]  # [c, h, w]
+        # padding counts as neither: max_pool2d pads with -inf, so the border adds no boundary
+        out.append(band.reshape(-1).nonzero()[:, 0] + start * h * w)
+    return torch.cat(out) if out else torch.zeros(0, dtype=torch.long)
+
+
 class RayBatchSampler:
     """Uniformly random pixels of random frames; rays that miss ``aabb`` are redrawn.
 
     Missing the content box means the pixel can only show the background, which the box already
-    guarantees, so such rays are filtered (up to ``max_redraws`` rounds).
+    guarantees, so such rays are filtered (up to ``max_redraws`` rounds). With a silhouette band
+    (``set_silhouette_band``), a fixed share of each batch is drawn uniformly from the band's pixels
+    instead: an emphasis, not an unbiased estimate, on the pixels where an opaque surface's error lies.
     """
 
     def __init__(self, scene: SceneData, device: torch.device, generator: torch.Generator) -> None:
@@ -36,6 +59,17 @@ class RayBatchSampler:
         self.generator = generator
         self.params_norm = scene.normalized_params()
         self.aabb: Tensor | None = None
+        self.band: Int[Tensor, " m"] | None = None
+        self.band_fraction = 0.0
+
+    def set_silhouette_band(self, band: Int[Tensor, " m"] | None, fraction: float) -> None:
+        """Draw ``fraction`` of each batch from the flat pixel indices ``band`` (``silhouette_pixels``);
+        an empty band or a fraction of 0 draws every ray from every pixel."""
+        if not 0.0 <= fraction < 1.0:
+            raise ValueError(f"the silhouette share must be in [0, 1), got {fraction}")
+        empty = band is None or band.numel() == 0 or fraction == 0.0
+        self.band = None if empty else band.to(torch.long).cpu()
+        self.band_fraction = 0.0 if empty else fraction
 
     def set_aabb(self, aabb: Tensor | None) -> None:
         self.aabb = None if aabb is None else aabb.detach().cpu()
@@ -53,8 +87,19 @@ class RayBatchSampler:
             return torch.ones(rays_o.shape[0], dtype=torch.bool)
         return intersect_aabb(rays_o, rays_d, self.aabb)[2]
 
+    def _draw_band(self, n: int) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+        assert self.band is not None
+        s = self.scene
+        h, w = s.intrinsics.height, s.intrinsics.width
+        flat = self.band[torch.randint(0, self.band.numel(), (n,), generator=self.generator)]
+        frame, pixel = flat // (h * w), flat % (h * w)
+        py, px = pixel // w, pixel % w
+        rays_o, rays_d = rays_from_pixels(s.c2w[frame], s.intrinsics, px.float() + 0.5, py.float() + 0.5)
+        return frame, px, py, rays_o, rays_d
+
     def sample(self, n: int, max_redraws: int = 4) -> RayBatch:
-        frame, px, py, rays_o, rays_d, hit = self._draw(n)
+        n_band = min(int(round(self.band_fraction * n)), n - 1) if self.band is not None else 0
+        frame, px, py, rays_o, rays_d, hit = self._draw(n - n_band)
         for _ in range(max_redraws):
             miss = (~hit).nonzero()[:, 0]
             if miss.numel() == 0:
@@ -62,6 +107,10 @@ class RayBatchSampler:
             f2, x2, y2, o2, d2, h2 = self._draw(miss.numel())
             frame[miss], px[miss], py[miss] = f2, x2, y2
             rays_o[miss], rays_d[miss], hit[miss] = o2, d2, h2
+        if n_band > 0:  # kept even where a ray misses the box: background beside content
+            fb, xb, yb, ob, db = self._draw_band(n_band)
+            frame, px, py = torch.cat([frame, fb]), torch.cat([px, xb]), torch.cat([py, yb])
+            rays_o, rays_d = torch.cat([rays_o, ob]), torch.cat([rays_d, db])
         rgb = self.scene.images[frame, py, px].float() / 255.0  # [n, 3]
         return RayBatch(
             rays_o.to(self.device),

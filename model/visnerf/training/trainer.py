@@ -52,7 +52,7 @@ from visnerf.representation.field import VisNerfField
 from visnerf.representation.vm_taps import table_gradients_in_place
 from visnerf.runtime import bf16_native, keep_freed_blocks, release_free_memory
 from visnerf.training.distributed import Ranks
-from visnerf.training.ray_batches import RayBatchSampler
+from visnerf.training.ray_batches import RayBatchSampler, silhouette_pixels
 from visnerf.training.regularizers import RegularizerWeights, backward_regularization, level_curvature, level_spacing
 from visnerf.training.run_state import (
     RunStateError,
@@ -202,6 +202,9 @@ class Trainer:
         self.state = start or TrainState(train_seconds=self.setup_seconds)  # carving counts as training
         self.sampler = RayBatchSampler(train_scene, device, self.generator)
         self.sampler.set_aabb(self.field.aabb)
+        if cfg.silhouette_ray_fraction > 0.0:
+            band = silhouette_pixels(train_scene.images, train_scene.background, cfg.carve_tolerance)
+            self.sampler.set_silhouette_band(band, cfg.silhouette_ray_fraction)
         self.optimizer = make_optimizer(self.field, cfg, 1.0)
         self.settings_all = parameter_settings(train_scene.knots(), cfg.occupancy_max_settings, self.generator)
         self.weight_average: WeightAverage | None = None

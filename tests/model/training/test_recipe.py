@@ -14,6 +14,7 @@ from visnerf.training.recipe import (
     SURFACE_CARVE_DILATION,
     SURFACE_COLOUR_FLOOR,
     SURFACE_REFINE_DILATION,
+    SURFACE_SILHOUETTE_RAYS,
     SURFACE_TV_APPEARANCE,
     SURFACE_TV_DENSITY,
     VOXEL_PER_PIXEL,
@@ -66,6 +67,11 @@ def test_opaque_surfaces_get_a_surface_density_and_volumes_do_not(surface_scene,
     # Only opaque content keeps a ring of empty cells around its refined grids.
     assert surface.train.occupancy_refine_dilation == SURFACE_REFINE_DILATION > 0
     assert volume.train.occupancy_refine_dilation == TrainConfig().occupancy_refine_dilation == 0
+    # Only opaque content draws a share of its rays from the images' silhouettes.
+    assert surface.train.silhouette_ray_fraction == SURFACE_SILHOUETTE_RAYS > 0
+    assert volume.train.silhouette_ray_fraction == TrainConfig().silhouette_ray_fraction == 0.0
+    assert "opaque" in next(c.reason for c in surface.choices if c.name == "silhouette_ray_fraction")
+    assert "translucent" in next(c.reason for c in volume.choices if c.name == "silhouette_ray_fraction")
     # Only opaque content drops occluded samples from a training step.
     assert surface.train.stop_eps == TrainConfig().stop_eps > 0 and "stop_eps" not in choices_of(surface)
     assert volume.train.stop_eps == 0.0 and "translucent" in next(c.reason for c in volume.choices
@@ -115,15 +121,15 @@ def test_parameter_factors_are_left_out_only_without_parameters(surface_scene, v
 def test_settings_the_user_gave_are_kept(surface_scene):
     base = TrainConfig(resolution_final=40, carve_min_seen_fraction=0.1, tv_weight_density=0.0, tv_weight_appearance=0.0,
                        colour_weight_floor=0.0, carve_dilation=0,
-                       occupancy_refine_dilation=0)
+                       occupancy_refine_dilation=0, silhouette_ray_fraction=0.0)
     field = FieldConfig(density_scale=3.0, facing_vectors=0)
     recipe = choose_recipe(surface_scene, base, field,
                            frozenset({"resolution_final", "carve_min_seen_fraction", "density_scale", "facing_vectors",
                                       "tv_weight_density", "tv_weight_appearance", "colour_weight_floor",
-                                      "carve_dilation", "occupancy_refine_dilation"}))
+                                      "carve_dilation", "occupancy_refine_dilation", "silhouette_ray_fraction"}))
     assert recipe.train.resolution_final == 40 and recipe.train.carve_min_seen_fraction == 0.1
     assert recipe.train.colour_weight_floor == 0.0 and recipe.train.carve_dilation == 0
-    assert recipe.train.occupancy_refine_dilation == 0
+    assert recipe.train.occupancy_refine_dilation == 0 and recipe.train.silhouette_ray_fraction == 0.0
     assert recipe.train.tv_weight_density == recipe.train.tv_weight_appearance == 0.0
     assert recipe.field.density_scale == 3.0 and recipe.field.facing_vectors == 0
     assert all(c.reason == "set by the user" for c in recipe.choices if c.name != "parameter_axes")
