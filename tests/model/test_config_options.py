@@ -16,7 +16,6 @@ from visnerf.training.recipe import (
     SURFACE_CARVE_DILATION,
     SURFACE_COLOUR_FLOOR,
     SURFACE_REFINE_DILATION,
-    SURFACE_SILHOUETTE_RAYS,
     SURFACE_TV_APPEARANCE,
     SURFACE_TV_DENSITY,
 )
@@ -83,8 +82,7 @@ def test_given_options_round_trip_through_the_checkpoint(tangle, tmp_path) -> No
                                  carve_min_seen_fraction=recipe.carve_min_seen_fraction,
                                  tv_weight_density=SURFACE_TV_DENSITY, tv_weight_appearance=SURFACE_TV_APPEARANCE,
                                  colour_weight_floor=SURFACE_COLOUR_FLOOR, carve_dilation=SURFACE_CARVE_DILATION,
-                                 occupancy_refine_dilation=SURFACE_REFINE_DILATION,
-                                 silhouette_ray_fraction=SURFACE_SILHOUETTE_RAYS)
+                                 occupancy_refine_dilation=SURFACE_REFINE_DILATION)
 
 
 def test_options_not_given_keep_the_recipe(tangle, tmp_path) -> None:
@@ -98,7 +96,7 @@ def test_options_not_given_keep_the_recipe(tangle, tmp_path) -> None:
     assert (recipe.tv_weight_density, recipe.tv_weight_appearance) == (SURFACE_TV_DENSITY, SURFACE_TV_APPEARANCE)
     assert recipe.colour_weight_floor == SURFACE_COLOUR_FLOOR
     assert (recipe.carve_dilation, recipe.occupancy_refine_dilation) == (SURFACE_CARVE_DILATION, SURFACE_REFINE_DILATION)
-    assert recipe.silhouette_ray_fraction == SURFACE_SILHOUETTE_RAYS
+    assert recipe.silhouette_ray_fraction == 0.0  # tangle_static has no level field
 
 
 @pytest.mark.parametrize(("options", "message"), [

@@ -24,8 +24,9 @@ the images and cameras alone, each choice with the reason ``visnerf info`` shows
   they start as a fog of light samples and end as surfaces of heavy ones; a translucent scene's
   colour stays spread over light samples, where the draws would add noise to every step;
 - rays drawn from the images' silhouettes (``TrainConfig.silhouette_ray_fraction``) only for
-  opaque scenes: their pixels are the surface's or the background's, never between, and their
-  error lies at the silhouettes; a translucent scene's silhouettes fade;
+  opaque scenes with a level axis (below): their pixels are the surface's or the background's,
+  never between, and their error lies at the silhouettes; a translucent scene's silhouettes fade,
+  and a surface without a level field learns its shading from the pixels inside them;
 - facing cosines (``FieldConfig.facing_vectors``) only for opaque scenes: a surface shaded by a
   light at the camera (isosurface renderers' headlight) changes colour with the cosine between its
   normal and the view, too sharply for spherical harmonics of degree 3; the field learns
@@ -140,8 +141,10 @@ or the background, and 83 to 95 % of the squared error of the bundled tangle_iso
 within a pixel of a silhouette. tangle_iso, 10 minutes on one thread, two at a time, views 3, 11,
 25 held out, 181-frame test path: 30.39 dB against 29.78 at 0 (seed 0; held-out views 32.29
 against 31.77) and 30.37 against 29.97 (seed 1; 32.79 against 32.04); 0.1 gave 30.20 and 0.5
-29.64, its held-out views the best (33.38) but its surfaces between isovalues the worst
-(bench/results/nyx_history.md)."""
+29.64, its held-out views the best (33.38) but its surfaces between isovalues the worst. Only with
+a level axis, whose normals shade the surface: tangle_static (learnt facing vectors), same
+protocol, one pair, 30.24 dB / 0.973 against 30.75 / 0.981 at 0, though its held-out views rose
+from 31.63 to 33.29 (bench/results/nyx_history.md)."""
 SURFACE_REFINE_DILATION = 1
 """``TrainConfig.occupancy_refine_dilation`` of opaque scenes: refined grids keep a ring of one
 empty cell around the content, and a surface that grows into the ring gets a new one
@@ -345,10 +348,6 @@ def choose_recipe(scene: SceneData, base: TrainConfig, base_field: FieldConfig,
          "opaque surfaces: a density that fills the carved hull renders the training silhouettes exactly; grown, "
          "the grid's edge cannot stand in for a surface",
          "translucent content: a filled hull does not fit its images"),
-        (values, base, "silhouette_ray_fraction", SURFACE_SILHOUETTE_RAYS,
-         "opaque surfaces: the images' colour changes at a silhouette from the background to a shaded surface "
-         "within one pixel, and a surface's error lies there; this share of each batch is drawn from those pixels",
-         "translucent content: its silhouettes fade, and its error is spread over the content"),
         (values, base, "occupancy_refine_dilation", SURFACE_REFINE_DILATION,
          "opaque surfaces: refined grids keep a ring of empty cells, so the grid's edge never cuts a surface "
          "that grows",
@@ -378,6 +377,24 @@ def choose_recipe(scene: SceneData, base: TrainConfig, base_field: FieldConfig,
         else:
             reason = f"opaque surfaces, but no axis's visual hulls are nested within {100 * NEST_TOLERANCE:g} % ({measured})"
         choices.append(Choice("level_set_axis", axis, reason))
+
+    level_axis = int(field_values.get("level_set_axis", base_field.level_set_axis))  # type: ignore[arg-type]
+    if "silhouette_ray_fraction" in fixed:
+        choices.append(Choice("silhouette_ray_fraction", base.silhouette_ray_fraction, "set by the user"))
+    elif traits.opaque and level_axis >= 0:
+        values["silhouette_ray_fraction"] = SURFACE_SILHOUETTE_RAYS
+        choices.append(Choice("silhouette_ray_fraction", SURFACE_SILHOUETTE_RAYS,
+                              "opaque surfaces of one level field: the images' colour changes at a silhouette from "
+                              "the background to a shaded surface within one pixel, and a surface's error lies "
+                              "there; this share of each batch is drawn from those pixels"))
+    elif traits.opaque:
+        choices.append(Choice("silhouette_ray_fraction", base.silhouette_ray_fraction,
+                              "opaque surfaces without a level field: their shading is learnt from the pixels "
+                              "inside the silhouettes, and a share drawn from the silhouettes cost tangle_static "
+                              "0.5 dB on new views"))
+    else:
+        choices.append(Choice("silhouette_ray_fraction", base.silhouette_ray_fraction,
+                              "translucent content: its silhouettes fade, and its error is spread over the content"))
 
     if traits.n_params == 0:
         choices.append(Choice("parameter_axes", 0, "one setting in the data (K = 0): no parameter factors"))

@@ -67,10 +67,9 @@ def test_opaque_surfaces_get_a_surface_density_and_volumes_do_not(surface_scene,
     # Only opaque content keeps a ring of empty cells around its refined grids.
     assert surface.train.occupancy_refine_dilation == SURFACE_REFINE_DILATION > 0
     assert volume.train.occupancy_refine_dilation == TrainConfig().occupancy_refine_dilation == 0
-    # Only opaque content draws a share of its rays from the images' silhouettes.
-    assert surface.train.silhouette_ray_fraction == SURFACE_SILHOUETTE_RAYS > 0
-    assert volume.train.silhouette_ray_fraction == TrainConfig().silhouette_ray_fraction == 0.0
-    assert "opaque" in next(c.reason for c in surface.choices if c.name == "silhouette_ray_fraction")
+    # Only opaque surfaces of a level field draw a share of their rays from the images' silhouettes.
+    assert surface.train.silhouette_ray_fraction == volume.train.silhouette_ray_fraction == 0.0
+    assert "without a level field" in next(c.reason for c in surface.choices if c.name == "silhouette_ray_fraction")
     assert "translucent" in next(c.reason for c in volume.choices if c.name == "silhouette_ray_fraction")
     # Only opaque content drops occluded samples from a training step.
     assert surface.train.stop_eps == TrainConfig().stop_eps > 0 and "stop_eps" not in choices_of(surface)
@@ -152,12 +151,16 @@ def test_an_isovalue_sweep_gets_a_level_axis_and_other_scenes_do_not(iso_sweep_s
     reason = next(c.reason for c in iso.choices if c.name == "level_set_axis")
     assert "nested along 'isovalue'" in reason and "shrink" in reason
     assert iso.train.tv_weight_density == SURFACE_TV_DENSITY > TrainConfig().tv_weight_density
+    # Its surfaces, shaded by the level field's normals, draw a share of their rays from the silhouettes.
+    assert iso.train.silhouette_ray_fraction == SURFACE_SILHOUETTE_RAYS > 0
+    assert "level field" in next(c.reason for c in iso.choices if c.name == "silhouette_ray_fraction")
     # The same opaque images with their isovalues shuffled: the hulls jump in and out, no level axis.
     values = sorted(set(iso_sweep_scene.params[:, 0].tolist()))
     shuffled = dict(zip(values, [values[i] for i in (0, 4, 1, 3, 2)], strict=True))
     params = torch.tensor([[shuffled[v]] for v in iso_sweep_scene.params[:, 0].tolist()])
     mixed = choose_recipe(dataclasses.replace(iso_sweep_scene, params=params), TrainConfig(), FieldConfig())
     assert mixed.field.level_set_axis == -1 and mixed.train.tv_weight_density == SURFACE_TV_DENSITY
+    assert mixed.train.silhouette_ray_fraction == 0.0
     assert "no axis" in next(c.reason for c in mixed.choices if c.name == "level_set_axis")
     # Translucent content (whose hulls may nest as a transfer function fades it) and K = 0: none.
     for other in (volume_scene, surface_scene):
@@ -168,4 +171,8 @@ def test_an_isovalue_sweep_gets_a_level_axis_and_other_scenes_do_not(iso_sweep_s
 def test_a_level_axis_the_user_gave_is_kept(iso_sweep_scene):
     recipe = choose_recipe(iso_sweep_scene, TrainConfig(), FieldConfig(level_set_axis=-1), frozenset({"level_set_axis"}))
     assert recipe.field.level_set_axis == -1
+    assert recipe.train.silhouette_ray_fraction == 0.0  # no level field: no silhouette share
+    kept = choose_recipe(iso_sweep_scene, TrainConfig(silhouette_ray_fraction=0.6), FieldConfig(),
+                         frozenset({"silhouette_ray_fraction"}))
+    assert kept.train.silhouette_ray_fraction == 0.6
     assert next(c.reason for c in recipe.choices if c.name == "level_set_axis") == "set by the user"
