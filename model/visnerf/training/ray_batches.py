@@ -79,8 +79,13 @@ class RayBatchSampler:
         frame = torch.randint(0, s.n_frames, (n,), generator=self.generator)
         px = torch.randint(0, s.intrinsics.width, (n,), generator=self.generator)
         py = torch.randint(0, s.intrinsics.height, (n,), generator=self.generator)
-        rays_o, rays_d = rays_from_pixels(s.c2w[frame], s.intrinsics, px.float() + 0.5, py.float() + 0.5)
+        rays_o, rays_d = self._pixel_rays(frame, px, py)
         return frame, px, py, rays_o, rays_d, self._hits(rays_o, rays_d)
+
+    def _pixel_rays(self, frame: Tensor, px: Tensor, py: Tensor) -> tuple[Tensor, Tensor]:
+        """Rays through the centres of pixels (px, py) of these frames."""
+        s = self.scene
+        return rays_from_pixels(s.c2w[frame], s.intrinsics, px.float() + 0.5, py.float() + 0.5)
 
     def _hits(self, rays_o: Tensor, rays_d: Tensor) -> Tensor:
         if self.aabb is None:
@@ -94,8 +99,7 @@ class RayBatchSampler:
         flat = self.band[torch.randint(0, self.band.numel(), (n,), generator=self.generator)]
         frame, pixel = flat // (h * w), flat % (h * w)
         py, px = pixel // w, pixel % w
-        rays_o, rays_d = rays_from_pixels(s.c2w[frame], s.intrinsics, px.float() + 0.5, py.float() + 0.5)
-        return frame, px, py, rays_o, rays_d
+        return frame, px, py, *self._pixel_rays(frame, px, py)
 
     def sample(self, n: int, max_redraws: int = 4) -> RayBatch:
         n_band = min(int(round(self.band_fraction * n)), n - 1) if self.band is not None else 0

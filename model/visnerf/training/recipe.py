@@ -134,10 +134,11 @@ refined grid's until ``SURFACE_REFINE_DILATION`` was added (bench/results/nyx_hi
 Translucent content does not fit its images as a filled hull, and grown on Nyx the grid would take
 33 % more cells of the content box (649,288 to 863,596 of 96^3)."""
 SURFACE_SILHOUETTE_RAYS = 0.25
-"""``TrainConfig.silhouette_ray_fraction`` of opaque scenes: a quarter of each batch's rays come from
-the training images' silhouette band (``training.ray_batches.silhouette_pixels``, 5.8 % of
-tangle_iso's pixels). An isosurface rendering has no partly covered pixel: a ray meets the surface
-or the background, and 83 to 95 % of the squared error of the bundled tangle_iso's test frames lay
+"""``TrainConfig.silhouette_ray_fraction`` of opaque scenes with a level axis: a quarter of each
+batch's rays come from the training images' silhouette band
+(``training.ray_batches.silhouette_pixels``, 5.8 % of tangle_iso's pixels). An isosurface
+rendering has no partly covered pixel: a ray meets the surface or the background, and 83 to 95 %
+of the squared error of the bundled tangle_iso's test frames lay
 within a pixel of a silhouette. tangle_iso, 10 minutes on one thread, two at a time, views 3, 11,
 25 held out, 181-frame test path: 30.39 dB against 29.78 at 0 (seed 0; held-out views 32.29
 against 31.77) and 30.37 against 29.97 (seed 1; 32.79 against 32.04); 0.1 gave 30.20 and 0.5
