@@ -185,9 +185,11 @@ def load_average() -> float:
 
 
 def cpu_description(cpuinfo: str | None = None) -> str:
-    """The CPU's model name and its bfloat16 units, from /proc/cpuinfo (or ``cpuinfo``): the
-    machines behind these benchmarks have differed between sessions (an Intel Xeon with AMX, an AMD
-    EPYC without), and a figure from one is not comparable with a figure from the other."""
+    """The CPU's model name, family and model numbers and its bfloat16 units, from /proc/cpuinfo
+    (or ``cpuinfo``): the machines behind these benchmarks have differed between sessions (an Intel
+    Xeon with AMX, AMD EPYCs without), and a figure from one is not comparable with a figure from
+    another. A virtual machine may name only the vendor's line ("AMD EPYC"); the family and model
+    still tell its generations apart (on AMD, family 25 is Zen 3 and 4, family 26 Zen 5)."""
     if cpuinfo is None:
         try:
             cpuinfo = Path("/proc/cpuinfo").read_text()
@@ -205,6 +207,9 @@ def cpu_description(cpuinfo: str | None = None) -> str:
     units = ["AMX bf16" if "amx_bf16" in flags else "no AMX"]
     if "avx512_bf16" in flags:
         units.append("AVX-512 bf16")
+    family, model = fields.get("cpu family"), fields.get("model")
+    if family and model:
+        units.insert(0, f"family {family} model {model}")
     return f"{name} ({', '.join(units)})"
 
 
