@@ -1,12 +1,18 @@
 """Parameter axes: the monotone cubic between knots (against SciPy's PCHIP), its gradients, and
-vectors of ones leaving features unchanged."""
+vectors of ones leaving features unchanged; the level axis's natural spline (against SciPy's)."""
 
 import numpy as np
 import pytest
 import torch
-from scipy.interpolate import PchipInterpolator
+from scipy.interpolate import CubicSpline, PchipInterpolator
 
-from visnerf.representation.param_axes import ParamAxes, interpolate_knots, pchip_slopes
+from visnerf.representation.param_axes import (
+    ParamAxes,
+    interpolate_knots,
+    interpolate_natural_spline,
+    natural_spline_curvatures,
+    pchip_slopes,
+)
 
 
 def test_knot_rows_exactly_and_ends_held():
@@ -86,25 +92,69 @@ def test_param_axes_of_ones_leave_features_unchanged():
     assert torch.equal(axes.sample(torch.rand(10, 2) * 2 - 1), torch.ones(10, 4))
 
 
-def test_level_axis_starts_flat_and_follows_its_levels_monotonically():
+def test_level_axis_starts_flat_and_follows_its_levels_by_the_natural_spline():
     from visnerf.representation.param_axes import LevelAxis
 
-    axis = LevelAxis(4)
+    axis = LevelAxis(5)
     x = torch.linspace(-1.5, 1.5, 61)
     assert torch.equal(axis.sample(x), torch.zeros(61))  # every value the same surface at first
-    knots = torch.tensor([-1.0, -0.1, 0.3, 1.0])
+    knots = torch.tensor([-1.0, -0.5, 0.0, 0.5, 1.0])
     axis.set_knots(knots)
-    with torch.no_grad():
-        axis.table.copy_(torch.tensor([[-2.0], [0.5], [0.6], [3.0]]))
+    with torch.no_grad():  # smooth increasing levels, as a trained sweep's are
+        axis.table.copy_(torch.tensor([[-1.9], [-1.2], [-0.3], [0.6], [1.2]]))
     levels = axis.sample(x)
     assert torch.allclose(axis.sample(knots), axis.table[:, 0])
     assert bool((levels[1:] >= levels[:-1]).all())  # increasing levels stay increasing between knots
-    assert levels[0] == -2.0 and levels[-1] == 3.0  # held at the ends
-    expected = PchipInterpolator(knots.double().numpy(), axis.table[:, 0].double().detach().numpy())(
+    assert levels[0] == -1.9 and levels[-1] == 1.2  # held at the ends
+    expected = CubicSpline(knots.double().numpy(), axis.table[:, 0].double().detach().numpy(), bc_type="natural")(
         x.clamp(-1.0, 1.0).double().numpy())
     assert np.allclose(levels.detach().numpy(), expected, atol=1e-5)
     levels.sum().backward()
     assert axis.table.grad is not None and torch.isfinite(axis.table.grad).all()
+
+
+@pytest.mark.parametrize("m", [3, 4, 5, 9])
+def test_natural_spline_matches_scipy_on_smooth_data(m):
+    gen = torch.Generator().manual_seed(m)
+    knots = torch.sort(torch.rand(m, generator=gen, dtype=torch.float64) * 2 - 1).values
+    knots[0], knots[-1] = -1.0, 1.0
+    table = torch.exp(knots)  # smooth and increasing: no piece leaves its knot values
+    x = torch.linspace(-1.0, 1.0, 401, dtype=torch.float64)
+    expected = CubicSpline(knots.numpy(), table.numpy(), bc_type="natural")(x.numpy())
+    np.testing.assert_allclose(interpolate_natural_spline(table, knots, x).numpy(), expected, atol=1e-12)
+    curvatures = CubicSpline(knots.numpy(), table.numpy(), bc_type="natural")(knots.numpy(), 2)
+    np.testing.assert_allclose(natural_spline_curvatures(table, knots).numpy(), curvatures, atol=1e-10)
+
+
+def test_natural_spline_of_few_knots_and_of_a_line():
+    x = torch.tensor([-2.0, -1.0, -0.3, 0.4, 1.0, 3.0], dtype=torch.float64)
+    assert torch.equal(interpolate_natural_spline(torch.tensor([2.5], dtype=torch.float64),
+                                                  torch.zeros(1, dtype=torch.float64), x), torch.full((6,), 2.5,
+                                                                                                     dtype=torch.float64))
+    two = interpolate_natural_spline(torch.tensor([1.0, 3.0], dtype=torch.float64),
+                                     torch.tensor([-1.0, 1.0], dtype=torch.float64), x)
+    assert torch.allclose(two, 2.0 + x.clamp(-1.0, 1.0), atol=1e-14)
+    knots = torch.tensor([-1.0, -0.2, 0.1, 0.7, 1.0], dtype=torch.float64)
+    assert torch.allclose(interpolate_natural_spline(3.0 * knots - 1.0, knots, x), 3.0 * x.clamp(-1.0, 1.0) - 1.0,
+                          atol=1e-12)  # data on a line: zero curvature, the line itself
+
+
+def test_natural_spline_pieces_stay_between_their_knot_values():
+    knots = torch.tensor([-1.0, -0.5, 0.0, 0.5, 1.0])
+    table = torch.tensor([0.0, 0.0, 0.0, 1.0, 1.0])  # a step: the bare spline overshoots on both sides
+    x = torch.linspace(-1.0, 1.0, 1001)
+    bare = CubicSpline(knots.numpy(), table.numpy(), bc_type="natural")(x.numpy())
+    assert bare.min() < -0.01 and bare.max() > 1.01
+    out = interpolate_natural_spline(table, knots, x)
+    hi = torch.searchsorted(knots, x).clamp(1, 4)
+    assert bool(((out >= torch.minimum(table[hi - 1], table[hi])) & (out <= torch.maximum(table[hi - 1], table[hi]))).all())
+
+
+def test_natural_spline_gradients_match_finite_differences():
+    knots = torch.tensor([-1.0, -0.4, 0.2, 0.6, 1.0], dtype=torch.float64)
+    table = torch.tensor([-1.5, -0.9, -0.1, 0.5, 1.4], dtype=torch.float64, requires_grad=True)
+    x = torch.tensor([-0.9, -0.45, 0.0, 0.33, 0.8], dtype=torch.float64)
+    assert torch.autograd.gradcheck(lambda t: interpolate_natural_spline(t, knots, x), (table,))
 
 
 def test_level_axis_refuses_knots_that_do_not_fit():
