@@ -456,7 +456,8 @@ def replicas_mode(args: argparse.Namespace, checkpoints: Path, work: Path, nginx
     """Each setup ``--rounds`` times, every other round in reverse order (drifting load on a shared
     machine weighs on every setup alike); the report gives each setup's median."""
     setups = replica_runs(args.replicas)
-    order = [(r, s) for r in range(args.rounds or 1) for s in (setups if r % 2 == 0 else setups[::-1])]
+    rounds = args.rounds or 1
+    order = [(r, s) for r in range(rounds) for s in (setups if r % 2 == 0 else setups[::-1])]
     runs = []
     for i, (round_index, run) in enumerate(order):
         env = {"VISNERF_TRUSTED_PROXIES": "127.0.0.1"}
@@ -482,7 +483,7 @@ def replicas_mode(args: argparse.Namespace, checkpoints: Path, work: Path, nginx
                      "server_exit_codes": [s.exit_code for s in servers]})
     return {
         "config": {"clients": args.clients, "duration_s": args.duration, "width": args.width, "height": args.height,
-                   "quality": args.quality, "format": args.format, "replicas": args.replicas, "rounds": args.rounds or 1},
+                   "quality": args.quality, "format": args.format, "replicas": args.replicas, "rounds": rounds},
         "scenes": [s["id"] for s in servers[0].scenes],
         "runs": runs,
     }
@@ -550,8 +551,8 @@ def throughput_lines(mode: dict[str, Any]) -> list[str]:
     rounds = mode.get("rounds", [])
     repeat = ""
     if rounds:
-        each = "; ".join(f"{r['frames_per_s']} frames/s, p50 {fmt(r['p50_ms'])}, p95 {fmt(r['p95_ms'])} ms"
-                         for r in rounds)
+        each = "; ".join(f"{one['frames_per_s']} frames/s, p50 {fmt(one['p50_ms'])}, p95 {fmt(one['p95_ms'])} ms"
+                         for one in rounds)
         repeat = (f" After {c.get('warm_up_s', 0):g} s of the same load unmeasured, {len(rounds)} round(s) on the "
                   f"same server ({each}); the table gives the round of median frames per second.")
     return [

@@ -50,19 +50,25 @@ def _end_slope(h0: Tensor, h1: Tensor, s0: Float[Tensor, " c"], s1: Float[Tensor
     return torch.where(limit, 3.0 * s0, d)
 
 
+def _pieces(knots: Float[Tensor, " m"], x: Float[Tensor, " n"]) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """The piece of at least two strictly increasing ``knots`` that holds each ``x`` (clamped to
+    the knots): its lower and upper knot indices, its width and ``x``'s place in it, in [0, 1]."""
+    x = x.clamp(float(knots[0]), float(knots[-1]))
+    hi = torch.searchsorted(knots, x.contiguous()).clamp(1, knots.shape[0] - 1)  # [n]
+    lo = hi - 1
+    span = (knots[hi] - knots[lo]).clamp_min(torch.finfo(knots.dtype).eps)  # [n]
+    return lo, hi, span, ((x - knots[lo]) / span).clamp(0.0, 1.0)
+
+
 def interpolate_knots(
     table: Float[Tensor, "m c"], knots: Float[Tensor, " m"], x: Float[Tensor, " n"]
 ) -> Float[Tensor, "n c"]:
     """Table rows placed at strictly increasing ``knots``, interpolated at ``x`` by the monotone
     cubic through them (``pchip_slopes``); held at the end rows outside the knots."""
-    m = knots.shape[0]
-    if m == 1:
+    if knots.shape[0] == 1:
         return table.expand(x.shape[0], -1)
-    x = x.clamp(float(knots[0]), float(knots[-1]))
-    hi = torch.searchsorted(knots, x.contiguous()).clamp(1, m - 1)  # [n]
-    lo = hi - 1
-    span = (knots[hi] - knots[lo]).clamp_min(torch.finfo(knots.dtype).eps)  # [n]
-    s = ((x - knots[lo]) / span).clamp(0.0, 1.0).unsqueeze(-1)  # [n, 1]
+    lo, hi, span, s = _pieces(knots, x)
+    s = s.unsqueeze(-1)  # [n, 1]
     slopes = pchip_slopes(table, knots)  # [m, c]
     s2, s3 = s * s, s * s * s
     h00, h10 = 2.0 * s3 - 3.0 * s2 + 1.0, s3 - 2.0 * s2 + s  # cubic Hermite basis
@@ -96,14 +102,9 @@ def interpolate_natural_spline(
     """The natural cubic spline through the values ``table`` at strictly increasing ``knots``,
     at ``x``; held at the end values outside the knots, and each piece kept between its two knot
     values (a spline through steep data may overshoot between them; these values may not)."""
-    m = knots.shape[0]
-    if m == 1:
+    if knots.shape[0] == 1:
         return table.expand(x.shape[0])
-    x = x.clamp(float(knots[0]), float(knots[-1]))
-    hi = torch.searchsorted(knots, x.contiguous()).clamp(1, m - 1)  # [n]
-    lo = hi - 1
-    span = (knots[hi] - knots[lo]).clamp_min(torch.finfo(knots.dtype).eps)  # [n]
-    b = ((x - knots[lo]) / span).clamp(0.0, 1.0)  # [n]
+    lo, hi, span, b = _pieces(knots, x)
     a = 1.0 - b
     curv = natural_spline_curvatures(table, knots)  # [m]
     y_lo, y_hi = table[lo], table[hi]
