@@ -62,6 +62,7 @@ import httpx
 from bench_common import fmt, load_average, machine_record, markdown_header, write_results
 from nginx_proxy import nginx_binary, running_nginx
 
+from visnerf.arg_types import positive_int
 from visnerf_server.settings import Settings
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -368,7 +369,7 @@ def throughput_mode(args: argparse.Namespace, checkpoints: Path, work: Path) -> 
                  address=client_address(i))
         for i in range(args.clients)
     ]
-    rounds = args.rounds or THROUGHPUT_ROUNDS
+    rounds = THROUGHPUT_ROUNDS if args.rounds is None else args.rounds
     with running_server(checkpoints, work / "throughput.log") as server:
         def clients(seed: int) -> list[Callable[..., None]]:
             return [lambda t0, until, out, ask=ask, seed=seed + i: frame_client(server, ask, seed, t0, until, out)
@@ -456,7 +457,7 @@ def replicas_mode(args: argparse.Namespace, checkpoints: Path, work: Path, nginx
     """Each setup ``--rounds`` times, every other round in reverse order (drifting load on a shared
     machine weighs on every setup alike); the report gives each setup's median."""
     setups = replica_runs(args.replicas)
-    rounds = args.rounds or 1
+    rounds = 1 if args.rounds is None else args.rounds
     order = [(r, s) for r in range(rounds) for s in (setups if r % 2 == 0 else setups[::-1])]
     runs = []
     for i, (round_index, run) in enumerate(order):
@@ -671,7 +672,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--heavy-size", type=int, default=largest_full_frame(),
                         help="side of the square frames the heavy clients ask for (default: the largest allowed)")
     parser.add_argument("--replicas", type=int, default=2, help="replicas mode: servers behind nginx to compare with one")
-    parser.add_argument("--rounds", type=int, default=None,
+    parser.add_argument("--rounds", type=positive_int, default=None,
                         help=f"measured rounds of the throughput load on its server (default {THROUGHPUT_ROUNDS}), or "
                              "times each replicas setup runs (default 1); medians reported")
     parser.add_argument("--out", type=Path, default=ROOT / "bench" / "results")
