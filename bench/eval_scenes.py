@@ -156,20 +156,23 @@ def table_lines(record: dict, commands: bool = True) -> list[str]:
         lines.append(f"| {name} | {r['kind']} | {r['K']} | {table_cell(r['psnr'], 2)} | {table_cell(r['ssim'], 3)} | "
                      f"{r.get('iterations', 'n/a')} | {grid} | {table_cell(r['ms_per_frame'], 0)} | {table_cell(r['model_mb'], 2)} | "
                      f"{'-' if not paper else paper['dataset'] + ', ' + str(paper['psnr'])} |")
-    # One note per day and CPU, naming each rerun's scenes and command; the CPU only where it is
-    # not the record's.
-    by_day: dict[tuple[str, str], dict[tuple[str, bool], list[str]]] = {}
+    # One note for every rerun, grouped by day, CPU and command; the CPU only where it is not the
+    # record's.
+    groups: dict[tuple[str, str, str, bool], list[str]] = {}
     for r in reruns:
-        runs = by_day.setdefault((r["rerun"]["date"][:10], r["rerun"]["cpu"]), {})
-        runs.setdefault((r["rerun"]["command"], r["rerun"].get("rescored", False)), []).append(r["scene"])
-    for (date, cpu), runs in by_day.items():
-        where = "" if cpu == record["machine"].get("cpu", "") else f" on {cpu}"
-        each = "; ".join(", ".join(scenes) + (f" by `{command}`" if commands else "")
-                         + (" (evaluated again, not retrained)" if rescored else "")
-                         for (command, rescored), scenes in runs.items())
-        lines.append(f"\n\\* Rerun {date}{where} after a change that concerns them: {each}.")
-    if by_day:
-        lines.append("\nThe other rows are the record's.")
+        rerun = r["rerun"]
+        key = (rerun["date"][:10], rerun["cpu"], rerun["command"] if commands else "", rerun.get("rescored", False))
+        groups.setdefault(key, []).append(r["scene"])
+    each = [", ".join(scenes) + f" ({date}"
+            + ("" if cpu == record["machine"].get("cpu", "") else f", {cpu}")
+            + (f", `{command}`" if command else "")
+            + (", evaluated again, not retrained" if rescored else "") + ")"
+            for (date, cpu, command, rescored), scenes in sorted(groups.items())]
+    if each and commands:
+        lines += ["", "\\* Rerun after a change that concerns them (the other rows are the record's):", "",
+                  *(f"- {text}" for text in each)]
+    elif each:
+        lines.append(f"\n\\* Rerun after a change that concerns them: {'; '.join(each)}. The other rows are the record's.")
     return lines
 
 
