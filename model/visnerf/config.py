@@ -404,19 +404,6 @@ class TrainConfig:
     at 8, 29.36 at 16; with an earlier recipe (no colour
     floor, no cosine powers), 23.79 at 0, 25.98 at 1, 25.40 at 3, 22.81 at 10
     (bench/results/nyx_history.md)."""
-    level_third_difference_weight: float = 4.0
-    """Weight of the third-difference prior of a level axis's field ``g``
-    (``regularizers.level_differences``: its squared third difference along the curvature prior's
-    random directions and points, over the squared span of the levels); nothing without a level
-    axis. The curvature prior flattens ``g`` also where the truth's field is curved, at the maxima
-    inside the innermost blobs and at the saddles where necks break; a smooth field is quadratic
-    there, and its third difference is zero. tangle_iso, 10 minutes, one thread each, two runs at a
-    time, views 3, 11, 25 held out, 181-frame test path, seeds 0, 1, 2 with the curvature prior at 4:
-    30.83, 30.54, 31.20 dB with both at 4 against 30.65, 30.29, 30.60 with the curvature prior alone
-    (held-out views 33.17, 33.34, 32.99 against 33.08, 32.24, 32.36; the band of the necks,
-    isovalue 0.7, +0.9 to +1.4 dB, that of the blobs, 0.85, +0.4 to +1.8, the two lowest -0.8 to
-    +0.7); the third difference alone at 4 30.71 and 30.33, at 16 30.15, at 64
-    25.88 (bench/results/nyx_history.md)."""
     level_spacing_weight: float = 0.1
     """Weight of the bound on how much a level axis's neighbouring bands differ in slope
     (``regularizers.level_spacing``, nothing within ``level_spacing_ratio``). Without it an opaque
@@ -431,8 +418,7 @@ class TrainConfig:
     """Factor by which neighbouring bands' slopes may differ at no cost (trained tangle_iso fields
     have 1.3 to 1.5)."""
     level_curvature_points: int = 1024
-    """Random points a step for ``level_curvature_weight`` and ``level_third_difference_weight``:
-    1024 made 883 steps and 26.24 dB in the
+    """Random points a step for ``level_curvature_weight``: 1024 made 883 steps and 26.24 dB in the
     runs above, 4096 784 steps and 25.98 dB, none 1082 steps."""
     tv_weight_params: float = 0.01
     """Total variation on the parameter vectors (smoothness along each parameter axis)."""
@@ -514,7 +500,7 @@ class TrainConfig:
                  f"betas must be two numbers in [0, 1), got {self.betas!r}")
         _check_non_negative(self, "checkpoint_every_s", "l1_weight_initial", "l1_weight_rest", "param_l1_weight",
                             "tv_weight_density", "tv_weight_appearance", "tv_weight_params",
-                            "level_curvature_weight", "level_third_difference_weight", "level_spacing_weight")
+                            "level_curvature_weight", "level_spacing_weight")
         _check_below_one(self, "stop_eps")
         _require(0.0 <= self.carve_min_seen_fraction <= 1.0,
                  f"carve_min_seen_fraction must be in [0, 1], got {self.carve_min_seen_fraction!r}")

@@ -1,6 +1,5 @@
 """Priors on the factors: L1 sparsity, L1 pull of parameter vectors toward 1, total variation; and
-on a level axis: the second and third differences of its field ``g`` and the bound on its bands'
-slopes."""
+on a level axis: the curvature of its field ``g`` and the bound on its bands' slopes."""
 
 import math
 from dataclasses import dataclass
@@ -108,47 +107,30 @@ LEVEL_SPAN_EPS = 1e-6
 """Added to the squared span of the levels before dividing by it (a guarded division)."""
 
 
-@dataclass(frozen=True)
-class LevelDifferences:
-    """Mean squared second and third differences of a level field ``g`` over the squared span of
-    its levels (0-d tensors)."""
-
-    second: Tensor
-    third: Tensor
-
-
-def level_differences(
+def level_curvature(
     field: VisNerfField, params: Float[Tensor, "n k"], generator: torch.Generator, step_voxels: float = 2.0
-) -> LevelDifferences:
-    """Mean squared second and third differences of the level field ``g`` at ``n`` random points of
-    the box along random unit directions ``u``, ``h = step_voxels`` voxels: from ``g`` at
-    ``x - h u, x, x + h u, x + 2h u``, the second difference ``g(x - hu) - 2 g(x) + g(x + hu)`` and
-    the third ``-g(x - hu) + 3 g(x) - 3 g(x + hu) + g(x + 2hu)``, each over the squared span of the
-    levels: unchanged when ``g`` and the levels are scaled together (the sharpness absorbs the
-    scale). The second difference is the field's curvature; the third its change, which is zero
-    wherever ``g`` is locally quadratic, as any smooth field is at its maxima and saddles, where
-    blobs shrink away and necks break between isovalues. ``params``: normalised parameter values
-    of the points (the density features of the other axes). Both 0 for a field without a level
-    axis."""
+) -> Tensor:
+    """Mean squared second difference of the level field ``g`` at ``n`` random points of the box
+    along random unit directions, ``h = step_voxels`` voxels, over the squared span of the levels:
+    unchanged when ``g`` and the levels are scaled together (the sharpness absorbs the scale).
+    ``params``: normalised parameter values of the points (the density features of the other axes).
+    0 for a field without a level axis."""
     if field.levels is None:
-        zero = torch.zeros((), device=field.device)
-        return LevelDifferences(zero, zero)
+        return torch.zeros((), device=field.device)
     n = params.shape[0]
     lo, hi = field.aabb[0], field.aabb[1]
     x = lo + (hi - lo) * torch.rand(n, 3, generator=generator).to(field.device)  # [n, 3]
     u = torch.randn(n, 3, generator=generator).to(field.device)
     u = u / u.norm(dim=-1, keepdim=True).clamp_min(1e-12)
     h = step_voxels * field.voxel_size()
-    points = torch.cat([x - h * u, x, x + h * u, x + 2.0 * h * u])  # [4n, 3]
+    points = torch.cat([x - h * u, x, x + h * u])  # [3n, 3]
     q, _ = field.split_density_features(field.param_features(params)[0])
     coords = field.to_grid(points)
-    g = field.raw_density(coords, field.density_grid.sample(coords), q.repeat(4, 1)).view(4, n)
+    g = field.raw_density(coords, field.density_grid.sample(coords), q.repeat(3, 1)).view(3, n)
     second = g[0] - 2.0 * g[1] + g[2]  # [n]
-    third = 3.0 * (g[1] - g[2]) + g[3] - g[0]  # [n]
     table = field.levels.table[:, 0]
     span = table.max() - table.min()
-    scale = span * span + LEVEL_SPAN_EPS
-    return LevelDifferences(second.pow(2).mean() / scale, third.pow(2).mean() / scale)
+    return second.pow(2).mean() / (span * span + LEVEL_SPAN_EPS)
 
 
 def level_spacing(field: VisNerfField, max_ratio: float) -> Tensor:

@@ -53,7 +53,7 @@ from visnerf.representation.vm_taps import table_gradients_in_place
 from visnerf.runtime import bf16_native, keep_freed_blocks, release_free_memory
 from visnerf.training.distributed import Ranks
 from visnerf.training.ray_batches import RayBatchSampler, silhouette_pixels
-from visnerf.training.regularizers import RegularizerWeights, backward_regularization, level_differences, level_spacing
+from visnerf.training.regularizers import RegularizerWeights, backward_regularization, level_curvature, level_spacing
 from visnerf.training.run_state import (
     RunStateError,
     pack_optimizer,
@@ -414,17 +414,13 @@ class Trainer:
                     part.backward()
             sq_error += float(part.detach())
         terms = backward_regularization(self.field, self._weights())
-        if (cfg.level_curvature_weight > 0 or cfg.level_third_difference_weight > 0) and self.field.levels is not None:
+        if cfg.level_curvature_weight > 0 and self.field.levels is not None:
             # at the parameter values of random rays of the batch (the other axes' density features)
             pick = torch.randint(0, batch.params.shape[0], (cfg.level_curvature_points,), generator=self.generator)
-            differences = level_differences(self.field, batch.params[pick.to(self.device)], self.generator)
-            curvature = cfg.level_curvature_weight * differences.second
-            third = cfg.level_third_difference_weight * differences.third
-            (curvature + third).backward()
-            if cfg.level_curvature_weight > 0:
-                terms["level_curvature"] = float(curvature.detach())
-            if cfg.level_third_difference_weight > 0:
-                terms["level_third_difference"] = float(third.detach())
+            curvature = cfg.level_curvature_weight * level_curvature(self.field, batch.params[pick.to(self.device)],
+                                                                     self.generator)
+            curvature.backward()
+            terms["level_curvature"] = float(curvature.detach())
         if cfg.level_spacing_weight > 0 and self.field.levels is not None:
             spacing = cfg.level_spacing_weight * level_spacing(self.field, cfg.level_spacing_ratio)
             if spacing.requires_grad:  # fewer than three levels: no neighbouring bands to hold
@@ -436,7 +432,7 @@ class Trainer:
         (sq_error,) = self.ranks.average_gradients(self.field.parameters(), sq_error)
         self.optimizer.step()
         stats = {"mse": sq_error, "loss": sq_error + reg_value, "samples": float(per_ray.sum())}
-        for name in ("level_curvature", "level_third_difference", "level_spacing"):
+        for name in ("level_curvature", "level_spacing"):
             if name in terms:
                 stats[name] = terms[name]
         return stats
