@@ -156,8 +156,8 @@ def table_lines(record: dict, commands: bool = True) -> list[str]:
         lines.append(f"| {name} | {r['kind']} | {r['K']} | {table_cell(r['psnr'], 2)} | {table_cell(r['ssim'], 3)} | "
                      f"{r.get('iterations', 'n/a')} | {grid} | {table_cell(r['ms_per_frame'], 0)} | {table_cell(r['model_mb'], 2)} | "
                      f"{'-' if not paper else paper['dataset'] + ', ' + str(paper['psnr'])} |")
-    # One note for every rerun, grouped by day, CPU and command; the CPU only where it is not the
-    # record's.
+    # One note naming every rerun, grouped by day, CPU and command (the command only in the
+    # details); the CPU only where it is not the record's.
     groups: dict[tuple[str, str, str, bool], list[str]] = {}
     for r in reruns:
         rerun = r["rerun"]
@@ -168,12 +168,12 @@ def table_lines(record: dict, commands: bool = True) -> list[str]:
             + (f", `{command}`" if command else "")
             + (", evaluated again, not retrained" if rescored else "") + ")"
             for (date, cpu, command, rescored), scenes in sorted(groups.items())]
-    if each and commands:
-        lines += ["", "\\* Rerun after a change that concerns them (the other rows are the record's):", "",
-                  *(f"- {text}" for text in each)]
-    elif each:
-        lines.append(f"\n\\* Rerun after a change that concerns them: {'; '.join(each)}. The other rows are the record's.")
-    return lines
+    if not each:
+        return lines
+    if commands:  # the details: a list, one group a line
+        return [*lines, "", "\\* Rerun after a change that concerns them (the other rows are the record's):", "",
+                *(f"- {text}" for text in each)]
+    return [*lines, "", f"\\* Rerun after a change that concerns them: {'; '.join(each)}. The other rows are the record's."]
 
 
 PLACES = {"at_training_values": "at training values", "between_training_values": "between training values",
