@@ -486,7 +486,7 @@ def main() -> int:
     kind_frames = {kind: val.subset(torch.tensor(frames)) for kind, frames in checked.items()}
     by_iterations = args.iterations is not None
     # The product's recipe (what `visnerf train` runs); only the budget and the validation are this bench's.
-    base = TrainConfig(iterations=args.iterations if by_iterations else 10**9,
+    base = TrainConfig(iterations=args.iterations,
                        time_budget_s=None if by_iterations else args.minutes * 60,
                        validate_every_s=args.validate_every, validate_max_images=val_checked.n_frames)
     trainer = recipe_trainer(train, val_checked, base, FieldConfig(), device)

@@ -302,14 +302,24 @@ class RenderConfig:
         return cls(**values)
 
 
+DEFAULT_ITERATIONS = 30_000
+"""Steps of a run given neither ``TrainConfig.iterations`` nor a time budget (its docstring says
+30,000 too, for ``--help``)."""
+
+
 @dataclass(frozen=True)
 class TrainConfig:
     """The training recipe. Milestones are fractions of the run (iterations or wall time)."""
 
-    iterations: int = 30_000
-    """Maximum iterations."""
+    iterations: int | None = None
+    """Steps after which the run ends; none: 30,000 without a time budget, and under one the budget
+    alone ends the run. A fixed limit would end a budgeted run early on a fast machine: Nyx makes
+    30,000 steps in about 24 of its 60 minutes on a 2-core Zen 5 EPYC
+    (bench/results/nyx_middle_hour). With both, the run ends at whichever comes first
+    (``step_limit``)."""
     time_budget_s: float | None = None
-    """Wall-clock budget; progress is the larger of iteration and time fraction."""
+    """Seconds of training (validation excluded). Progress is the larger of the time fraction and
+    the step fraction (``step_limit``); the schedule's milestones are fractions of it."""
     batch_rays: int = 2048
     """Rays per iteration: half the paper's 4096; more, noisier steps fit faster on a CPU (Nyx, 40
     minutes side by side: 25.61 against 25.10 dB; bench/results/nyx_history.md)."""
@@ -468,8 +478,17 @@ class TrainConfig:
     random_background: bool = False
     """Composite on a random colour per ray in training (useful when content touches the background)."""
 
+    @property
+    def step_limit(self) -> int | None:
+        """Steps after which the run ends; None: only the time budget ends it."""
+        if self.iterations is not None:
+            return self.iterations
+        return None if self.time_budget_s is not None else DEFAULT_ITERATIONS
+
     def __post_init__(self) -> None:
-        for name in ("iterations", "batch_rays", "micro_batch_rays", "micro_batch_samples"):
+        _require(self.iterations is None or (_is_whole(self.iterations) and self.iterations >= 1),
+                 f"iterations must be a whole number of at least 1 (or None), got {self.iterations!r}")
+        for name in ("batch_rays", "micro_batch_rays", "micro_batch_samples"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
         if self.time_budget_s is not None and not (math.isfinite(self.time_budget_s) and self.time_budget_s > 0):

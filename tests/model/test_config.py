@@ -4,7 +4,7 @@ import math
 
 import pytest
 
-from visnerf.config import TrainConfig
+from visnerf.config import DEFAULT_ITERATIONS, TrainConfig
 
 
 @pytest.mark.parametrize(("field", "value"), [
@@ -26,6 +26,13 @@ def test_unusable_sizes_and_budgets_are_refused(field: str, value: float) -> Non
 def test_the_smallest_usable_values_are_accepted() -> None:
     cfg = TrainConfig(iterations=1, batch_rays=1, micro_batch_rays=1, micro_batch_samples=1, time_budget_s=0.5)
     assert (cfg.batch_rays, cfg.time_budget_s) == (1, 0.5)
+
+
+def test_a_time_budget_alone_ends_a_run_unless_iterations_are_given() -> None:
+    assert TrainConfig().step_limit == DEFAULT_ITERATIONS
+    assert TrainConfig(time_budget_s=3600.0).step_limit is None
+    assert TrainConfig(iterations=500, time_budget_s=3600.0).step_limit == 500
+    assert TrainConfig.from_dict(TrainConfig(time_budget_s=60.0).to_dict()).step_limit is None
 
 
 def test_a_checkpoint_keeps_the_whole_training_configuration(tmp_path) -> None:

@@ -1,6 +1,7 @@
 """The training loop: the paper's recipe, scheduled by progress (iterations or wall time).
 
-Progress is ``max(iteration / iterations, train_seconds / time_budget)``. Learning rates decay
+Progress is ``max(iteration / step_limit, train_seconds / time_budget)`` (``TrainConfig.step_limit``:
+under a time budget with no ``iterations`` given, the budget alone). Learning rates decay
 exponentially with progress; grid upsampling, occupancy updates (the first also shrinks the box to
 the content) and occupancy refinements switch on at progress fractions of the config. Milestones
 count as training time (a wall-clock budget includes them); validation does not.
@@ -230,7 +231,8 @@ class Trainer:
             self.val_scene = None
 
     def progress(self) -> float:
-        p = self.state.iteration / max(1, self.cfg.iterations)
+        limit = self.cfg.step_limit
+        p = 0.0 if limit is None else self.state.iteration / limit
         if self.cfg.time_budget_s:
             p = max(p, self.state.train_seconds / self.cfg.time_budget_s)
         return p
@@ -459,7 +461,7 @@ class Trainer:
         # Under a time budget the bar counts seconds of training (its rate and time left are then
         # those of the budget, not of an iteration count the run never reaches).
         timed = cfg.time_budget_s is not None
-        bar = tqdm(total=round(cfg.time_budget_s) if timed else cfg.iterations,
+        bar = tqdm(total=round(cfg.time_budget_s) if timed else cfg.step_limit,
                    initial=min(round(self.state.train_seconds), round(cfg.time_budget_s)) if timed else self.state.iteration,
                    unit="s" if timed else "it", disable=not progress_bar, dynamic_ncols=True, desc="train")
         while self._go_on(stop):

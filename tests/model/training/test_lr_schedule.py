@@ -49,3 +49,28 @@ def test_an_upsample_keeps_the_decayed_rate() -> None:
     trainer._milestones()
     assert trainer.state.upsamples_done == 1
     assert math.isclose(trainer.optimizer.param_groups[0]["lr"], trainer.cfg.lr_factors * 0.1 ** 0.2, rel_tol=1e-12)
+
+
+def test_a_budgeted_run_follows_its_clock_past_any_step_count() -> None:
+    """Under a time budget with no step limit, progress is the clock's alone: a fast machine's
+    40,000 steps in a fifth of the budget are a fifth of the run, and the run goes on."""
+    field, _ = make_tiny_field([("t", [0.0, 1.0])], seed=1, resolution=8)
+    cfg = TrainConfig(time_budget_s=600.0, resolution_init=8, resolution_final=12, upsample_at=UPSAMPLE_AT,
+                      occupancy_at=(), carve=False, lr_decay_ratio=0.1)
+    trainer = Trainer(make_noise_scene(), None, cfg, torch.device("cpu"), init_field=field)
+    trainer.state.iteration, trainer.state.train_seconds = 40_000, 120.0
+    assert math.isclose(trainer.progress(), 0.2, rel_tol=1e-12)
+    assert trainer._go_on(None)
+    trainer.state.train_seconds = 600.0
+    assert not trainer._go_on(None)
+
+
+def test_with_both_limits_the_further_along_sets_the_progress() -> None:
+    field, _ = make_tiny_field([("t", [0.0, 1.0])], seed=1, resolution=8)
+    cfg = TrainConfig(iterations=1000, time_budget_s=600.0, resolution_init=8, resolution_final=12,
+                      upsample_at=UPSAMPLE_AT, occupancy_at=(), carve=False, lr_decay_ratio=0.1)
+    trainer = Trainer(make_noise_scene(), None, cfg, torch.device("cpu"), init_field=field)
+    trainer.state.iteration, trainer.state.train_seconds = 500, 60.0
+    assert math.isclose(trainer.progress(), 0.5, rel_tol=1e-12)
+    trainer.state.iteration, trainer.state.train_seconds = 100, 300.0
+    assert math.isclose(trainer.progress(), 0.5, rel_tol=1e-12)
