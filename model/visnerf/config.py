@@ -487,7 +487,7 @@ class TrainConfig:
 
     def __post_init__(self) -> None:
         _require(self.iterations is None or (_is_whole(self.iterations) and self.iterations >= 1),
-                 f"iterations must be a whole number of at least 1 (or None), got {self.iterations!r}")
+                 f"iterations must be at least 1, or none (the default), got {self.iterations!r}")
         for name in ("batch_rays", "micro_batch_rays", "micro_batch_samples"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
