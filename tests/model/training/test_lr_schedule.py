@@ -12,10 +12,10 @@ from visnerf.training.trainer import Trainer
 UPSAMPLE_AT = (0.2, 0.5)
 
 
-def _trainer(iterations: int = 100) -> Trainer:
+def _trainer(iterations: int | None = 100, time_budget_s: float | None = None) -> Trainer:
     field, _ = make_tiny_field([("t", [0.0, 1.0])], seed=1, resolution=8)
-    cfg = TrainConfig(iterations=iterations, resolution_init=8, resolution_final=12, upsample_at=UPSAMPLE_AT,
-                      occupancy_at=(), carve=False, lr_decay_ratio=0.1)
+    cfg = TrainConfig(iterations=iterations, time_budget_s=time_budget_s, resolution_init=8, resolution_final=12,
+                      upsample_at=UPSAMPLE_AT, occupancy_at=(), carve=False, lr_decay_ratio=0.1)
     return Trainer(make_noise_scene(), None, cfg, torch.device("cpu"), init_field=field)
 
 
@@ -54,10 +54,7 @@ def test_an_upsample_keeps_the_decayed_rate() -> None:
 def test_a_budgeted_run_follows_its_clock_past_any_step_count() -> None:
     """Under a time budget with no step limit, progress is the clock's alone: a fast machine's
     40,000 steps in a fifth of the budget are a fifth of the run, and the run goes on."""
-    field, _ = make_tiny_field([("t", [0.0, 1.0])], seed=1, resolution=8)
-    cfg = TrainConfig(time_budget_s=600.0, resolution_init=8, resolution_final=12, upsample_at=UPSAMPLE_AT,
-                      occupancy_at=(), carve=False, lr_decay_ratio=0.1)
-    trainer = Trainer(make_noise_scene(), None, cfg, torch.device("cpu"), init_field=field)
+    trainer = _trainer(iterations=None, time_budget_s=600.0)
     trainer.state.iteration, trainer.state.train_seconds = 40_000, 120.0
     assert math.isclose(trainer.progress(), 0.2, rel_tol=1e-12)
     assert trainer._go_on(None)
@@ -66,10 +63,7 @@ def test_a_budgeted_run_follows_its_clock_past_any_step_count() -> None:
 
 
 def test_with_both_limits_the_further_along_sets_the_progress() -> None:
-    field, _ = make_tiny_field([("t", [0.0, 1.0])], seed=1, resolution=8)
-    cfg = TrainConfig(iterations=1000, time_budget_s=600.0, resolution_init=8, resolution_final=12,
-                      upsample_at=UPSAMPLE_AT, occupancy_at=(), carve=False, lr_decay_ratio=0.1)
-    trainer = Trainer(make_noise_scene(), None, cfg, torch.device("cpu"), init_field=field)
+    trainer = _trainer(iterations=1000, time_budget_s=600.0)
     trainer.state.iteration, trainer.state.train_seconds = 500, 60.0
     assert math.isclose(trainer.progress(), 0.5, rel_tol=1e-12)
     trainer.state.iteration, trainer.state.train_seconds = 100, 300.0
