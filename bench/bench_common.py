@@ -24,8 +24,8 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
 from visnerf.config import HoldoutConfig
+from visnerf.data.datasets import load_dataset
 from visnerf.data.holdout import split_holdout
-from visnerf.data.parsers.blender import load_dataset
 from visnerf.data.scene import SceneData
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -40,8 +40,8 @@ from bundle_record import BUNDLED, bundle_entry, write_bundle_record
 
 from visnerf import runtime
 from visnerf.config import FieldConfig, HoldoutConfig, TrainConfig
+from visnerf.data.datasets import load_dataset
 from visnerf.data.holdout import split_holdout
-from visnerf.data.parsers.blender import load_dataset
 from visnerf.evaluation.evaluate import EvalConfig, evaluate_checkpoint
 from visnerf.evaluation.plots import plot_training_curves
 from visnerf.evaluation.report import write_report

@@ -73,8 +73,8 @@ from bench_common import (
 
 from visnerf.arg_types import positive_float, positive_int
 from visnerf.config import FieldConfig, HoldoutConfig, TrainConfig
+from visnerf.data.datasets import load_dataset
 from visnerf.data.holdout import HELD_OUT_KINDS, held_out_kind, split_holdout
-from visnerf.data.parsers.blender import load_dataset
 from visnerf.data.scene import SceneData
 from visnerf.evaluation.colour_difference import luv_difference
 from visnerf.evaluation.evaluate import EvalConfig

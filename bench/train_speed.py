@@ -59,8 +59,8 @@ from bench_common import (
 from matplotlib.figure import Figure
 
 from visnerf.config import FieldConfig, HoldoutConfig, RenderConfig, TrainConfig
+from visnerf.data.datasets import load_dataset
 from visnerf.data.holdout import split_holdout
-from visnerf.data.parsers.blender import load_dataset
 from visnerf.data.scene import SceneData
 from visnerf.runtime import bf16_native, configure, release_free_memory
 from visnerf.training.distributed import Launch, Ranks, leave_process_group

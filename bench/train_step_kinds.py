@@ -24,7 +24,7 @@ from bench_common import RESULTS, alternate_steps, cpu_description, write_json
 
 from visnerf.checkpoint import load_checkpoint
 from visnerf.config import TrainConfig
-from visnerf.data.parsers.blender import load_dataset
+from visnerf.data.datasets import load_dataset
 from visnerf.training.trainer import Trainer
 
 

@@ -14,6 +14,7 @@ import torch
 from visnerf.arg_types import number as parse_number
 from visnerf.arg_types import positive_float
 from visnerf.checkpoint import CheckpointError, read_checkpoint
+from visnerf.cinema_options import add_cinema_options, cinema_camera
 from visnerf.config import FieldConfig, HoldoutConfig, RenderConfig, TrainConfig
 from visnerf.config_options import add_config_options, given_options
 from visnerf.data.cameras import orbit_c2w
@@ -97,8 +98,8 @@ def _train(args: argparse.Namespace) -> int:
 
 
 def _train_as_rank(args: argparse.Namespace) -> int:
+    from visnerf.data.datasets import DatasetError, has_split, load_dataset, read_split
     from visnerf.data.holdout import split_holdout
-    from visnerf.data.parsers.blender import DatasetError, load_dataset
     from visnerf.training.distributed import Launch, Ranks
     from visnerf.training.run_state import RUN_STATE_SUFFIX, RunStateError, run_state_path
     from visnerf.training.stop_signals import StopRequested, StopSignals
@@ -145,14 +146,16 @@ def _train_as_rank(args: argparse.Namespace) -> int:
         return 2
     device, main = ranks.device, ranks.is_main
     try:
-        scene = load_dataset(args.data, "train")
-        scene = with_bbox(scene, args.bbox)
+        parsed = read_split(args.data, "train", cinema_camera(args))
+        scene = with_bbox(parsed.scene, args.bbox)
         train, val = split_holdout(scene, holdout_config(scene, args))
-        if val is None and (Path(args.data) / "transforms_val.json").exists():
+        if val is None and has_split(args.data, "val"):
             val = load_dataset(args.data, "val")
     except (DatasetError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
+    for note in parsed.notes if main else ():
+        print(f"  {note}", file=sys.stderr)
     if main:
         print(f"training on {train.n_frames} frames ({val.n_frames if val else 0} held out), "
               f"K={train.n_params}, {train.intrinsics.width}x{train.intrinsics.height}, device {device}"
@@ -293,25 +296,26 @@ def frames_in_checkpoint_axes(scene: "SceneData", axes: tuple) -> "SceneData":
 
 def _calibrate(args: argparse.Namespace) -> int:
     from visnerf.checkpoint import load_checkpoint, save_checkpoint
+    from visnerf.data.datasets import DatasetError, has_split, load_dataset
     from visnerf.data.holdout import split_holdout
-    from visnerf.data.parsers.blender import DatasetError, load_dataset
     from visnerf.evaluation.spacing import choose_full_spacing
 
     device = pick_device(args.device)
     try:
         field, meta = load_checkpoint(args.checkpoint, device)
         on_training_frames = False
+        cinema = cinema_camera(args)
         if args.holdout_views or args.holdout_params or args.holdout_value:
-            scene = load_dataset(args.data, "train")
+            scene = load_dataset(args.data, "train", cinema)
             _, frames = split_holdout(scene, holdout_config(scene, args))
             if frames is None:
-                raise ValueError("the hold-out matches no frame of transforms_train.json")
-        elif (Path(args.data) / "transforms_val.json").is_file():
+                raise ValueError("the hold-out matches no frame of the training split")
+        elif has_split(args.data, "val"):
             frames = load_dataset(args.data, "val")
         else:
             # as training does with nothing held out: the choice weighs sampling error against the
             # exhaustive render of the same frame, which training frames show as well
-            frames, on_training_frames = load_dataset(args.data, "train"), True
+            frames, on_training_frames = load_dataset(args.data, "train", cinema), True
         frames = frames_in_checkpoint_axes(frames, meta.param_axes)
         choice = choose_full_spacing(field, frames, meta.render, args.frames, args.tolerance)
     except (CheckpointError, DatasetError, ValueError) as exc:
@@ -343,7 +347,7 @@ def _info(args: argparse.Namespace) -> int:
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("train", help="train a ViSNeRF model on a dataset folder")
-    p.add_argument("data", help="dataset folder with transforms_train.json")
+    p.add_argument("data", help="dataset folder with transforms_train.json, or a Cinema database (folder with data.csv)")
     p.add_argument("--out", required=True, help="checkpoint to write (.safetensors)")
     p.add_argument("--time-budget", type=positive_float, default=None, metavar="MINUTES",
                    help="wall-clock training budget; the schedule is given as fractions of it")
@@ -368,6 +372,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--force", action="store_true", help="overwrite --out")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     add_config_options(p)
+    add_cinema_options(p)
     p.set_defaults(func=_train, requires=("skimage",))  # SSIM of held-out frames
 
     r = sub.add_parser("render", help="render one frame from a checkpoint")
@@ -399,6 +404,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="PSNR the full-quality frames may lose against exhaustive ones (default 0.05)")
     c.add_argument("--dry-run", action="store_true", help="measure and print, leave the checkpoint alone")
     c.add_argument("--device", default="auto")
+    add_cinema_options(c)
     c.set_defaults(func=_calibrate)
 
     i = sub.add_parser("info", help="print a checkpoint's metadata")

@@ -11,16 +11,14 @@ their message, naming the field.
 """
 
 import argparse
-import ast
 import dataclasses
-import inspect
 import math
-import textwrap
 import types
 import typing
 from typing import Any
 
 from visnerf.config import FieldConfig, RenderConfig, TrainConfig
+from visnerf.field_docs import field_docs
 from visnerf.training.recipe import CHOSEN_FIELDS
 
 CONFIG_CLASSES: tuple[type, ...] = (TrainConfig, FieldConfig, RenderConfig)
@@ -45,18 +43,6 @@ NOT_OPTIONS: dict[tuple[str, str], str] = {
                                            "(visnerf calibrate)",
 }
 """Fields that are not options, and why."""
-
-
-def field_docs(cls: type) -> dict[str, str]:
-    """Each field's docstring (the string literal after its annotation), whitespace folded."""
-    tree = ast.parse(textwrap.dedent(inspect.getsource(cls)))
-    body = tree.body[0].body  # type: ignore[attr-defined]
-    docs: dict[str, str] = {}
-    for node, nxt in zip(body, body[1:], strict=False):
-        if (isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name) and isinstance(nxt, ast.Expr)
-                and isinstance(nxt.value, ast.Constant) and isinstance(nxt.value.value, str)):
-            docs[node.target.id] = " ".join(nxt.value.value.split())
-    return docs
 
 
 def option_of(cls: type, name: str) -> str | None:

@@ -8,8 +8,8 @@ import pytest
 import torch
 
 from visnerf.config import HoldoutConfig, TrainConfig
+from visnerf.data.datasets import load_dataset
 from visnerf.data.holdout import split_holdout
-from visnerf.data.parsers.blender import load_dataset
 from visnerf.data.scene import SceneData
 
 

@@ -83,7 +83,8 @@ def carve_occupancy(
     nearest = torch.clamp(cam_pos, aabb[0], aabb[1])
     min_depth = float(torch.linalg.norm(cam_pos - nearest, dim=-1).min().clamp_min(1e-6))
     f = max(scene.intrinsics.fx, scene.intrinsics.fy)
-    dilate = min(64, math.ceil(half_diag * f / min_depth) + 1)  # +1: pixel rounding
+    cell_pixels = half_diag * f if scene.intrinsics.orthographic else half_diag * f / min_depth
+    dilate = min(64, math.ceil(cell_pixels) + 1)  # +1: pixel rounding
     w, h = scene.intrinsics.width, scene.intrinsics.height
     union = torch.zeros(centres.shape[0], dtype=torch.bool)
     for frames in setting_groups(scene.params):

@@ -33,6 +33,8 @@ class SceneData:
     kind: str = "dvr"
     file_paths: tuple[str, ...] = field(default_factory=tuple)
     source: str = ""
+    depths: Float[Tensor, "n h w"] | None = None
+    """Depth along each pixel's ray where the source records it (pycinema ``.h5``), NaN where it hit nothing."""
 
     @property
     def n_frames(self) -> int:
@@ -70,12 +72,16 @@ class SceneData:
             kind=self.kind,
             file_paths=tuple(self.file_paths[i] for i in idx.tolist()) if self.file_paths else (),
             source=self.source,
+            depths=None if self.depths is None else self.depths[idx],
         )
 
     def default_camera(self) -> dict[str, float]:
-        """Orbit camera of the first frame, with the dataset's field of view."""
+        """Orbit camera of the first frame, with the dataset's field of view, or its view height
+        for an orthographic dataset (the key ``view_height`` marks a parallel projection)."""
         az, el, dist = orbit_from_c2w(self.c2w[0].double().numpy())
-        return {"azimuth": az, "elevation": el, "distance": dist, "fov_deg": self.intrinsics.fov_x_deg}
+        lens = ({"view_height": self.intrinsics.view_height} if self.intrinsics.orthographic
+                else {"fov_deg": self.intrinsics.fov_x_deg})
+        return {"azimuth": az, "elevation": el, "distance": dist, **lens}
 
 
 def axes_from_values(names: list[str], values: np.ndarray) -> tuple[list[int], tuple[ParamAxis, ...]]:
@@ -102,8 +108,11 @@ def estimate_bbox(scene: SceneData, margin: float = 1.2) -> torch.Tensor:
     """A cube around the origin that every camera sees whole: the dataset's bbox if it has one."""
     if scene.bbox is not None:
         return scene.bbox.clone()
+    k = scene.intrinsics
+    half_view = 0.5 * min(k.width / k.fx, k.height / k.fy)  # a pinhole's tangent, an orthographic view's half size
+    if k.orthographic:
+        r = margin * half_view
+        return torch.tensor([[-r, -r, -r], [r, r, r]], dtype=torch.float32)
     dist = float(torch.linalg.norm(scene.c2w[:, :3, 3], dim=-1).min())
-    half_fov = math.atan(0.5 * min(scene.intrinsics.width / scene.intrinsics.fx,
-                                   scene.intrinsics.height / scene.intrinsics.fy))
-    r = margin * dist * math.sin(half_fov)
+    r = margin * dist * math.sin(math.atan(half_view))
     return torch.tensor([[-r, -r, -r], [r, r, r]], dtype=torch.float32)

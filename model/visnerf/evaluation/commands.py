@@ -5,8 +5,10 @@ import sys
 from pathlib import Path
 
 from visnerf.checkpoint import CheckpointError
+from visnerf.cinema_options import add_cinema_options, cinema_camera
+from visnerf.data.datasets import SPLITS
 from visnerf.evaluation.colour_difference import DIFFERENCE_SCALE_MAX
-from visnerf.evaluation.ground_truth import SPLITS, EvaluationError
+from visnerf.evaluation.ground_truth import EvaluationError
 from visnerf.evaluation.perceptual import LpipsConfig
 from visnerf.evaluation.sweeps import SweepConfig
 
@@ -29,8 +31,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "(PSNR against training time). Writes report.md, summary.json, CSV files and PNG figures.",
     )
     p.add_argument("checkpoint", help="checkpoint (.safetensors)")
-    p.add_argument("data", help="dataset folder with transforms_<split>.json")
-    p.add_argument("--split", choices=SPLITS, default="test", help="split to evaluate (default test)")
+    p.add_argument("data", help="dataset folder with transforms_<split>.json, or a Cinema database (every row scored)")
+    p.add_argument("--split", choices=SPLITS, default=None, help="split to evaluate (default test; a Cinema database has none)")
     p.add_argument("--out", required=True, type=Path, help="report folder (created; files in it are replaced)")
     p.add_argument("--quality", choices=("full", "preview"), default="full", help="render quality (default full)")
     p.add_argument("--max-frames", type=int, default=None, metavar="N",
@@ -49,6 +51,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help=f"frames rendered per render setting in the sweep (default {SweepConfig.n_frames})")
     p.add_argument("--no-sweep", action="store_true", help="skip the render-settings sweep")
     p.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N")
+    add_cinema_options(p)
     p.set_defaults(func=eval_command, requires=("skimage", "matplotlib"))  # SSIM, report figures
 
 
@@ -70,8 +73,13 @@ def eval_command(args: argparse.Namespace) -> int:
     if args.out.exists() and not args.out.is_dir():
         print(f"error: --out {args.out} exists and is not a folder", file=sys.stderr)
         return 2
+    try:
+        cinema = cinema_camera(args)
+    except ValueError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     cfg = EvalConfig(
-        split=args.split, quality=args.quality, max_frames=args.max_frames, difference_frames=args.diff_frames,
+        split=args.split, cinema=cinema, quality=args.quality, max_frames=args.max_frames, difference_frames=args.diff_frames,
         difference_scale_max=float(args.diff_scale), lpips=LpipsConfig(args.lpips_weights, args.lpips_net),
         sweep=SweepConfig(enabled=not args.no_sweep, n_frames=args.sweep_frames),
         training_logs=tuple(args.train_log),
@@ -86,6 +94,6 @@ def eval_command(args: argparse.Namespace) -> int:
     m = summary["metrics"]
     lpips = "n/a" if m["lpips"] is None else f"{m['lpips']:.4f}"
     psnr = f"{m['psnr']:.2f}" if isinstance(m["psnr"], float) else m["psnr"]
-    print(f"{m['n']} frames of {args.split}: PSNR {psnr} dB, SSIM {m['ssim']:.4f}, LPIPS {lpips}, "
+    print(f"{m['n']} frames of {result.split}: PSNR {psnr} dB, SSIM {m['ssim']:.4f}, LPIPS {lpips}, "
           f"{m['ms_median']:.0f} ms per frame; report in {args.out / 'report.md'}")
     return 0

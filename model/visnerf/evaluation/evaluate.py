@@ -15,6 +15,7 @@ import torch
 from jaxtyping import Float, UInt8
 
 from visnerf.checkpoint import CheckpointMeta
+from visnerf.data.parsers.cinema_cameras import CinemaCamera
 from visnerf.evaluation.colour_difference import DIFFERENCE_SCALE_MAX, luv_difference
 from visnerf.evaluation.frames import normalize_params, render_frame
 from visnerf.evaluation.ground_truth import EvaluationError, GroundTruth, load_ground_truth
@@ -31,8 +32,10 @@ from visnerf.rendering.renderer import RenderSettings
 class EvalConfig:
     """What an evaluation measures."""
 
-    split: str = "test"
-    """Dataset split: ``transforms_<split>.json``."""
+    split: str | None = None
+    """Dataset split: ``transforms_<split>.json``; None: ``test``, or every row of a Cinema database."""
+    cinema: CinemaCamera | None = None
+    """A Cinema database's camera options over its ``visnerf_camera.json``."""
     quality: Quality = "full"
     """Render quality of the per-frame evaluation."""
     max_frames: int | None = None
@@ -147,7 +150,7 @@ def evaluate_checkpoint(
     checkpoint, data = Path(checkpoint), Path(data)
     scene = load_scene(checkpoint, device)
     field_, meta = scene.field, scene.meta
-    truth: GroundTruth = load_ground_truth(data, cfg.split, meta.param_axes)
+    truth: GroundTruth = load_ground_truth(data, cfg.split, meta.param_axes, cfg.cinema)
     gt = truth.scene
     settings = RenderSettings.from_meta(meta, cfg.quality)
     params = torch.stack([normalize_params(meta.param_axes, row) for row in truth.params])  # [n, k]
@@ -189,7 +192,7 @@ def evaluate_checkpoint(
 
     runs, training_note = _training_runs(checkpoint, cfg.training_logs)
     return EvalResult(
-        checkpoint=checkpoint, data=data, split=cfg.split, quality=cfg.quality, meta=meta,
+        checkpoint=checkpoint, data=data, split=truth.split, quality=cfg.quality, meta=meta,
         frames=tuple(records), lpips_note=lpips_note, lpips_computed=scorer is not None,
         differences=tuple(differences), sweep=tuple(sweep), training_runs=tuple(runs),
         training_note=training_note, model_mb=checkpoint.stat().st_size / 1e6, device=str(device),

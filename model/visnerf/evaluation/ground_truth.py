@@ -1,11 +1,10 @@
 """The ground truth of an evaluation: one split of a dataset, its parameters in the checkpoint's axes.
 
-The dataset parser drops parameters that are constant within a split, so the split's raw parameter
-table is read again here and matched to the checkpoint's axes by name. Every mismatch is an
+The dataset reader (``data.datasets``) drops parameters that are constant within a split; its full
+parameter table is matched here to the checkpoint's axes by name. Every mismatch is an
 ``EvaluationError`` that names it.
 """
 
-import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
@@ -14,10 +13,9 @@ import numpy as np
 from jaxtyping import Float
 
 from visnerf.checkpoint import ParamAxis
-from visnerf.data.parsers.blender import DatasetError, load_transforms
+from visnerf.data.datasets import SPLITS, DatasetError, has_split, is_cinema_database, read_split
+from visnerf.data.parsers.cinema_cameras import CinemaCamera
 from visnerf.data.scene import SceneData
-
-SPLITS = ("train", "val", "test")
 
 
 class EvaluationError(ValueError):
@@ -35,39 +33,25 @@ class GroundTruth:
     source: Path
 
 
-def split_file(data: Path, split: str) -> Path:
-    """``data/transforms_<split>.json``; an error naming the file (and the splits present) if absent."""
-    if split not in SPLITS:
+def check_split(data: Path, split: str | None) -> str:
+    """The split to read: ``split``, or ``test`` (a Cinema database: its rows, with no split named)."""
+    if split is not None and split not in SPLITS:
         raise EvaluationError(f"unknown split {split!r}; use one of {', '.join(SPLITS)}")
+    if is_cinema_database(data):
+        if split is not None:
+            raise EvaluationError(f"{data} is a Cinema database, which has no splits: every row is scored "
+                                  "(leave out --split)")
+        return "train"
+    split = split or "test"
     if not data.is_dir():
         raise EvaluationError(f"dataset folder {data} does not exist")
-    path = data / f"transforms_{split}.json"
-    if not path.is_file():
+    if not has_split(data, split):
         present = [p.name for p in sorted(data.glob("transforms_*.json"))]
         raise EvaluationError(
-            f"dataset {data} has no {split} split: {path.name} not found "
+            f"dataset {data} has no {split} split: transforms_{split}.json not found "
             f"(present: {', '.join(present) if present else 'no transforms_*.json at all'})"
         )
-    return path
-
-
-def read_param_table(path: Path) -> tuple[list[str], Float[np.ndarray, "n k"]]:
-    """Parameter names and raw values of every frame, constant ones included (same rules as the parser)."""
-    meta = json.loads(path.read_text())
-    frames = meta.get("frames") or []
-    rows = []
-    for frame in frames:
-        if "params" in frame:
-            rows.append([float(v) for v in frame["params"]])
-        elif "time" in frame:
-            rows.append([float(frame["time"])])
-        else:
-            rows.append([])
-    k = len(rows[0]) if rows else 0
-    values = np.asarray(rows, dtype=np.float64).reshape(len(rows), k)
-    default_names = ["time"] if frames and "time" in frames[0] and "params" not in frames[0] else [f"p{j}" for j in range(k)]
-    names = [str(n) for n in (meta.get("param_names") or default_names)]
-    return names, values
+    return split
 
 
 def align_params(
@@ -105,18 +89,19 @@ def align_params(
     return np.stack(columns, axis=-1) if columns else np.zeros((values.shape[0], 0))
 
 
-def load_ground_truth(data: str | Path, split: str, axes: tuple[ParamAxis, ...]) -> GroundTruth:
-    """Load ``data/transforms_<split>.json`` and match its parameters to ``axes``."""
+def load_ground_truth(
+    data: str | Path, split: str | None, axes: tuple[ParamAxis, ...], cinema: CinemaCamera | None = None
+) -> GroundTruth:
+    """Load one split (None: ``test``, or a Cinema database's rows) and match its parameters to ``axes``."""
     data = Path(data)
-    path = split_file(data, split)
+    split = check_split(data, split)
     try:
-        scene = load_transforms(path)
-        names, values = read_param_table(path)
+        parsed = read_split(data, split, cinema)
     except DatasetError as exc:
         raise EvaluationError(f"ground truth of the {split} split cannot be read: {exc}") from None
-    except (json.JSONDecodeError, ValueError, TypeError) as exc:
-        raise EvaluationError(f"{path}: cannot read the parameter values: {exc}") from None
-    params = align_params(axes, names, values)
+    source = Path(parsed.scene.source)
+    params = align_params(axes, list(parsed.param_names), parsed.param_values)
     if not np.all(np.isfinite(params)) or any(not math.isfinite(a.max - a.min) for a in axes):
-        raise EvaluationError(f"{path}: parameter values must be finite")
-    return GroundTruth(scene=scene, params=params, split=split, source=path)
+        raise EvaluationError(f"{source}: parameter values must be finite")
+    label = "all rows" if is_cinema_database(data) else split
+    return GroundTruth(scene=parsed.scene, params=params, split=label, source=source)

@@ -192,10 +192,11 @@ class SceneTraits:
 
 
 def pixel_footprint(scene: SceneData, centre: torch.Tensor) -> float:
-    """Median over views of the camera's distance to ``centre`` over its focal length (pixels)."""
+    """World size of a pixel at ``centre``: the median over views of the camera's distance to it over
+    the focal length (pixels); an orthographic camera's pixels have one size at every depth."""
     dist = torch.linalg.norm(scene.c2w[:, :3, 3].float() - centre.float()[None], dim=-1)  # [n]
-    focal = max(scene.intrinsics.fx, scene.intrinsics.fy)
-    return float(dist.median()) / focal
+    k = scene.intrinsics
+    return 1.0 / max(k.fx, k.fy) if k.orthographic else float(dist.median()) / max(k.fx, k.fy)
 
 
 def frames_cut_by_border(scene: SceneData, tolerance: int, chunk: int = 64) -> int:

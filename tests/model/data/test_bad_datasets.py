@@ -12,7 +12,7 @@ from PIL import Image
 
 from visnerf.cli import main
 from visnerf.data.cameras import orbit_c2w
-from visnerf.data.parsers.blender import DatasetError, load_dataset
+from visnerf.data.datasets import DatasetError, load_dataset
 
 N_FRAMES = 3
 SIZE = 8

@@ -10,7 +10,7 @@ import torch
 from visnerf.checkpoint import read_checkpoint
 from visnerf.config import RenderConfig
 from visnerf.data.cameras import Intrinsics, orbit_c2w
-from visnerf.data.parsers.blender import load_dataset
+from visnerf.data.datasets import load_dataset
 from visnerf.data.scene import SceneData
 from visnerf.evaluation import spacing
 from visnerf.testing import make_tiny_checkpoint, make_tiny_field

@@ -4,7 +4,7 @@ from pathlib import Path
 
 import pytest
 
-from visnerf.data.parsers.blender import load_dataset
+from visnerf.data.datasets import load_dataset
 from visnerf.data.scene import SceneData
 
 

@@ -136,7 +136,7 @@ def test_settings_the_user_gave_are_kept(surface_scene):
 
 @pytest.mark.skipif(not (NYX / "transforms_train.json").exists(), reason="../shared/data/nyx is not here")
 def test_nyx_gets_the_tuned_recipe():
-    from visnerf.data.parsers.blender import load_dataset
+    from visnerf.data.datasets import load_dataset
 
     recipe = choose_recipe(load_dataset(NYX, "train"), TrainConfig(), FieldConfig())
     assert recipe.train.resolution_final == 200

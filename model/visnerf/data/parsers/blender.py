@@ -13,16 +13,19 @@ missing or undecodable images, images of different sizes, a bad ``bbox``.
 """
 
 import json
-from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
-from PIL import Image
 
 from visnerf.data.cameras import Intrinsics
+from visnerf.data.errors import DatasetError
+from visnerf.data.images import load_images
 from visnerf.data.scene import SceneData, axes_from_values, view_ids_from_poses
+
+__all__ = ["DatasetError", "ParsedSplit", "check_rigid", "load_transforms", "read_transforms"]
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".webp", ".PNG", ".JPG")
 
@@ -32,14 +35,6 @@ RIGID_TOLERANCE = 1e-3
 Exported datasets carry float noise around 1e-7; this is the tolerance ``check_rigid_c2w`` applies to
 poses sent to the server, so a model trained on a dataset can be viewed from the dataset's own poses.
 """
-
-_DECODE_ERRORS = (OSError, SyntaxError, ValueError, EOFError, Image.DecompressionBombError)
-"""What Pillow raises for a file that is not an image, is truncated or is corrupted."""
-
-
-class DatasetError(ValueError):
-    """The dataset cannot be read; the message names the file and the problem."""
-
 
 def _frame_label(index: int, frame: Any) -> str:
     """``frame 3 (./train/r_3)``: how messages name a frame (without the path when it has none)."""
@@ -92,7 +87,7 @@ def _pose_matrix(frame: dict[str, Any], label: str) -> np.ndarray:
     return matrix
 
 
-def _check_rigid(c2w: np.ndarray, labels: list[str], tol: float = RIGID_TOLERANCE) -> None:
+def check_rigid(c2w: np.ndarray, labels: list[str], tol: float = RIGID_TOLERANCE) -> None:
     """Every camera-to-world matrix is rigid: last row (0, 0, 0, 1), rotation orthonormal with det +1.
 
     A uniform scale is refused too. The ray generator (``cameras.rays_from_pixels``) normalises ray
@@ -121,15 +116,16 @@ def _check_rigid(c2w: np.ndarray, labels: list[str], tol: float = RIGID_TOLERANC
 
 
 def _frame_params(frame: dict[str, Any], label: str) -> list[float]:
-    """The frame's parameter values: ``params`` (a list of numbers), D-NeRF ``time``, or none."""
+    """The frame's parameter values: ``params`` (a list of numbers), then D-NeRF ``time`` where the
+    frame has it (``_time_column`` folds it into a ``params`` column that repeats it)."""
+    values: list[Any] = []
     if "params" in frame:
         values = frame["params"]
         if not isinstance(values, list):
             raise DatasetError(f"{label}: params must be a list of numbers")
-    elif "time" in frame:
-        values = [frame["time"]]
-    else:
-        return []
+        values = list(values)
+    if "time" in frame:
+        values.append(frame["time"])
     try:
         return [float(v) for v in values]
     except (TypeError, ValueError):
@@ -179,33 +175,6 @@ def _check_unique_images(image_paths: list[Path], labels: list[str]) -> None:
             raise DatasetError(f"{labels[j]} and {labels[i]} use the same image {image}: a frame appears twice")
 
 
-def _load_rgb(path: Path, background: np.ndarray, label: str) -> np.ndarray:
-    """The image as uint8 RGB, RGBA composited on ``background``; refused when it cannot be decoded."""
-    try:
-        with Image.open(path) as im:
-            im.load()
-            if im.mode in ("RGBA", "LA") or (im.mode == "P" and "transparency" in im.info):
-                rgba = np.asarray(im.convert("RGBA"), dtype=np.float32) / 255.0
-                rgb = rgba[..., :3] * rgba[..., 3:] + background * (1.0 - rgba[..., 3:])
-                return np.clip(rgb * 255.0 + 0.5, 0, 255).astype(np.uint8)
-            return np.asarray(im.convert("RGB"), dtype=np.uint8)
-    except _DECODE_ERRORS as exc:
-        raise DatasetError(f"{label}: cannot decode image {path}: {exc}") from None
-
-
-def _check_same_size(images: list[np.ndarray], labels: list[str]) -> None:
-    """Every image has the first frame's size; names the first frame that differs and both sizes."""
-    height, width = images[0].shape[:2]
-    differ = [i for i, im in enumerate(images) if im.shape[:2] != (height, width)]
-    if differ:
-        i = differ[0]
-        h, w = images[i].shape[:2]
-        raise DatasetError(
-            f"images differ in size: {labels[i]} is {w}x{h}, {labels[0]} is {width}x{height} "
-            f"({len(differ)} frame(s) differ from the first)"
-        )
-
-
 def _intrinsics(meta: dict[str, Any], width: int, height: int) -> Intrinsics:
     """The camera intrinsics at the images' size (``_check_intrinsics_given`` ran before)."""
     if "fl_x" in meta:
@@ -246,12 +215,13 @@ def _in_file(path: Path, exc: DatasetError) -> DatasetError:
 def _poses(frames: list[dict[str, Any]], labels: list[str]) -> np.ndarray:
     """The frames' camera-to-world matrices, [n, 4, 4] float64, checked finite and rigid."""
     c2w = np.stack([_pose_matrix(frame, label) for frame, label in zip(frames, labels, strict=True)])
-    _check_rigid(c2w, labels)
+    check_rigid(c2w, labels)
     return c2w
 
 
 def _param_table(frames: list[dict[str, Any]], labels: list[str]) -> np.ndarray:
-    """The frames' parameter values, [n, K] float64, checked to have one length and finite values."""
+    """The frames' parameter values, [n, K] float64 (``params``, then ``time``), checked to have one
+    length and finite values."""
     params = [_frame_params(frame, label) for frame, label in zip(frames, labels, strict=True)]
     _check_param_counts(params, labels)
     values = np.asarray(params, dtype=np.float64).reshape(len(frames), len(params[0]))
@@ -259,12 +229,39 @@ def _param_table(frames: list[dict[str, Any]], labels: list[str]) -> np.ndarray:
     return values
 
 
-def _param_names(meta: dict[str, Any], frames: list[dict[str, Any]], k: int) -> list[str]:
-    """``param_names``, else ``time`` for D-NeRF frames, else ``p0``, ``p1``...; checked to count K."""
-    names = list(meta.get("param_names") or (["time"] if "time" in frames[0] else [f"p{j}" for j in range(k)]))
+def _time_column(frames: list[dict[str, Any]], values: np.ndarray) -> int | None:
+    """The column of ``params`` that equals ``time`` in every frame, when frames carry both."""
+    if not ("time" in frames[0] and "params" in frames[0]):
+        return None
+    time = values[:, -1]
+    same = [j for j in range(values.shape[1] - 1) if np.array_equal(values[:, j], time)]
+    return same[0] if same else None
+
+
+def _param_names(meta: dict[str, Any], frames: list[dict[str, Any]], values: np.ndarray) -> tuple[list[str], np.ndarray]:
+    """Names of the parameter columns and the columns kept: ``param_names`` for ``params`` (``p0``,
+    ``p1``... without it) and ``time`` for a D-NeRF time; a time that repeats a ``params`` column
+    names that column instead of adding one. ``param_names`` may also name the time column."""
+    k = values.shape[1]
+    has_time, has_params = "time" in frames[0], "params" in frames[0]
+    n_params = k - 1 if has_time else k
+    given = meta.get("param_names")
+    if given is not None and not (isinstance(given, list) and all(isinstance(n, str) for n in given)):
+        raise DatasetError("param_names must be a list of strings")
+    names = list(given) if given else [f"p{j}" for j in range(n_params)]
+    if has_time and len(names) == n_params:
+        names.append("time")
     if len(names) != k:
-        raise DatasetError(f"param_names has {len(names)} names for {k} parameters")
-    return names
+        raise DatasetError(f"param_names has {len(names)} names for {n_params} parameters"
+                           + (" and a time" if has_time and has_params else ""))
+    twin = _time_column(frames, values)
+    if twin is not None:
+        if not given:
+            names[twin] = "time"
+        names, values = names[:-1], values[:, :-1]
+    if len(set(names)) != len(names):
+        raise DatasetError(f"parameter names must be unique, got {names}")
+    return names, values
 
 
 def _image_paths(root: Path, frames: list[dict[str, Any]], labels: list[str]) -> list[Path]:
@@ -274,16 +271,21 @@ def _image_paths(root: Path, frames: list[dict[str, Any]], labels: list[str]) ->
     return paths
 
 
-def _load_images(paths: list[Path], labels: list[str], background: np.ndarray, max_workers: int) -> torch.Tensor:
-    """The images as one uint8 [n, h, w, 3] tensor, checked decodable and of one size."""
-    with ThreadPoolExecutor(max_workers=max_workers) as pool:
-        images = list(pool.map(lambda p, label: _load_rgb(p, background, label), paths, labels))
-    _check_same_size(images, labels)
-    return torch.from_numpy(np.stack(images))
+@dataclass(frozen=True)
+class ParsedSplit:
+    """One split as read: the frames, and the parameter table before constant columns are dropped."""
+
+    scene: SceneData
+    param_names: tuple[str, ...]
+    """Every parameter column's name, constant ones included."""
+    param_values: np.ndarray
+    """[n, j] float64 raw values, one column per name."""
+    notes: tuple[str, ...] = ()
+    """How the source's fields were read (which column became what, and why)."""
 
 
-def load_transforms(path: str | Path, max_workers: int = 2) -> SceneData:
-    """Load one split (``transforms_<split>.json``) into a SceneData.
+def read_transforms(path: str | Path, max_workers: int = 2) -> ParsedSplit:
+    """Read one split (``transforms_<split>.json``): its frames and its full parameter table.
 
     Everything the JSON alone can show is checked before any image is decoded; every refusal is a
     DatasetError naming the split file, the frame(s) concerned and the problem.
@@ -297,18 +299,17 @@ def load_transforms(path: str | Path, max_workers: int = 2) -> SceneData:
     background = np.array([1.0, 1.0, 1.0] if white else [0.0, 0.0, 0.0], dtype=np.float32)
     try:
         c2w = _poses(frames, labels)
-        values = _param_table(frames, labels)
-        names = _param_names(meta, frames, values.shape[1])
+        names, values = _param_names(meta, frames, _param_table(frames, labels))
         image_paths = _image_paths(root, frames, labels)
         _check_intrinsics_given(meta)
         bbox = _bbox(meta)
-        images = _load_images(image_paths, labels, background, max_workers)
+        images = load_images(image_paths, labels, background, max_workers)
     except DatasetError as exc:
         raise _in_file(path, exc) from None
     keep, axes = axes_from_values(names, values)
     height, width = images.shape[1:3]
     scene = meta.get("scene", {}) if isinstance(meta.get("scene"), dict) else {}
-    return SceneData(
+    data = SceneData(
         images=images,
         c2w=torch.from_numpy(c2w).float(),
         intrinsics=_intrinsics(meta, width, height),
@@ -322,11 +323,9 @@ def load_transforms(path: str | Path, max_workers: int = 2) -> SceneData:
         file_paths=tuple(str(p) for p in image_paths),
         source=str(path),
     )
+    return ParsedSplit(data, tuple(names), values)
 
 
-def load_dataset(folder: str | Path, split: str = "train") -> SceneData:
-    """Load ``folder/transforms_<split>.json``."""
-    folder = Path(folder)
-    if not folder.is_dir():
-        raise DatasetError(f"dataset folder {folder} does not exist")
-    return load_transforms(folder / f"transforms_{split}.json")
+def load_transforms(path: str | Path, max_workers: int = 2) -> SceneData:
+    """The frames of one split (``transforms_<split>.json``); ``read_transforms`` gives its table too."""
+    return read_transforms(path, max_workers).scene
