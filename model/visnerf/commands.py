@@ -246,7 +246,7 @@ def _trainer_from_checkpoint(path: Path, train: "SceneData", val: "SceneData | N
 def _render(args: argparse.Namespace) -> int:
     from PIL import Image
 
-    from visnerf.inference import load_scene
+    from visnerf.inference import choose_lens, load_scene
 
     try:
         width, height = (int(v) for v in args.size.lower().split("x"))
@@ -265,10 +265,10 @@ def _render(args: argparse.Namespace) -> int:
         scene = load_scene(args.checkpoint, pick_device(args.device))
         cam = scene.info.camera
         distance = args.distance if args.distance is not None else cam.get("distance", 2.0)
-        fov = args.fov if args.fov is not None else cam.get("fov_deg", 30.0)
+        fov, view_height = choose_lens(cam, args.fov, args.view_height)
         t0 = time.perf_counter()
         image = scene.render(orbit_c2w(args.azimuth, args.elevation, distance), fov, width, height, params,
-                             args.quality)
+                             args.quality, view_height=view_height)
         ms = 1000 * (time.perf_counter() - t0)
     except (CheckpointError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
@@ -380,7 +380,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.add_argument("--azimuth", type=float, default=0.0)
     r.add_argument("--elevation", type=float, default=0.0)
     r.add_argument("--distance", type=float, default=None)
-    r.add_argument("--fov", type=float, default=None, help="horizontal field of view in degrees")
+    r.add_argument("--fov", type=float, default=None, help="horizontal field of view in degrees (perspective)")
+    r.add_argument("--view-height", type=float, default=None, metavar="UNITS",
+                   help="world units the image spans vertically (orthographic; the default for a scene "
+                        "trained from orthographic images)")
     r.add_argument("--param", action="append", default=[], metavar="NAME=VALUE")
     r.add_argument("--size", default="256x256", metavar="WxH")
     r.add_argument("--quality", choices=("full", "preview"), default="full")

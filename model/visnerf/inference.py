@@ -38,6 +38,7 @@ __all__ = [
     "RenderCancelled",
     "SceneInfo",
     "SceneRenderer",
+    "choose_lens",
     "load_scene",
 ]
 
@@ -63,7 +64,8 @@ class SceneInfo:
     """``dvr`` (direct volume rendering) or ``ir`` (isosurface rendering)."""
     params: tuple[ParamAxisInfo, ...]
     camera: dict[str, float]
-    """Default camera: azimuth, elevation, distance (orbit degrees), fov_deg."""
+    """Default camera: azimuth, elevation, distance (orbit degrees), and fov_deg, or view_height for
+    a scene trained from orthographic images."""
     bbox: tuple[tuple[float, float, float], tuple[float, float, float]]
     image_size: tuple[int, int]
     """(width, height) of the training images."""
@@ -86,6 +88,21 @@ def _scene_info(meta: CheckpointMeta) -> SceneInfo:
         background=tuple(meta.background),  # type: ignore[arg-type]
         training=dict(meta.provenance),
     )
+
+
+def choose_lens(
+    camera: Mapping[str, float], fov_deg: float | None = None, view_height: float | None = None
+) -> tuple[float | None, float | None]:
+    """(fov_deg, view_height) for a frame, one of them None: a lens asked for, else the scene's own
+    (orthographic where its default camera has a ``view_height``, else its field of view, 30 degrees
+    when it names none). Asking for both is a ValueError."""
+    if fov_deg is not None and view_height is not None:
+        raise ValueError("give a field of view (perspective) or a view height (orthographic), not both")
+    if fov_deg is not None or view_height is not None:
+        return fov_deg, view_height
+    if "view_height" in camera:
+        return None, float(camera["view_height"])
+    return float(camera.get("fov_deg", 30.0)), None
 
 
 TRIM_AFTER_PIXELS = 512 * 512
@@ -146,33 +163,41 @@ class SceneRenderer:
     def render(
         self,
         c2w: np.ndarray,
-        fov_deg: float,
+        fov_deg: float | None,
         width: int,
         height: int,
         params: Mapping[str, float] | None = None,
         quality: Quality = "full",
         cancel: CancelCheck | None = None,
         background: BackgroundRunner | None = None,
+        view_height: float | None = None,
     ) -> np.ndarray:
         """Render one frame: uint8 array [height, width, 3].
 
         ``c2w`` is a 4x4 camera-to-world matrix in OpenGL axes; ``fov_deg`` the horizontal field of
-        view. ``preview`` renders at half resolution with twice the step and upsamples.
+        view of a perspective camera, or ``view_height`` (with ``fov_deg`` None) the world units an
+        orthographic camera's image spans vertically. ``preview`` renders at half resolution with
+        twice the step and upsamples.
         Raises ValueError for any invalid input (nothing is rendered then), and RenderCancelled
         once ``cancel`` answers True (asked between chunks of rays). ``background`` runs the build
         of this parameter setting's occupancy grid when one is due (default: the scene's own
         thread; ``rendering.setting_occupancy``).
         """
         m = check_rigid_c2w(c2w)
-        if not (math.isfinite(fov_deg) and 0.0 < fov_deg < 180.0):
+        if (fov_deg is None) == (view_height is None):
+            raise ValueError("give fov_deg (perspective) or view_height (orthographic), one of them")
+        if fov_deg is not None and not (math.isfinite(fov_deg) and 0.0 < fov_deg < 180.0):
             raise ValueError(f"fov_deg must be in (0, 180), got {fov_deg}")
+        if view_height is not None and not (math.isfinite(view_height) and view_height > 0.0):
+            raise ValueError(f"view_height must be a positive number of world units, got {view_height}")
         if width < 1 or height < 1:
             raise ValueError(f"image size must be positive, got {width}x{height}")
         if quality not in ("preview", "full"):
             raise ValueError(f"quality must be 'preview' or 'full', got {quality!r}")
         values = self.resolve_params(params or {})
         settings = RenderSettings.from_meta(self.meta, quality)
-        intrinsics = Intrinsics.from_fov(width, height, math.radians(fov_deg))
+        intrinsics = (Intrinsics.from_fov(width, height, math.radians(fov_deg)) if fov_deg is not None
+                      else Intrinsics.from_view_height(width, height, float(view_height)))  # type: ignore[arg-type]
         c2w_t = torch.as_tensor(m, dtype=torch.float32, device=self.device)
         normalized = [axis.normalize(v) for axis, v in zip(self.meta.param_axes, values, strict=True)]
         params_t = torch.tensor(normalized, dtype=torch.float32, device=self.device)

@@ -13,7 +13,7 @@ SCENE_KINDS = ("dvr", "ir")
 """What a scene's images show: direct volume rendering or isosurfaces."""
 
 RESERVED_PARAM_NAMES = frozenset(
-    {"azimuth", "elevation", "distance", "c2w", "fov_deg", "width", "height", "quality", "format", "seq"}
+    {"azimuth", "elevation", "distance", "c2w", "fov_deg", "view_height", "width", "height", "quality", "format", "seq"}
 )
 """Names of the camera, image and message fields of a render request. The render server's GET
 query gives a scene's parameters by their own names beside these, so no axis may take one."""
@@ -29,9 +29,11 @@ CAMERA_LIMITS: dict[str, tuple[float, float, bool]] = {
     "elevation": (-90.0, 90.0, False),
     "distance": (0.0, 1e6, True),
     "fov_deg": (0.0, 180.0, True),
+    "view_height": (0.0, 1e6, True),
 }
 """The default camera's values: (low, high, whether the ends are excluded); the render request's
-bounds. ``distance`` may be 1e6, ``fov_deg`` not 180."""
+bounds. ``distance`` may be 1e6, ``fov_deg`` not 180. ``view_height`` (world units) marks an
+orthographic camera, ``fov_deg`` a perspective one: a camera has one or the other."""
 
 
 class MetadataError(ValueError):
@@ -196,6 +198,8 @@ def check_camera(value: Any) -> None:
             raise MetadataError(f"camera.{key} is not a camera value (known: {', '.join(CAMERA_LIMITS)})")
         low, high, open_ends = CAMERA_LIMITS[key]
         _within(f"camera.{key}", _number(f"camera.{key}", entry), low, high, open_ends)
+    if "fov_deg" in value and "view_height" in value:
+        raise MetadataError("camera has both fov_deg (perspective) and view_height (orthographic)")
 
 
 def check_scene_fields(data: dict[str, Any]) -> None:

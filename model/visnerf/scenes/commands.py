@@ -3,11 +3,14 @@
 import argparse
 import json
 import sys
+import time
 from pathlib import Path
 
 import torch
 
+from visnerf.data.parsers.cinema_cameras import CONVENTIONS
 from visnerf.scenes.catalog import SceneSpec, get_scene, scene_catalog
+from visnerf.scenes.cinema_writer import write_cinema_scene
 from visnerf.scenes.writer import DatasetOptions, output_dir_problem, write_scene
 
 
@@ -28,6 +31,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     make.add_argument("--test-views", type=int, default=181, help="views on the test path (default 181)")
     make.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
     make.add_argument("--workers", type=int, default=1, help="render in this many processes (default 1)")
+    make.add_argument("--format", choices=("blender", "cinema"), default="blender",
+                      help="blender: transforms_*.json (default); cinema: DIR/train.cdb and DIR/test.cdb databases")
+    make.add_argument("--convention", choices=CONVENTIONS, default="pycinema",
+                      help="the producer a Cinema database is written like: pycinema (orthographic .h5), "
+                           "paraview or ascent (phi/theta PNG); default pycinema")
     make.add_argument("--force", action="store_true", help="overwrite a non-empty output directory")
     make.add_argument("--quiet", action="store_true", help="no progress bar")
     make.set_defaults(func=make_scene_command)
@@ -61,6 +69,12 @@ def make_scene_command(args: argparse.Namespace) -> int:
         return _fail(problem)
     torch.set_num_threads(args.threads)
     options = DatasetOptions(resolution=args.res, n_views=args.views, n_test_views=args.test_views)
+    if args.format == "cinema":
+        started = time.perf_counter()
+        count = write_cinema_scene(spec, args.out, options, args.convention)
+        print(f"{spec.name}: {count} images ({args.res}x{args.res}, {args.convention}) in "
+              f"{time.perf_counter() - started:.1f} s -> {args.out}/train.cdb, {args.out}/test.cdb")
+        return 0
     summary = write_scene(spec, args.out, options, progress=not args.quiet, workers=args.workers)
     print(
         f"{spec.name}: {summary.n_train} training and {summary.n_test} test images "
