@@ -60,9 +60,11 @@ def make_tiny_checkpoint(
     kind: str = "dvr",
     title: str = "Tiny",
     seed: int = 0,
+    camera: dict[str, float] | None = None,
     **field_options: object,
 ) -> Path:
-    """Write a small valid checkpoint (about 50 kB) with the given parameter axes."""
+    """Write a small valid checkpoint (about 50 kB) with the given parameter axes (and default
+    camera: ``view_height`` in place of ``fov_deg`` for a scene of orthographic images)."""
     axes_spec = [("a", [0.0, 1.0])] if param_axes is None else param_axes
     field, axes = make_tiny_field(axes_spec, seed, **field_options)
     meta = CheckpointMeta(
@@ -70,7 +72,7 @@ def make_tiny_checkpoint(
         render=RenderConfig(step_ratio=0.5),
         param_axes=axes,
         bbox=((-0.5, -0.5, -0.5), (0.5, 0.5, 0.5)),
-        camera={"azimuth": 30.0, "elevation": 20.0, "distance": 2.5, "fov_deg": 30.0},
+        camera=camera or {"azimuth": 30.0, "elevation": 20.0, "distance": 2.5, "fov_deg": 30.0},
         image_width=64,
         image_height=64,
         title=title,

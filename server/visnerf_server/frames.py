@@ -14,13 +14,14 @@ from PIL import Image
 
 from visnerf import inference
 from visnerf.data.cameras import orbit_c2w
+from visnerf.inference import choose_lens
 from visnerf.rendering.empty_space import EmptySpace
 from visnerf.runtime import release_free_memory
 from visnerf_server.costs import FrameLimits
 from visnerf_server.frame_cache import CachedFrame, FrameCache
 from visnerf_server.metrics import Metrics
 from visnerf_server.rate_limit import ClientRateLimiter, RateLimited
-from visnerf_server.registry import Scene, default_view
+from visnerf_server.registry import DEFAULT_FOV_DEG, Scene, default_view
 from visnerf_server.render_queue import Lane, QueueFullError, RenderQueue
 from visnerf_server.schemas import MEDIA_TYPES, MatrixCamera, RenderRequest
 
@@ -40,7 +41,8 @@ class FrameJob:
 
     scene: Scene
     c2w: np.ndarray
-    fov_deg: float
+    fov_deg: float | None
+    """Horizontal field of view of a perspective frame; None for an orthographic one."""
     width: int
     height: int
     params: dict[str, float]
@@ -49,6 +51,8 @@ class FrameJob:
     format: str
     cost: float = 0.0
     """Rate-limit price: the frame's pixels, a preview pixel at ``FrameLimits.preview_pixel_cost``."""
+    view_height: float | None = None
+    """World units an orthographic frame spans vertically; None for a perspective one."""
 
     @property
     def large(self) -> bool:
@@ -61,7 +65,8 @@ class FrameJob:
             self.scene.id,
             self.scene.version,
             tuple(round(float(x), 9) for x in self.c2w.reshape(-1)),
-            round(self.fov_deg, 9),
+            None if self.fov_deg is None else round(self.fov_deg, 9),
+            None if self.view_height is None else round(self.view_height, 9),
             self.width,
             self.height,
             tuple(sorted(self.params.items())),
@@ -102,7 +107,7 @@ def prepare_frame(scene: Scene, request: RenderRequest, limits: FrameLimits) -> 
     """Check a request against the scene and the server's limits; ValueError names the problem
     (``costs.FrameTooLarge`` for a size over the limits). A size not given is the scene's trained
     size, scaled down to fit the limits."""
-    default_c2w, default_fov = default_view(scene.renderer)
+    default_c2w = default_view(scene.renderer)
     default_w, default_h = limits.default_size(*scene.renderer.info.image_size, request.quality)
     width = request.width if request.width is not None else default_w
     height = request.height if request.height is not None else default_h
@@ -114,11 +119,12 @@ def prepare_frame(scene: Scene, request: RenderRequest, limits: FrameLimits) -> 
         c2w = np.asarray(camera.c2w, dtype=np.float64)
     else:
         c2w = orbit_c2w(camera.azimuth, camera.elevation, camera.distance)
-    fov_deg = request.fov_deg if request.fov_deg is not None else default_fov
+    fov_deg, view_height = choose_lens(scene.renderer.info.camera, request.fov_deg, request.view_height,
+                                       request.projection, DEFAULT_FOV_DEG)
     values = scene.renderer.resolve_params(request.params)
     params = {axis.name: v for axis, v in zip(scene.renderer.info.params, values, strict=True)}
     cost = limits.cost(width, height, request.quality)
-    return FrameJob(scene, c2w, float(fov_deg), width, height, params, request.quality, request.format, cost)
+    return FrameJob(scene, c2w, fov_deg, width, height, params, request.quality, request.format, cost, view_height)
 
 
 def encode_image(image: np.ndarray, fmt: str, quality: int) -> bytes:
@@ -200,6 +206,7 @@ class FrameRenderer:
                 job.quality,  # type: ignore[arg-type]
                 cancel=cancel.is_set,
                 background=self._in_background,
+                view_height=job.view_height,
             )
             rendered = time.perf_counter()
             data = encode_image(image, job.format, self.jpeg_quality)

@@ -16,7 +16,7 @@ import numpy as np
 import torch
 
 from visnerf.data.cameras import orbit_c2w
-from visnerf.inference import SceneRenderer, load_scene
+from visnerf.inference import SceneRenderer, choose_lens, load_scene
 
 logger = logging.getLogger(__name__)
 
@@ -65,21 +65,25 @@ def file_digest(path: Path) -> str:
     return digest.hexdigest()
 
 
-def default_view(renderer: SceneRenderer) -> tuple[np.ndarray, float]:
-    """The scene's default camera: (c2w, horizontal fov in degrees)."""
+DEFAULT_FOV_DEG = 40.0
+"""Field of view of a scene whose checkpoint names no lens."""
+
+
+def default_view(renderer: SceneRenderer) -> np.ndarray:
+    """The scene's default camera pose (c2w); its lens is ``inference.choose_lens`` of its camera."""
     camera = renderer.info.camera
-    c2w = orbit_c2w(
+    return orbit_c2w(
         float(camera.get("azimuth", 0.0)),
         float(camera.get("elevation", 0.0)),
         float(camera.get("distance", 4.0)),
     )
-    return c2w, float(camera.get("fov_deg", 40.0))
 
 
 def probe_render(renderer: SceneRenderer) -> None:
     """Render one tiny frame from the default view; raises ValueError if the result is malformed."""
-    c2w, fov_deg = default_view(renderer)
-    image = renderer.render(c2w, fov_deg, PROBE_SIZE, PROBE_SIZE, {}, "preview")
+    fov_deg, view_height = choose_lens(renderer.info.camera, default_fov=DEFAULT_FOV_DEG)
+    image = renderer.render(default_view(renderer), fov_deg, PROBE_SIZE, PROBE_SIZE, {}, "preview",
+                            view_height=view_height)
     if image.shape != (PROBE_SIZE, PROBE_SIZE, 3) or image.dtype != np.uint8:
         raise ValueError(f"test render returned {image.dtype} {list(image.shape)}, expected uint8 [8, 8, 3]")
 

@@ -11,6 +11,7 @@ from visnerf.data.cameras import check_rigid_c2w
 
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
 Quality = Literal["preview", "full"]
+Projection = Literal["perspective", "orthographic"]
 ImageFormat = Literal["png", "jpeg", "webp"]
 
 MIN_IMAGE_SIZE = 8
@@ -66,8 +67,13 @@ class RenderRequest(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     camera: Camera | None = None
+    projection: Projection | None = None
+    """``perspective`` or ``orthographic``; default: the one ``fov_deg`` or ``view_height`` implies,
+    else the scene's own (orthographic for a scene trained from orthographic images)."""
     fov_deg: float | None = Field(default=None, gt=0.0, lt=180.0)
-    """Horizontal field of view in degrees."""
+    """Horizontal field of view in degrees (perspective)."""
+    view_height: float | None = Field(default=None, gt=0.0, le=1e6)
+    """World units the image spans vertically (orthographic)."""
     width: int | None = Field(default=None, ge=MIN_IMAGE_SIZE, le=ABSOLUTE_MAX_IMAGE_SIZE)
     height: int | None = Field(default=None, ge=MIN_IMAGE_SIZE, le=ABSOLUTE_MAX_IMAGE_SIZE)
     params: dict[str, FiniteFloat] = Field(default_factory=dict, max_length=64)
@@ -148,6 +154,12 @@ class CameraDefaults(BaseModel):
     elevation: float
     distance: float
     fov_deg: float
+    """The scene's field of view; for an orthographic scene the one that frames it alike at ``distance``."""
+    projection: Projection = "perspective"
+    """The projection of the training images, which a client shows by default."""
+    view_height: float
+    """World units an orthographic view spans vertically; for a perspective scene the one that frames
+    it alike at ``distance``."""
 
 
 class SceneSummary(BaseModel):

@@ -17,7 +17,7 @@ from visnerf_server.frames import FrameJob, FrameRenderer, prepare_frame
 from visnerf_server.rate_limit import RateLimited
 from visnerf_server.render_queue import QueueFullError, RenderTimeoutError, WouldOutwaitError
 from visnerf_server.routers.scenes import ERRORS, SceneIdPath, find_scene
-from visnerf_server.schemas import MEDIA_TYPES, ImageFormat, Quality, RenderRequest
+from visnerf_server.schemas import MEDIA_TYPES, ImageFormat, Projection, Quality, RenderRequest
 from visnerf_server.settings import Settings
 
 router = APIRouter(prefix="/api/scenes/{scene_id}/render", tags=["render"])
@@ -39,6 +39,8 @@ RESERVED_QUERY = {
     "distance",
     "c2w",
     "fov_deg",
+    "projection",
+    "view_height",
     "width",
     "height",
     "quality",
@@ -138,7 +140,11 @@ async def render_get(
     elevation: Annotated[float | None, Query(description="Orbit elevation, degrees")] = None,
     distance: Annotated[float | None, Query(description="Orbit distance to the centre")] = None,
     c2w: Annotated[str | None, Query(description="Instead of the orbit: 16 numbers, row-major 4x4")] = None,
-    fov_deg: Annotated[float | None, Query(description="Horizontal field of view, degrees")] = None,
+    fov_deg: Annotated[float | None, Query(description="Horizontal field of view, degrees (perspective)")] = None,
+    projection: Annotated[Projection | None, Query(description="perspective or orthographic; default the "
+                                                    "scene's, or the one fov_deg or view_height implies")] = None,
+    view_height: Annotated[float | None, Query(description="World units the image spans vertically "
+                                                "(orthographic)")] = None,
     width: Annotated[int | None, Query()] = None,
     height: Annotated[int | None, Query()] = None,
     quality: Annotated[Quality, Query()] = "full",
@@ -159,6 +165,7 @@ async def render_get(
                 name, f"parameter {name!r} must be a number, got {given[0]!r}", "float_parsing"
             ) from None
     body: dict[str, Any] = {"fov_deg": fov_deg, "width": width, "height": height, "params": params}
+    body.update({k: v for k, v in (("projection", projection), ("view_height", view_height)) if v is not None})
     body.update(quality=quality, format=format)
     orbit = {"azimuth": azimuth, "elevation": elevation, "distance": distance}
     if c2w is not None:

@@ -5,8 +5,9 @@ from typing import Annotated
 from fastapi import APIRouter, HTTPException, Path, Request, Response
 from fastapi.responses import JSONResponse
 
+from visnerf.inference import choose_lens
 from visnerf_server.dependencies import RegistryDep, ServerDep, TokenDep
-from visnerf_server.registry import SCENE_ID_PATTERN, Scene, SceneRegistry
+from visnerf_server.registry import DEFAULT_FOV_DEG, SCENE_ID_PATTERN, Scene, SceneRegistry
 from visnerf_server.schemas import (
     CameraDefaults,
     ErrorDetail,
@@ -49,13 +50,17 @@ def scene_summary(scene: Scene) -> SceneSummary:
 def scene_detail(scene: Scene) -> SceneDetail:
     info = scene.renderer.info
     camera = info.camera
+    fov_deg, _ = choose_lens(camera, projection="perspective", default_fov=DEFAULT_FOV_DEG)
+    _, view_height = choose_lens(camera, projection="orthographic", default_fov=DEFAULT_FOV_DEG)
     return SceneDetail(
         **scene_summary(scene).model_dump(),
         camera=CameraDefaults(
             azimuth=float(camera.get("azimuth", 0.0)),
             elevation=float(camera.get("elevation", 0.0)),
             distance=float(camera.get("distance", 4.0)),
-            fov_deg=float(camera.get("fov_deg", 40.0)),
+            fov_deg=float(fov_deg),  # type: ignore[arg-type]
+            projection="orthographic" if "view_height" in camera else "perspective",
+            view_height=float(view_height),  # type: ignore[arg-type]
         ),
         bbox=[list(map(float, corner)) for corner in info.bbox],
         image_size=(int(info.image_size[0]), int(info.image_size[1])),
