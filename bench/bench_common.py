@@ -176,7 +176,9 @@ def render_frame(scene: Any, frames: SceneData, i: int, width: int, height: int)
     and parameters, and its ground truth: float32 ``[height, width, 3]`` in [0, 1] each."""
     names = [a.name for a in scene.info.params]
     params = dict(zip(names, frames.params[i].tolist(), strict=True))
-    img = scene.render(frames.c2w[i].double().numpy(), frames.intrinsics.fov_x_deg, width, height, params)
+    k = frames.intrinsics
+    lens = (None, k.view_height) if k.orthographic else (k.fov_x_deg, None)
+    img = scene.render(frames.c2w[i].double().numpy(), lens[0], width, height, params, view_height=lens[1])
     return img.astype(np.float32) / 255.0, frames.images[i].numpy().astype(np.float32) / 255.0
 
 

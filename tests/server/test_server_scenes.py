@@ -2,6 +2,7 @@
 
 import json
 import logging
+import math
 import threading
 import time
 from pathlib import Path
@@ -98,7 +99,9 @@ def test_scene_detail(client: TestClient) -> None:
     assert response.status_code == 200
     scene = response.json()
     assert scene["id"] == "two"
-    assert scene["camera"] == {"azimuth": 30.0, "elevation": 20.0, "distance": 2.5, "fov_deg": 30.0}
+    view_height = 2 * 2.5 * math.tan(math.radians(15.0))  # frames the orbit centre as the 30 degree view
+    assert scene["camera"] == pytest.approx({"azimuth": 30.0, "elevation": 20.0, "distance": 2.5, "fov_deg": 30.0,
+                                             "projection": "perspective", "view_height": view_height})
     assert scene["bbox"] == [[-0.5, -0.5, -0.5], [0.5, 0.5, 0.5]]
     assert scene["image_size"] == [64, 64]  # [width, height]
     assert scene["background"] == [1.0, 1.0, 1.0]
