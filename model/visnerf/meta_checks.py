@@ -13,7 +13,8 @@ SCENE_KINDS = ("dvr", "ir")
 """What a scene's images show: direct volume rendering or isosurfaces."""
 
 RESERVED_PARAM_NAMES = frozenset(
-    {"azimuth", "elevation", "distance", "c2w", "fov_deg", "view_height", "width", "height", "quality", "format", "seq"}
+    {"azimuth", "elevation", "distance", "c2w", "fov_deg", "projection", "view_height", "width", "height", "quality",
+     "format", "seq"}
 )
 """Names of the camera, image and message fields of a render request. The render server's GET
 query gives a scene's parameters by their own names beside these, so no axis may take one."""
