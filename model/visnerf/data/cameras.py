@@ -180,18 +180,6 @@ def orbit_c2w(
     return c2w
 
 
-def look_at_c2w(
-    position: np.ndarray, target: np.ndarray, up: np.ndarray, what: str = "camera"
-) -> np.ndarray:
-    """Camera-to-world matrix (float64, 4x4) of a camera at ``position`` looking at ``target``,
-    its image's up as near ``up`` as the view direction allows (``up`` need not be orthogonal).
-    ValueError naming ``what`` when the camera sits on its target or ``up`` is parallel to the view."""
-    position, target, up = (np.asarray(x, dtype=np.float64).reshape(3) for x in (position, target, up))
-    if not (np.all(np.isfinite(position)) and np.all(np.isfinite(target)) and np.all(np.isfinite(up))):
-        raise ValueError(f"{what}: position, target and up must be finite")
-    return frame_c2w(position, target - position, up, what)
-
-
 def frame_c2w(position: np.ndarray, direction: np.ndarray, up: np.ndarray, what: str = "camera") -> np.ndarray:
     """Camera-to-world matrix (float64, 4x4) of a camera at ``position`` looking along ``direction``
     with its image's up as near ``up`` as the direction allows; ValueError naming ``what`` otherwise."""

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 import torch
 
-from visnerf.data.cameras import Intrinsics, frame_c2w, image_rays, look_at_c2w, orbit_c2w, project_points
+from visnerf.data.cameras import Intrinsics, frame_c2w, image_rays, orbit_c2w, project_points
 
 
 def test_view_height_scale_and_pixel_size() -> None:
@@ -55,13 +55,13 @@ def test_orthographic_projection_inverts_the_rays() -> None:
 
 def test_look_at_accepts_an_up_vector_not_orthogonal_to_the_view() -> None:
     position, target = np.array([1.0, 2.0, 3.0]), np.array([0.2, -0.1, 0.4])
-    c2w = look_at_c2w(position, target, np.array([0.1, 1.0, 0.3]))
+    c2w = frame_c2w(position, target - position, np.array([0.1, 1.0, 0.3]))
     rotation = c2w[:3, :3]
     assert np.allclose(rotation.T @ rotation, np.eye(3), atol=1e-12) and np.linalg.det(rotation) > 0
     forward = (target - position) / np.linalg.norm(target - position)
     assert np.allclose(-c2w[:3, 2], forward, atol=1e-12)
     assert c2w[:3, 1] @ np.array([0.1, 1.0, 0.3]) > 0  # the image's up leans the way it was asked
-    assert np.allclose(look_at_c2w(np.array([0, 0, 2.0]), np.zeros(3), np.array([0, 1.0, 0])),
+    assert np.allclose(frame_c2w(np.array([0, 0, 2.0]), np.array([0, 0, -2.0]), np.array([0, 1.0, 0])),
                        orbit_c2w(0.0, 0.0, 2.0), atol=1e-12)
 
 
@@ -73,4 +73,4 @@ def test_up_parallel_to_the_view_is_refused(up) -> None:
 
 def test_camera_on_its_target_is_refused() -> None:
     with pytest.raises(ValueError, match="sits on its target"):
-        look_at_c2w(np.ones(3), np.ones(3), np.array([0.0, 1.0, 0.0]))
+        frame_c2w(np.ones(3), np.zeros(3), np.array([0.0, 1.0, 0.0]))

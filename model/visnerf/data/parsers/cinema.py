@@ -87,8 +87,8 @@ def _h5_camera(meta: dict[str, np.ndarray], label: str) -> tuple[np.ndarray, tup
     try:
         pos, direction, up = (np.asarray(meta[k], dtype=np.float64).reshape(3) for k in ("CameraPos", "CameraDir", "CameraUp"))
         c2w = frame_c2w(pos, direction, up, label)
-    except ValueError as exc:
-        raise DatasetError(str(exc) if label in str(exc) else f"{label}: {exc}") from None
+    except ValueError as exc:  # frame_c2w's message names the row
+        raise DatasetError(str(exc)) from None
     if "CameraHeight" in meta:
         value, kind = float(meta["CameraHeight"]), "view_height"
     elif "CameraAngle" in meta:
@@ -275,7 +275,7 @@ def read_cinema(path: str | Path, camera: CinemaCamera | None = None, max_worker
     background = np.asarray(options.background, dtype=np.float32)
     if lens is None:
         options.intrinsics(8, 8, str(table.path))  # the lens is known before any image is decoded
-    depths: list[np.ndarray | None] = []
+    depths: dict[Path, np.ndarray | None] = {}
 
     def decode(p: Path, bg: np.ndarray, label: str) -> np.ndarray:
         if p.suffix.lower() != ".h5":
@@ -284,16 +284,16 @@ def read_cinema(path: str | Path, camera: CinemaCamera | None = None, max_worker
             rgb, depth = _h5_pixels(p, bg, label)
         except DECODE_ERRORS as exc:
             raise DatasetError(f"{label}: cannot decode {p}: {exc}") from None
-        depths.append(depth)
+        depths[p] = depth
         return rgb
 
-    images = load_images(paths, labels, background, 1 if any(h5) else max_workers, decode)
+    images = load_images(paths, labels, background, max_workers, decode)
     height, width = images.shape[1:3]
     intrinsics = _h5_intrinsics(lens, width, height) if lens else options.intrinsics(width, height, str(table.path))
     keep, axes = axes_from_values(names, values)
     notes += [f"column {n!r}: a parameter axis" for j, n in enumerate(names) if j in keep]
     notes += [f"column {n!r}: constant, dropped" for j, n in enumerate(names) if j not in keep]
-    has_depth = bool(depths) and all(d is not None for d in depths)
+    has_depth = bool(depths) and all(depths[p] is not None for p in paths)
     scene = SceneData(
         images=images,
         c2w=torch.from_numpy(c2w).float(),
@@ -307,6 +307,6 @@ def read_cinema(path: str | Path, camera: CinemaCamera | None = None, max_worker
         kind=options.kind,
         file_paths=tuple(str(p) for p in paths),
         source=str(table.path),
-        depths=torch.from_numpy(np.stack(depths)) if has_depth else None,  # type: ignore[arg-type]
+        depths=torch.from_numpy(np.stack([depths[p] for p in paths])) if has_depth else None,  # type: ignore[misc]
     )
     return ParsedSplit(scene, tuple(names), values, tuple(notes))
