@@ -107,16 +107,17 @@ export function getScene(sceneId, options) {
 /**
  * The GET render URL of one frame (usable as an <img src> or a download link).
  * @param {string} sceneId
- * @param {{camera: {azimuth:number, elevation:number, distance:number}, fovDeg:number,
- *          width:number, height:number, params: Object<string, number>,
- *          quality?: "preview"|"full", format?: "png"|"jpeg"|"webp"}} req
+ * @param {{camera: {azimuth:number, elevation:number, distance:number}, fovDeg?:number|null,
+ *          viewHeight?:number|null, width:number, height:number, params: Object<string, number>,
+ *          quality?: "preview"|"full", format?: "png"|"jpeg"|"webp"}} req  (a viewHeight asks for an
+ *          orthographic frame, a fovDeg for a perspective one)
  */
 export function renderUrl(sceneId, req) {
   const query = new URLSearchParams({
     azimuth: String(req.camera.azimuth),
     elevation: String(req.camera.elevation),
     distance: String(req.camera.distance),
-    fov_deg: String(req.fovDeg),
+    ...Object.fromEntries(Object.entries(lensFields(req)).map(([k, v]) => [k, String(v)])),
     width: String(req.width),
     height: String(req.height),
     quality: req.quality || "full",
@@ -124,6 +125,12 @@ export function renderUrl(sceneId, req) {
   });
   for (const [name, value] of Object.entries(req.params || {})) query.set(name, String(value));
   return `/api/scenes/${encodeURIComponent(sceneId)}/render?${query}`;
+}
+
+/** The lens of a request as the API names it: {projection, fov_deg} or {projection, view_height}. */
+export function lensFields(req) {
+  if (Number.isFinite(req.viewHeight)) return { projection: "orthographic", view_height: req.viewHeight };
+  return { projection: "perspective", fov_deg: req.fovDeg };
 }
 
 /**
@@ -311,7 +318,7 @@ export class RenderStream {
           elevation: req.camera.elevation,
           distance: req.camera.distance,
         },
-        fov_deg: req.fovDeg,
+        ...lensFields(req),
         width: req.width,
         height: req.height,
         params: req.params,

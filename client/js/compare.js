@@ -13,6 +13,7 @@ function sameView(a, b) {
     a.width === b.width &&
     a.height === b.height &&
     a.req.fovDeg === b.req.fovDeg &&
+    a.req.viewHeight === b.req.viewHeight &&
     ca.azimuth === cb.azimuth &&
     ca.elevation === cb.elevation &&
     ca.distance === cb.distance

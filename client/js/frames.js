@@ -49,7 +49,7 @@ export class PreviewSizer {
 }
 
 function requestKey(req) {
-  return JSON.stringify([req.camera, req.fovDeg, req.width, req.height, req.params, req.quality, req.format]);
+  return JSON.stringify([req.camera, req.fovDeg, req.viewHeight, req.width, req.height, req.params, req.quality, req.format]);
 }
 
 /** One stream of frames into one FrameView. */

@@ -143,7 +143,7 @@ function requestBuilder(set) {
     const size = quality === "full" ? state.frameSize() : sizer.size(state);
     return {
       camera: { ...state.camera },
-      fovDeg: state.fovDeg,
+      ...state.lens(),
       width: size.width,
       height: size.height,
       params: { ...(set === "B" ? state.paramsB : state.params) },
@@ -346,6 +346,10 @@ function showCamera() {
   $("#az-value").textContent = state.camera.azimuth.toFixed(1);
   $("#el-value").textContent = state.camera.elevation.toFixed(1);
   $("#dist-value").textContent = state.camera.distance.toFixed(3);
+  const ortho = state.projection === "orthographic";
+  $("#lens-label").textContent = ortho ? "View height" : "Field of view";
+  $("#lens-value").textContent = ortho ? state.viewHeight.toFixed(3) : `${state.fovDeg.toFixed(1)}°`;
+  $("#projection").value = state.projection;
   $("#viewport").setAttribute(
     "aria-label",
     `View. Azimuth ${state.camera.azimuth.toFixed(0)} degrees, elevation ${state.camera.elevation.toFixed(0)} degrees. ` +
@@ -417,6 +421,7 @@ $("#scene-select").addEventListener("change", (event) => {
 });
 
 $("#reset-view").addEventListener("click", () => state.resetCamera());
+$("#projection").addEventListener("change", (event) => state.setProjection(event.target.value));
 
 $("#resolution").addEventListener("change", (event) => state.setResolution(Number(event.target.value)));
 

@@ -44,6 +44,7 @@ function thumbnailUrl(state, kf) {
       distance: kf.camera.distance,
     },
     fovDeg: kf.camera.fov,
+    viewHeight: kf.camera.view_height,
     width: THUMB_WIDTH,
     height: Math.max(16, Math.round((THUMB_WIDTH * h) / w)),
     params: paramsAt({ ...state.path, keyframes: [kf] }, kf.time, state.scene.params),
@@ -81,10 +82,8 @@ class PathPlayer {
   }
 
   apply(time, inputTime) {
-    const camera = cameraAt(this.path, time);
     const options = { interactive: true, inputTime };
-    this.state.setCamera({ azimuth: camera.azimuth, elevation: camera.elevation, distance: camera.distance }, options);
-    this.state.setFov(camera.fov, options);
+    this.state.applyKeyframeCamera(cameraAt(this.path, time), options);
     for (const [name, value] of Object.entries(paramsAt(this.path, time, this.state.scene.params))) {
       this.state.setParam(name, value, options);
     }
@@ -131,9 +130,16 @@ export function setupMoviePanel({ state, alerts, el }) {
     const path = state.path;
     const kf = {
       time: roundTo(nextKeyframeTime(path), 3),
-      camera: { ...state.camera, fov: state.fovDeg },
+      camera: state.keyframeCamera(),
       params: { ...state.params },
     };
+    const pathOrtho = path.keyframes.length ? "view_height" in path.keyframes[0].camera : null;
+    if (pathOrtho !== null && pathOrtho !== "view_height" in kf.camera) {
+      const [was, now] = pathOrtho ? ["orthographic", "perspective"] : ["perspective", "orthographic"];
+      showProblem(`This path is ${was} and the view is ${now}: a path keeps one projection. ` +
+        `Switch the projection back to add to it, or remove its keyframes.`);
+      return;
+    }
     const thumbnail = thumbnailOf(el.canvas);
     if (thumbnail) thumbnails.set(viewKey(kf), thumbnail);
     setPath({ ...path, keyframes: [...path.keyframes, kf] });
@@ -213,9 +219,7 @@ export function setupMoviePanel({ state, alerts, el }) {
     show.append(img);
     show.addEventListener("click", () => {
       player.stop();
-      const { azimuth, elevation, distance } = kf.camera;
-      state.setCamera({ azimuth, elevation, distance }, { interactive: false });
-      state.setFov(kf.camera.fov, { interactive: false });
+      state.applyKeyframeCamera(kf.camera, { interactive: false });
       for (const [name, value] of Object.entries(kf.params)) state.setParam(name, value, { interactive: false });
     });
 
@@ -269,7 +273,8 @@ export function setupMoviePanel({ state, alerts, el }) {
     const c = kf.camera;
     item.title =
       `az ${roundTo(c.azimuth, 1)}°, el ${roundTo(c.elevation, 1)}°, ` +
-      `dist ${roundTo(c.distance, 3)}, fov ${roundTo(c.fov, 1)}°` +
+      `dist ${roundTo(c.distance, 3)}, ` +
+      ("view_height" in c ? `view height ${roundTo(c.view_height, 3)}` : `fov ${roundTo(c.fov, 1)}°`) +
       Object.entries(kf.params).map(([name, v]) => `, ${name} ${roundTo(v, 4)}`).join("");
     item.append(show, head, buttons);
     return item;

@@ -48,7 +48,10 @@ export function showSceneInfo(kindChip, list, scene) {
   add("trained at", `${scene.image_size[0]}×${scene.image_size[1]} px`);
   const ranges = scene.params.map((a) => `${a.name} [${formatValue(a.min, a)}, ${formatValue(a.max, a)}]`);
   add("parameters", ranges.join(", ") || "none");
-  if (Number.isFinite(scene.camera.fov_deg)) add("field of view", `${roundTo(scene.camera.fov_deg, 2)}°`);
+  if (scene.camera.projection === "orthographic") {
+    add("camera", "orthographic");
+    if (Number.isFinite(scene.camera.view_height)) add("view height", scene.camera.view_height);
+  } else if (Number.isFinite(scene.camera.fov_deg)) add("field of view", `${roundTo(scene.camera.fov_deg, 2)}°`);
   for (const [key, value] of Object.entries(scene.training || {})) {
     if (value !== null && typeof value === "object") continue;
     add(key.replace(/_/g, " "), value);
@@ -111,7 +114,7 @@ export function setupExport({ state, alerts, width, height, button }) {
     button.textContent = "Rendering…";
     const req = {
       camera: { ...state.camera },
-      fovDeg: state.fovDeg,
+      ...state.lens(),
       width: w,
       height: h,
       params: { ...state.params },

@@ -20,7 +20,8 @@ export const DEFAULT_SPACING_S = 2;
 
 const TOP_LEVEL_KEYS = ["version", "camera_interpolation", "param_interpolation", "keyframes"];
 const KEYFRAME_KEYS = ["time", "camera", "params"];
-const CAMERA_KEYS = ["azimuth", "elevation", "distance", "fov"];
+const CAMERA_KEYS = ["azimuth", "elevation", "distance", "fov", "view_height"];
+const LENS_KEYS = ["fov", "view_height"];
 
 /** A path that cannot be used; the message names the field, as the server's does
  * (`keyframes[2].camera.elevation: must be in [-90, 90], got 120`). */
@@ -72,26 +73,55 @@ function axisDefault(axis) {
   return Number.isFinite(axis.default) ? axis.default : (axis.min + axis.max) / 2;
 }
 
+/** The projection of a path: that of the first keyframe naming a lens, else the scene's. */
+function pathProjection(rawKeys, defaults) {
+  for (const kf of rawKeys) {
+    const camera = isObject(kf) && isObject(kf.camera) ? kf.camera : {};
+    if ("view_height" in camera) return "orthographic";
+    if ("fov" in camera) return "perspective";
+  }
+  return Number.isFinite(defaults.view_height) ? "orthographic" : "perspective";
+}
+
+/** The scene's lens in `projection` (visnerf.lens.choose_lens): its own, else the one framing the
+ * orbit centre alike from the default distance (view height = 2 d tan(fov / 2)); null for none. */
+function defaultLens(defaults, projection) {
+  const fov = Number.isFinite(defaults.fov) ? defaults.fov : defaults.fov_deg;
+  const height = defaults.view_height;
+  const distance = Number.isFinite(defaults.distance) ? defaults.distance : 2;
+  if (projection === "orthographic") {
+    if (Number.isFinite(height)) return { view_height: height };
+    return Number.isFinite(fov) ? { view_height: 2 * distance * Math.tan((fov * Math.PI) / 360) } : {};
+  }
+  if (Number.isFinite(height)) return { fov: (360 / Math.PI) * Math.atan((0.5 * height) / distance) };
+  return Number.isFinite(fov) ? { fov } : {};
+}
+
 function readCamera(raw, where, defaults) {
   if (!isObject(raw)) throw new PathError(`${where}: must be a JSON object, got ${jsonType(raw)}`);
   if ("c2w" in raw) {
     throw new PathError(`${where}.c2w: this client reads orbit cameras only (azimuth, elevation, distance, fov)`);
   }
   refuseUnknownKeys(raw, CAMERA_KEYS, where);
-  const fallback = { ...defaults };
-  if (!("fov" in fallback) && "fov_deg" in fallback) fallback.fov = fallback.fov_deg;
+  if (LENS_KEYS.every((name) => name in raw)) {
+    throw new PathError(`${where}: give fov (perspective) or view_height (orthographic), not both`);
+  }
+  const lens = LENS_KEYS.find((name) => name in raw) ?? ("view_height" in defaults ? "view_height" : "fov");
   const camera = {};
-  for (const name of CAMERA_KEYS) {
+  for (const name of [...CAMERA_KEYS.slice(0, 3), lens]) {
     if (name in raw) camera[name] = number(raw[name], `${where}.${name}`);
-    else if (Number.isFinite(fallback[name])) camera[name] = fallback[name];
+    else if (Number.isFinite(defaults[name])) camera[name] = defaults[name];
     else throw new PathError(`${where}.${name}: missing, and the scene has no default for it`);
   }
   if (!(camera.elevation >= -90 && camera.elevation <= 90)) {
     throw new PathError(`${where}.elevation: must be in [-90, 90], got ${camera.elevation}`);
   }
   if (!(camera.distance > 0)) throw new PathError(`${where}.distance: must be above 0, got ${camera.distance}`);
-  if (!(camera.fov > 0 && camera.fov < 180)) {
+  if (lens === "fov" && !(camera.fov > 0 && camera.fov < 180)) {
     throw new PathError(`${where}.fov: must be in (0, 180), got ${camera.fov}`);
+  }
+  if (lens === "view_height" && !(camera.view_height > 0)) {
+    throw new PathError(`${where}.view_height: must be above 0, got ${camera.view_height}`);
   }
   return camera;
 }
@@ -121,7 +151,9 @@ function readParams(raw, where, axes) {
  * Check a path document as the server does and return a clean copy. With `axes` ([{name, min,
  * max, default}]) every keyframe names every axis (a missing one takes the axis default) and
  * values outside a range are refused; camera fields left out take `cameraDefaults` (the scene's
- * camera: azimuth, elevation, distance, fov_deg). Throws PathError naming the field.
+ * camera: azimuth, elevation, distance, fov_deg, and view_height for an orthographic scene). The
+ * path keeps one projection: that of its first keyframe naming a lens (fov or view_height), else
+ * the scene's. Throws PathError naming the field.
  */
 export function normalizePath(doc, axes = null, cameraDefaults = {}) {
   if (!isObject(doc)) throw new PathError(`path: must be a JSON object, got ${jsonType(doc)}`);
@@ -148,6 +180,9 @@ export function normalizePath(doc, axes = null, cameraDefaults = {}) {
   if (raw.length > MAX_KEYFRAMES) {
     throw new PathError(`keyframes: at most ${MAX_KEYFRAMES} keyframes, got ${raw.length}`);
   }
+  const projection = pathProjection(raw, cameraDefaults);
+  const defaults = { ...cameraDefaults, ...defaultLens(cameraDefaults, projection) };
+  delete defaults[projection === "orthographic" ? "fov" : "view_height"];
   const keyframes = raw.map((kf, i) => {
     const where = `keyframes[${i}]`;
     if (!isObject(kf)) throw new PathError(`${where}: must be a JSON object, got ${jsonType(kf)}`);
@@ -155,10 +190,15 @@ export function normalizePath(doc, axes = null, cameraDefaults = {}) {
     if (!("time" in kf)) throw new PathError(`${where}.time: missing`);
     const time = number(kf.time, `${where}.time`);
     if (time < 0) throw new PathError(`${where}.time: must be >= 0, got ${time}`);
-    const camera = readCamera(kf.camera ?? {}, `${where}.camera`, cameraDefaults);
+    const camera = readCamera(kf.camera ?? {}, `${where}.camera`, defaults);
     return { time, camera, params: readParams(kf.params ?? {}, `${where}.params`, axes) };
   });
+  const orthographic = "view_height" in keyframes[0].camera;
   for (let i = 1; i < keyframes.length; i += 1) {
+    if (("view_height" in keyframes[i].camera) !== orthographic) {
+      const [first, now] = orthographic ? ["view_height", "fov"] : ["fov", "view_height"];
+      throw new PathError(`keyframes[${i}].camera.${now}: keyframes[0] has a ${first}; a path keeps one projection`);
+    }
     if (!(keyframes[i].time > keyframes[i - 1].time)) {
       const [before, now] = [keyframes[i - 1].time, keyframes[i].time];
       throw new PathError(`keyframes[${i}].time: must be after keyframes[${i - 1}].time (${before}), got ${now}`);
@@ -209,8 +249,9 @@ function directionAt(path, dirs, times, k, t) {
 }
 
 /**
- * The camera at `time` (held at the ends): {azimuth, elevation, distance, fov}. Direction by slerp
- * (`linear`) or spherical Catmull-Rom (`smooth`); distance and fov linear or monotone cubic.
+ * The camera at `time` (held at the ends): {azimuth, elevation, distance, and fov or view_height}.
+ * Direction by slerp (`linear`) or spherical Catmull-Rom (`smooth`); distance and the lens linear
+ * or monotone cubic.
  */
 export function cameraAt(path, time) {
   const kfs = path.keyframes;
@@ -221,10 +262,11 @@ export function cameraAt(path, time) {
   const smooth = path.camera_interpolation === "smooth";
   const along = (values) => (smooth ? pchip(times, values, t) : interp(times, values, t));
   const dirs = kfs.map((kf) => anglesToDirection(kf.camera.azimuth, kf.camera.elevation));
+  const lens = "view_height" in kfs[0].camera ? "view_height" : "fov";
   return {
     ...directionToAngles(directionAt(path, dirs, times, k, t)),
     distance: along(kfs.map((kf) => kf.camera.distance)),
-    fov: along(kfs.map((kf) => kf.camera.fov)),
+    [lens]: along(kfs.map((kf) => kf.camera[lens])),
   };
 }
 
@@ -289,7 +331,8 @@ export function removeKeyframe(path, index) {
 // ---- the URL form -----------------------------------------------------------------------------
 //
 // One `kf` query key per keyframe, its fields joined by "_" (which URLSearchParams leaves as it
-// is): time_azimuth_elevation_distance_fov_p1_p2..., the parameter values in the scene's order.
+// is): time_azimuth_elevation_distance_lens_p1_p2..., the parameter values in the scene's order;
+// the lens is the fov, or "h" and the view height of an orthographic path.
 // A `kfi` key holds the interpolations when they are not the defaults: one letter each, camera
 // then parameters ("s" smooth, "l" linear), e.g. kfi=ls.
 
@@ -312,7 +355,7 @@ export function pathToQueryEntries(path, paramNames) {
       compact(k.camera.azimuth, 2),
       compact(k.camera.elevation, 2),
       compact(k.camera.distance, 4),
-      compact(k.camera.fov, 2),
+      "view_height" in k.camera ? `h${compact(k.camera.view_height, 4)}` : compact(k.camera.fov, 2),
       ...paramNames.map((name) => (name in k.params ? compact(k.params[name], 6) : "")),
     ].join("_"),
   ]);
@@ -343,9 +386,10 @@ export function pathFromQuery(query, axes, cameraDefaults = {}) {
     names.forEach((name, j) => {
       if (fields[5 + j] !== "") params[name] = value(5 + j);
     });
+    const lens = fields[4].startsWith("h") ? { view_height: Number(fields[4].slice(1)) } : { fov: value(4) };
     return {
       time: value(0),
-      camera: { azimuth: value(1), elevation: value(2), distance: value(3), fov: value(4) },
+      camera: { azimuth: value(1), elevation: value(2), distance: value(3), ...lens },
       params,
     };
   });

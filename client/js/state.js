@@ -5,8 +5,9 @@
 import { emptyPath, PathError, pathFromQuery, pathToQueryEntries } from "./path.js";
 
 export const ELEVATION_LIMIT = 89.9;
-/** Zoom range, as multiples of the scene's default camera distance. */
+/** Zoom range, as multiples of the scene's default camera distance (orthographic: view height). */
 export const DISTANCE_RANGE = [0.3, 4.0];
+export const PROJECTIONS = ["perspective", "orthographic"];
 
 /** Wrap an angle in degrees into [-180, 180). */
 export function wrapAzimuth(deg) {
@@ -25,7 +26,7 @@ export function roundTo(value, digits = 4) {
 }
 
 // Keys of the URL that are not parameter names.
-const RESERVED = new Set(["scene", "az", "el", "dist", "fov", "res", "cmp", "kf", "kfi"]);
+const RESERVED = new Set(["scene", "az", "el", "dist", "fov", "proj", "vh", "res", "cmp", "kf", "kfi"]);
 const B_PREFIX = "b.";
 
 export class ViewState extends EventTarget {
@@ -33,7 +34,9 @@ export class ViewState extends EventTarget {
     super();
     this.scene = null; // the scene description from GET /api/scenes/{id}
     this.camera = { azimuth: 0, elevation: 0, distance: 1 };
-    this.fovDeg = 30;
+    this.fovDeg = 30; // the perspective lens
+    this.projection = "perspective";
+    this.viewHeight = 1; // the orthographic lens: world units the view spans vertically
     this.params = {}; // A
     this.paramsB = {}; // B (comparison)
     this.compare = false;
@@ -55,15 +58,63 @@ export class ViewState extends EventTarget {
     };
   }
 
-  /** The scene's default camera as a path keyframe's fallback: azimuth, elevation, distance, fov. */
+  /** The scene's default camera as a path keyframe's fallback: azimuth, elevation, distance, fov
+   * (and view_height, for a scene of orthographic images). */
   get sceneCamera() {
+    const out = { ...this.defaultCamera, fov: this.sceneFov };
+    if (this.sceneProjection === "orthographic") out.view_height = this.sceneViewHeight;
+    return out;
+  }
+
+  /** The projection of the training images, which the view starts in. */
+  get sceneProjection() {
+    return this.scene && this.scene.camera.projection === "orthographic" ? "orthographic" : "perspective";
+  }
+
+  get sceneFov() {
     const fov = this.scene && this.scene.camera.fov_deg;
-    return { ...this.defaultCamera, fov: Number.isFinite(fov) ? fov : 30 };
+    return Number.isFinite(fov) && fov > 0 && fov < 180 ? fov : 30;
+  }
+
+  /** The scene's view height; for a perspective scene the one framing it alike at the default distance. */
+  get sceneViewHeight() {
+    const h = this.scene && this.scene.camera.view_height;
+    if (Number.isFinite(h) && h > 0) return h;
+    return 2 * this.defaultCamera.distance * Math.tan((this.sceneFov * Math.PI) / 360);
   }
 
   get distanceRange() {
     const d = this.defaultCamera.distance;
     return [d * DISTANCE_RANGE[0], d * DISTANCE_RANGE[1]];
+  }
+
+  get viewHeightRange() {
+    const h = this.sceneViewHeight;
+    return [h * DISTANCE_RANGE[0], h * DISTANCE_RANGE[1]];
+  }
+
+  /** The lens of a render request: {projection, fovDeg, viewHeight}, the other projection's null. */
+  lens() {
+    if (this.projection === "orthographic") return { projection: "orthographic", fovDeg: null, viewHeight: this.viewHeight };
+    return { projection: "perspective", fovDeg: this.fovDeg, viewHeight: null };
+  }
+
+  /** The view's camera as a path keyframe holds it: fov, or view_height when orthographic. */
+  keyframeCamera() {
+    const lens = this.projection === "orthographic" ? { view_height: this.viewHeight } : { fov: this.fovDeg };
+    return { ...this.camera, ...lens };
+  }
+
+  /** Show a keyframe's camera (fov or view_height; the projection follows). */
+  applyKeyframeCamera(camera, options) {
+    const projection = Number.isFinite(camera.view_height) ? "orthographic" : "perspective";
+    const switched = projection !== this.projection;
+    this.projection = projection;
+    const { azimuth, elevation, distance } = camera;
+    this.setCamera({ azimuth, elevation, distance }, options);
+    if (projection === "orthographic") this.setViewHeight(camera.view_height, options);
+    else this.setFov(camera.fov, options);
+    if (switched) this.emit("camera", { interactive: false, ...options });
   }
 
   axis(name) {
@@ -81,7 +132,9 @@ export class ViewState extends EventTarget {
   setScene(scene) {
     this.scene = normalizeScene(scene);
     this.camera = this.defaultCamera;
-    this.fovDeg = Number.isFinite(scene.camera && scene.camera.fov_deg) ? scene.camera.fov_deg : 30;
+    this.fovDeg = this.sceneFov;
+    this.projection = this.sceneProjection;
+    this.viewHeight = this.sceneViewHeight;
     this.params = this.defaultParams();
     this.paramsB = this.defaultParams();
     this.path = emptyPath();
@@ -109,6 +162,32 @@ export class ViewState extends EventTarget {
     this.emit("camera", { interactive, inputTime });
   }
 
+  /** Change the orthographic view height (world units, clamped to the zoom range). */
+  setViewHeight(height, { interactive = true, inputTime } = {}) {
+    if (!Number.isFinite(height) || height <= 0) return;
+    const [lo, hi] = this.viewHeightRange;
+    const next = clamp(height, lo, hi);
+    if (next === this.viewHeight) return;
+    this.viewHeight = next;
+    this.emit("camera", { interactive, inputTime });
+  }
+
+  /** Switch between perspective and orthographic, keeping the framing of the orbit centre
+   * (view height = 2 d tan(fov / 2), as the server's lens rule has it). */
+  setProjection(projection, { interactive = false, inputTime } = {}) {
+    if (!PROJECTIONS.includes(projection) || projection === this.projection) return;
+    const halfTan = Math.tan((this.fovDeg * Math.PI) / 360);
+    if (projection === "orthographic") {
+      const [lo, hi] = this.viewHeightRange;
+      this.viewHeight = clamp(2 * this.camera.distance * halfTan, lo, hi);
+    } else {
+      const [lo, hi] = this.distanceRange;
+      this.camera = { ...this.camera, distance: clamp(this.viewHeight / (2 * halfTan), lo, hi) };
+    }
+    this.projection = projection;
+    this.emit("camera", { interactive, inputTime });
+  }
+
   orbit(dAzimuth, dElevation, options) {
     this.setCamera(
       { azimuth: this.camera.azimuth + dAzimuth, elevation: this.camera.elevation + dElevation },
@@ -116,12 +195,20 @@ export class ViewState extends EventTarget {
     );
   }
 
+  /** Zoom: the camera distance, or the view height of an orthographic view (whose image does not
+   * change with distance). */
   zoom(factor, options) {
-    this.setCamera({ distance: this.camera.distance * factor }, options);
+    if (this.projection === "orthographic") this.setViewHeight(this.viewHeight * factor, options);
+    else this.setCamera({ distance: this.camera.distance * factor }, options);
   }
 
+  /** Back to the scene's default camera and lens. */
   resetCamera() {
-    this.setCamera(this.defaultCamera, { interactive: false });
+    this.camera = this.defaultCamera;
+    this.fovDeg = this.sceneFov;
+    this.projection = this.sceneProjection;
+    this.viewHeight = this.sceneViewHeight;
+    this.emit("camera", { interactive: false });
   }
 
   /** Set one parameter of set "A" or "B", clamped to its range. Returns the stored value. */
@@ -181,6 +268,8 @@ export class ViewState extends EventTarget {
     q.set("az", String(roundTo(this.camera.azimuth, 2)));
     q.set("el", String(roundTo(this.camera.elevation, 2)));
     q.set("dist", String(roundTo(this.camera.distance, 4)));
+    if (this.projection !== this.sceneProjection) q.set("proj", this.projection === "orthographic" ? "o" : "p");
+    if (this.projection === "orthographic") q.set("vh", String(roundTo(this.viewHeight, 4)));
     for (const axis of this.scene.params) {
       if (!RESERVED.has(axis.name)) q.set(axis.name, String(roundTo(this.params[axis.name], 6)));
     }
@@ -208,6 +297,12 @@ export class ViewState extends EventTarget {
     if (num("el") !== undefined) camera.elevation = clamp(num("el"), -ELEVATION_LIMIT, ELEVATION_LIMIT);
     if (num("dist") !== undefined) camera.distance = clamp(num("dist"), dMin, dMax);
     this.camera = camera;
+    const proj = { o: "orthographic", p: "perspective" }[query.get("proj")];
+    this.projection = proj || this.sceneProjection;
+    if (num("vh") !== undefined && num("vh") > 0) {
+      const [lo, hi] = this.viewHeightRange;
+      this.viewHeight = clamp(num("vh"), lo, hi);
+    }
     for (const axis of this.scene ? this.scene.params : []) {
       const a = num(axis.name);
       if (a !== undefined && !RESERVED.has(axis.name)) this.params[axis.name] = clamp(a, axis.min, axis.max);

@@ -246,7 +246,8 @@ def _trainer_from_checkpoint(path: Path, train: "SceneData", val: "SceneData | N
 def _render(args: argparse.Namespace) -> int:
     from PIL import Image
 
-    from visnerf.inference import choose_lens, load_scene
+    from visnerf.inference import load_scene
+    from visnerf.lens import choose_lens
 
     try:
         width, height = (int(v) for v in args.size.lower().split("x"))

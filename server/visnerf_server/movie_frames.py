@@ -62,6 +62,7 @@ def render_frame(queue: RenderQueue, plan: MoviePlan, spec: FrameSpec, cancel: E
             settings.quality,  # type: ignore[arg-type]
             cancel=cancel.is_set,
             background=lambda build: queue.submit(build, Lane.BACKGROUND),
+            view_height=spec.view_height,
         )
 
     while True:

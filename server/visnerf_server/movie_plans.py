@@ -11,8 +11,9 @@ from dataclasses import dataclass
 
 from visnerf.animation.movie import MovieSettings
 from visnerf.animation.path import AnimationPath, frame_times, orbit_path, parse_path
+from visnerf.lens import choose_lens
 from visnerf_server.costs import FrameLimits
-from visnerf_server.registry import Scene
+from visnerf_server.registry import DEFAULT_FOV_DEG, Scene
 from visnerf_server.schemas import MovieRequest
 from visnerf_server.settings import Settings
 
@@ -85,14 +86,16 @@ def prepare_movie(scene: Scene, request: MovieRequest, frame_limits: FrameLimits
         limits.check(request.orbit, request.width, request.height)  # before anything is sampled
         camera = info.camera
         defaults = {axis.name: axis.default for axis in info.params}
+        fov_deg, view_height = choose_lens(camera, default_fov=DEFAULT_FOV_DEG)
         path = orbit_path(
             request.orbit,
             fps,
             float(camera.get("elevation", 0.0)),
             float(camera.get("distance", 4.0)),
-            float(camera.get("fov_deg", 40.0)),
+            fov_deg,
             defaults,
             start_azimuth=float(camera.get("azimuth", 0.0)),
+            view_height=view_height,
         )
     else:
         path = parse_path(request.path, info.params, info.camera)

@@ -8,10 +8,10 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, field_validator, model_validator
 
 from visnerf.data.cameras import check_rigid_c2w
+from visnerf.lens import Projection
 
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
 Quality = Literal["preview", "full"]
-Projection = Literal["perspective", "orthographic"]
 ImageFormat = Literal["png", "jpeg", "webp"]
 
 MIN_IMAGE_SIZE = 8
@@ -103,7 +103,8 @@ class MovieRequest(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     path: dict[str, Any] | None = None
-    """Keyframes: camera (orbit or c2w), fov, parameter values and time of each."""
+    """Keyframes: camera (orbit or c2w) with a lens (``fov``, or ``view_height`` for an orthographic
+    movie; default the scene's), parameter values and time of each."""
     orbit: int | None = Field(default=None, ge=1, le=ABSOLUTE_MAX_FRAMES)
     """Instead of ``path``: this many frames of one turn around the scene."""
     fps: int = Field(default=30, ge=1, le=120)

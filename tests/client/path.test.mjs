@@ -289,3 +289,25 @@ test("the view state carries the path in its URL; a malformed one is left out wi
   b.setScene(structuredClone(scene));
   assert.equal(b.path.keyframes.length, 0, "a new scene starts without a path");
 });
+
+test("orthographic paths: view heights read, interpolated and written, one projection per path", () => {
+  const ortho = { azimuth: 0, elevation: 0, distance: 2.5, fov: 30, view_height: 1.4 };
+  const doc = (...cameras) => ({ version: 1, keyframes: cameras.map((camera, i) => ({ time: i, camera })) });
+  const p = normalizePath(doc({ azimuth: 0, view_height: 1 }, { azimuth: 40, view_height: 2 }), AXES, SCENE_CAMERA);
+  assert.deepEqual(p.keyframes[0].camera, { azimuth: 0, elevation: 0, distance: 2, view_height: 1 });
+  close(cameraAt({ ...p, camera_interpolation: "linear" }, 0.5).view_height, 1.5, 1e-12, "linear view height");
+  assert.ok(!("fov" in cameraAt(p, 0.5)), "an orthographic path has no field of view");
+  // Keyframes without a lens take the scene's, in the path's projection (as parse.py does).
+  const own = normalizePath(doc({ azimuth: 0 }, { azimuth: 90 }), AXES, ortho);
+  assert.deepEqual(own.keyframes.map((k) => k.camera.view_height), [1.4, 1.4]);
+  const named = normalizePath(doc({ fov: 20 }, {}), AXES, ortho);
+  close(named.keyframes[1].camera.fov, (360 / Math.PI) * Math.atan(0.7 / 2.5), 1e-12, "the fov framing it alike");
+  assert.throws(() => normalizePath(doc({ fov: 30 }, { view_height: 1 }), AXES, ortho),
+    /keyframes\[1\]\.camera\.view_height: keyframes\[0\] has a fov; a path keeps one projection/);
+  assert.throws(() => normalizePath(doc({ fov: 30, view_height: 1 }), AXES, ortho), /not both/);
+  assert.throws(() => normalizePath(doc({ view_height: -1 }), AXES, ortho), /view_height: must be above 0/);
+  // The URL form: "h" and the view height in the lens field.
+  const entries = pathToQueryEntries(p, ["iso", "time"]);
+  assert.deepEqual(entries.map(([, v]) => v.split("_")[4]), ["h1", "h2"]);
+  assert.deepEqual(pathFromQuery(new URLSearchParams(entries), AXES, SCENE_CAMERA).keyframes, p.keyframes);
+});

@@ -110,3 +110,35 @@ test("frame size keeps the training aspect", () => {
   assert.deepEqual(s.frameSize(), { width: 256, height: 128 });
   assert.deepEqual(s.frameSize(0.5), { width: 128, height: 64 });
 });
+
+test("an orthographic scene starts orthographic; zoom scales the view height; switching keeps the framing", () => {
+  const s = new ViewState();
+  s.setScene({ ...structuredClone(SCENE), camera: { ...SCENE.camera, projection: "orthographic", view_height: 1.4 } });
+  assert.equal(s.projection, "orthographic");
+  assert.deepEqual(s.lens(), { projection: "orthographic", fovDeg: null, viewHeight: 1.4 });
+  s.zoom(0.5);
+  assert.equal(s.viewHeight, 0.7);
+  assert.equal(s.camera.distance, 2.5, "an orthographic zoom leaves the camera where it is");
+  s.zoom(0.01);
+  assert.ok(Math.abs(s.viewHeight - 0.3 * 1.4) < 1e-12, "clamped to the zoom range");
+  assert.deepEqual(s.keyframeCamera(), { azimuth: 30, elevation: 20, distance: 2.5, view_height: s.viewHeight });
+  const query = s.toQuery();
+  assert.equal(query.get("proj"), null, "the scene's own projection is not written");
+  const t = new ViewState();
+  t.setScene({ ...structuredClone(SCENE), camera: { ...SCENE.camera, projection: "orthographic", view_height: 1.4 } });
+  t.applyQuery(new URLSearchParams(query.toString()));
+  assert.ok(Math.abs(t.viewHeight - s.viewHeight) < 1e-4);
+  // Perspective: the distance that frames the orbit centre alike at the scene's fov.
+  s.setViewHeight(1.4);
+  s.setProjection("perspective");
+  assert.ok(Math.abs(s.camera.distance - 1.4 / (2 * Math.tan(Math.PI / 12))) < 1e-12);
+  assert.equal(s.toQuery().get("proj"), "p");
+  s.setProjection("orthographic");
+  assert.ok(Math.abs(s.viewHeight - 1.4) < 1e-12, "and back");
+  s.resetCamera();
+  assert.deepEqual([s.projection, s.viewHeight, s.camera.distance], ["orthographic", 1.4, 2.5]);
+  // A perspective scene: the orthographic lens it offers frames it alike from the default distance.
+  const p = fresh();
+  assert.equal(p.projection, "perspective");
+  assert.ok(Math.abs(p.sceneViewHeight - 2 * 2.5 * Math.tan(Math.PI / 12)) < 1e-12);
+});

@@ -403,7 +403,7 @@ def test_a_full_movie_frame_of_512_by_512_or_more_is_large(size: int, quality: s
     renderer = SimpleNamespace(render=lambda *args, **kwargs: image)
     plan = SimpleNamespace(scene=SimpleNamespace(renderer=renderer),
                            settings=SimpleNamespace(width=size, height=size, quality=quality))
-    spec = SimpleNamespace(c2w=None, fov_deg=40.0, params={})
+    spec = SimpleNamespace(c2w=None, fov_deg=40.0, params={}, view_height=None)
     assert render_frame(queue, plan, spec, threading.Event()) is image  # type: ignore[arg-type]
     assert asked == [large]
     queue.shutdown()

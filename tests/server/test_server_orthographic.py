@@ -3,7 +3,9 @@ may ask for either projection; a lens of the other projection is refused."""
 
 import io
 import math
+import time
 
+import av
 import numpy as np
 import pytest
 from fastapi.testclient import TestClient
@@ -75,3 +77,37 @@ def test_bad_view_heights_are_refused_by_the_schema(ortho) -> None:
     client, _ = ortho
     for value in (0, -1, 1e7):
         assert client.post("/api/scenes/flat/render", json={"view_height": value}).status_code == 422
+
+
+def _movie_frames(client: TestClient, body: dict) -> list[np.ndarray]:
+    created = client.post("/api/scenes/flat/movies", json=body)
+    assert created.status_code == 202, created.text
+    job = created.json()
+    deadline = time.monotonic() + 60.0
+    while (status := client.get(job["status_url"]).json())["state"] not in {"done", "failed", "cancelled"}:
+        assert time.monotonic() < deadline, status
+        time.sleep(0.05)
+    assert status["state"] == "done", status
+    with av.open(io.BytesIO(client.get(job["file_url"]).content)) as container:
+        return [f.to_ndarray(format="rgb24") for f in container.decode(container.streams.video[0])]
+
+
+def _psnr(a: np.ndarray, b: np.ndarray) -> float:
+    mse = float(np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2))
+    return float("inf") if mse == 0 else 10.0 * math.log10(255.0**2 / mse)
+
+
+def test_movies_of_an_orthographic_scene_are_orthographic(ortho) -> None:
+    client, scene = ortho
+    c2w = orbit_c2w(30.0, 20.0, 2.5)
+    ortho_frame = scene.render(c2w, None, 48, 48, {}, "full", view_height=1.4)
+    perspective = scene.render(c2w, 40.0, 48, 48, {}, "full")  # the server's default lens
+    orbit = _movie_frames(client, {"orbit": 2, "fps": 10, "width": 48, "height": 48})
+    assert _psnr(orbit[0], ortho_frame) > max(35.0, _psnr(orbit[0], perspective) + 5.0)
+    wide = {"azimuth": 30, "elevation": 20, "distance": 2.5, "view_height": 2.8}
+    path = {"version": 1, "keyframes": [{"time": 0.0, "camera": wide}, {"time": 0.1, "camera": wide}]}
+    framed = _movie_frames(client, {"path": path, "fps": 10, "width": 48, "height": 48})
+    assert _psnr(framed[0], scene.render(c2w, None, 48, 48, {}, "full", view_height=2.8)) > 35.0
+    mixed = {**path, "keyframes": [path["keyframes"][0], {"time": 0.1, "camera": {"fov": 30}}]}
+    refused = client.post("/api/scenes/flat/movies", json={"path": mixed, "width": 48, "height": 48})
+    assert refused.status_code == 422 and "keyframes[1].camera.fov" in refused.text

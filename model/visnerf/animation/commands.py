@@ -129,9 +129,13 @@ def _params(items: list[str], scene: "SceneRenderer") -> dict[str, float]:
 
 def _build_path(args: argparse.Namespace, scene: "SceneRenderer", path_doc: object) -> "AnimationPath":
     from visnerf.animation.path import CameraKey, orbit_path, parse_path, sweep_path, test_path
+    from visnerf.lens import choose_lens
 
     cam = scene.info.camera
-    fov = float(args.fov if args.fov is not None else cam.get("fov_deg", 30.0))
+    try:
+        fov, view_height = choose_lens(cam, args.fov, args.view_height)
+    except ValueError as exc:
+        raise _InputError(f"--fov, --view-height: {exc}") from None
     distance = float(args.distance if args.distance is not None else cam.get("distance", 2.0))
     elevation = float(args.elevation if args.elevation is not None else cam.get("elevation", 0.0))
     azimuth = float(args.azimuth if args.azimuth is not None else cam.get("azimuth", 0.0))
@@ -139,13 +143,13 @@ def _build_path(args: argparse.Namespace, scene: "SceneRenderer", path_doc: obje
     if path_doc is not None:
         return parse_path(path_doc, axes, cam)
     if args.test_path is not None:
-        return test_path(args.test_path, axes, distance, fov, fps=float(args.fps))
+        return test_path(args.test_path, axes, distance, fov, fps=float(args.fps), view_height=view_height)
     params = _params(args.param, scene)
+    camera = CameraKey(azimuth, elevation, distance, fov, view_height)  # names a bad --elevation, --fov...
     if args.orbit is not None:
-        CameraKey(azimuth, elevation, distance, fov)  # names a bad --elevation, --distance or --fov
-        return orbit_path(args.orbit, float(args.fps), elevation, distance, fov, params, start_azimuth=azimuth)
-    return sweep_path(args.sweep, args.frames, float(args.fps), axes, CameraKey(azimuth, elevation, distance, fov),
-                      params)
+        return orbit_path(args.orbit, float(args.fps), elevation, distance, fov, params, start_azimuth=azimuth,
+                          view_height=view_height)
+    return sweep_path(args.sweep, args.frames, float(args.fps), axes, camera, params)
 
 
 def _fps(text: str) -> float:
@@ -177,7 +181,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                                                                "(default: the scene's camera)")
     a.add_argument("--elevation", type=float, default=None, help="elevation of --orbit and --sweep")
     a.add_argument("--distance", type=float, default=None, help="camera distance of --orbit, --sweep, --test-path")
-    a.add_argument("--fov", type=float, default=None, help="horizontal field of view in degrees")
+    lens = a.add_mutually_exclusive_group()
+    lens.add_argument("--fov", type=float, default=None,
+                      help="horizontal field of view in degrees: a perspective movie (default: the scene's lens)")
+    lens.add_argument("--view-height", type=float, default=None, metavar="H",
+                      help="world units the frame spans vertically: an orthographic movie")
     a.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
                    help="a parameter value held during --orbit and --sweep (default: the axis default)")
     a.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N")

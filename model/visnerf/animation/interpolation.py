@@ -58,10 +58,12 @@ class FrameSpec:
 
     c2w: Float[np.ndarray, "4 4"]
     """Camera-to-world (float64, OpenGL axes) of an orbit camera looking at the origin."""
-    fov_deg: float
-    """Horizontal field of view in degrees."""
+    fov_deg: float | None
+    """Horizontal field of view in degrees of a perspective camera; None for an orthographic one."""
     params: dict[str, float]
     """Every axis' value, by name, within its range."""
+    view_height: float | None = None
+    """World units an orthographic camera's image spans vertically; None for a perspective one."""
 
 
 def frame_times(path: AnimationPath, fps: float) -> list[float]:
@@ -101,8 +103,8 @@ def sample_frames(path: AnimationPath, fps: float, axes: Sequence[AxisLike]) -> 
     for t in frame_times(path, fps):
         t = min(t, keys[-1].time)
         params = {a.name: _param_at(path.param_interpolation, times, values[a.name], a, t) for a in axes}
-        c2w, fov = camera.at(t)
-        frames.append(FrameSpec(c2w, fov, params))
+        c2w, lens = camera.at(t)
+        frames.append(FrameSpec(c2w, None, params, lens) if path.orthographic else FrameSpec(c2w, lens, params))
     return frames
 
 
@@ -122,26 +124,27 @@ class _CameraCurve:
         self.times = [k.time for k in self.keys]
         self.dirs = [direction(k.camera) for k in self.keys]
         self.distances = np.array([k.camera.distance for k in self.keys])
-        self.fovs = np.array([k.camera.fov for k in self.keys])
+        self.lenses = np.array([k.camera.lens for k in self.keys])
         self.time_array = np.array(self.times)
         self._segments: dict[int, tuple[list[float], list[np.ndarray], list[np.ndarray], float, bool]] = {}
 
     def at(self, t: float) -> tuple[np.ndarray, float]:
-        """(c2w [4, 4], fov_deg) at time ``t`` within the keyframes' times."""
+        """(c2w [4, 4], lens) at time ``t`` within the keyframes' times; the lens (field of view or
+        view height, ``CameraKey.lens``) interpolates as the distance does."""
         k = max(0, min(bisect.bisect_right(self.times, t) - 1, len(self.keys) - 1))
         if abs(t - self.times[k]) <= 1e-9 * max(1.0, abs(t)) or k == len(self.keys) - 1:
             cam = self.keys[k].camera
-            return orbit_c2w(cam.azimuth, cam.elevation, cam.distance), cam.fov
+            return orbit_c2w(cam.azimuth, cam.elevation, cam.distance), cam.lens
         times = self.time_array
         if self.smooth:
-            distance, fov = pchip(times, self.distances, t), pchip(times, self.fovs, t)
+            distance, lens = pchip(times, self.distances, t), pchip(times, self.lenses, t)
         else:
-            distance, fov = float(np.interp(t, times, self.distances)), float(np.interp(t, times, self.fovs))
+            distance, lens = float(np.interp(t, times, self.distances)), float(np.interp(t, times, self.lenses))
         back = self.direction_at(k, t)
         knots, dirs, rights, closing, level = self._segment(k)
         if level:
             azimuth, elevation = _angles(back)
-            return orbit_c2w(azimuth, elevation, distance), fov
+            return orbit_c2w(azimuth, elevation, distance), lens
         j = max(0, min(bisect.bisect_right(knots, t) - 1, len(knots) - 2))
         right = turn_between(dirs[j], back, rights[j])
         s = (t - self.times[k]) / (self.times[k + 1] - self.times[k])
@@ -149,7 +152,7 @@ class _CameraCurve:
         c2w = np.eye(4)
         c2w[:3, 0], c2w[:3, 1], c2w[:3, 2] = right, cross3(back, right), back
         c2w[:3, 3] = distance * back
-        return c2w, fov
+        return c2w, lens
 
     def direction_at(self, k: int, t: float) -> np.ndarray:
         """The view direction at ``t`` in segment ``k`` (keyframes k and k + 1)."""

@@ -1,8 +1,10 @@
 """The animation path's data: keyframed cameras and parameter values, and its JSON document.
 
 A path is a list of keyframes, each a time (seconds), an orbit camera (azimuth and elevation in
-degrees as ``visnerf.data.cameras.orbit_c2w`` takes them, distance from the origin, horizontal
-field of view) and parameter values. Document, version 1::
+degrees as ``visnerf.data.cameras.orbit_c2w`` takes them, distance from the origin, and a lens:
+the horizontal field of view ``fov`` of a perspective camera or the ``view_height`` of an
+orthographic one, the same projection along the whole path) and parameter values. Document,
+version 1::
 
     {"version": 1, "camera_interpolation": "smooth", "param_interpolation": "linear",
      "keyframes": [{"time": 0.0,
@@ -52,7 +54,7 @@ class AxisLike(Protocol):
 
 @dataclass(frozen=True)
 class CameraKey:
-    """An orbit camera looking at the origin."""
+    """An orbit camera looking at the origin, perspective (``fov``) or orthographic (``view_height``)."""
 
     azimuth: float
     """Degrees; 0 puts the camera on +z, 90 on +x (``orbit_c2w``)."""
@@ -60,16 +62,30 @@ class CameraKey:
     """Degrees in [-90, 90]; 90 looks straight down from +y."""
     distance: float
     """Distance from the origin, > 0."""
-    fov: float
-    """Horizontal field of view in degrees, in (0, 180)."""
+    fov: float | None = None
+    """Horizontal field of view in degrees, in (0, 180), of a perspective camera."""
+    view_height: float | None = None
+    """World units the image spans vertically, > 0, of an orthographic camera (``fov`` None)."""
 
     def __post_init__(self) -> None:
         check_camera(self, "camera")
 
+    @property
+    def orthographic(self) -> bool:
+        return self.view_height is not None
+
+    @property
+    def lens(self) -> float:
+        """The view height of an orthographic camera, else the field of view."""
+        return self.view_height if self.view_height is not None else self.fov  # type: ignore[return-value]
+
 
 def check_camera(camera: CameraKey, where: str) -> None:
     """Raise PathError naming ``where`` for a camera outside the ranges ``CameraKey`` documents."""
-    for name in ("azimuth", "elevation", "distance", "fov"):
+    if (camera.fov is None) == (camera.view_height is None):
+        raise PathError(f"{where}: give fov (perspective) or view_height (orthographic), exactly one")
+    lens = "fov" if camera.fov is not None else "view_height"
+    for name in ("azimuth", "elevation", "distance", lens):
         value = getattr(camera, name)
         if not math.isfinite(value):
             raise PathError(f"{where}.{name}: must be a finite number, got {value}")
@@ -77,8 +93,10 @@ def check_camera(camera: CameraKey, where: str) -> None:
         raise PathError(f"{where}.elevation: must be in [-90, 90], got {camera.elevation:g}")
     if not camera.distance > 0.0:
         raise PathError(f"{where}.distance: must be above 0, got {camera.distance:g}")
-    if not 0.0 < camera.fov < 180.0:
+    if camera.fov is not None and not 0.0 < camera.fov < 180.0:
         raise PathError(f"{where}.fov: must be in (0, 180), got {camera.fov:g}")
+    if camera.view_height is not None and not camera.view_height > 0.0:
+        raise PathError(f"{where}.view_height: must be above 0, got {camera.view_height:g}")
 
 
 @dataclass(frozen=True)
@@ -118,6 +136,15 @@ class AnimationPath:
             if i and not key.time > self.keyframes[i - 1].time:
                 raise PathError(f"keyframes[{i}].time: must be after keyframes[{i - 1}].time "
                                 f"({self.keyframes[i - 1].time:g}), got {key.time:g}")
+            if key.camera.orthographic != self.orthographic:
+                first, this = ("view_height", "fov") if self.orthographic else ("fov", "view_height")
+                raise PathError(f"keyframes[{i}].camera.{this}: keyframes[0] has a {first}; a path keeps "
+                                "one projection")
+
+    @property
+    def orthographic(self) -> bool:
+        """Whether the path's cameras are orthographic (all of them are, or none)."""
+        return self.keyframes[0].camera.orthographic
 
     @property
     def duration(self) -> float:
@@ -134,7 +161,8 @@ class AnimationPath:
                 {
                     "time": key.time,
                     "camera": {"azimuth": key.camera.azimuth, "elevation": key.camera.elevation,
-                               "distance": key.camera.distance, "fov": key.camera.fov},
+                               "distance": key.camera.distance,
+                               ("view_height" if key.camera.orthographic else "fov"): key.camera.lens},
                     "params": dict(key.params),
                 }
                 for key in self.keyframes

@@ -94,7 +94,7 @@ def render_frames(
     once ``cancel`` answers True."""
     for frame in frames:
         yield scene.render(frame.c2w, frame.fov_deg, settings.width, settings.height, frame.params,
-                           settings.quality, cancel)
+                           settings.quality, cancel, view_height=frame.view_height)
 
 
 def write_movie(

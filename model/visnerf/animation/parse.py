@@ -18,11 +18,13 @@ from visnerf.animation.keys import (
     PathError,
 )
 from visnerf.data.cameras import check_rigid_c2w
+from visnerf.lens import Projection, choose_lens
 
 TOP_LEVEL_KEYS = ("version", "camera_interpolation", "param_interpolation", "keyframes")
 KEYFRAME_KEYS = ("time", "camera", "params")
-ORBIT_CAMERA_KEYS = ("azimuth", "elevation", "distance", "fov")
-MATRIX_CAMERA_KEYS = ("c2w", "fov")
+ORBIT_CAMERA_KEYS = ("azimuth", "elevation", "distance", "fov", "view_height")
+MATRIX_CAMERA_KEYS = ("c2w", "fov", "view_height")
+LENS_KEYS = ("fov", "view_height")
 LOOK_AT_TOLERANCE_DEG = 1.0
 """How far from the origin a ``c2w`` camera may look (the renderer's orbit cameras look at it)."""
 
@@ -31,9 +33,12 @@ def parse_path(doc: object, axes: Sequence[AxisLike], camera_defaults: Mapping[s
     """The path a JSON document (already decoded, e.g. by ``json.loads``) describes.
 
     ``axes`` are the scene's parameter axes; ``camera_defaults`` its default camera (keys
-    ``azimuth``, ``elevation``, ``distance`` and ``fov`` or ``fov_deg``, as ``SceneInfo.camera``
-    has them), used for camera fields a keyframe leaves out. Parameter values a keyframe leaves
-    out take the axis default, so every keyframe of the result names every axis.
+    ``azimuth``, ``elevation``, ``distance``, ``fov`` or ``fov_deg``, and ``view_height`` for an
+    orthographic scene, as ``SceneInfo.camera`` has them), used for camera fields a keyframe leaves
+    out. The path's projection is that of the first keyframe naming a lens (``fov`` or
+    ``view_height``), else the scene's; a keyframe naming none takes the scene's lens in it
+    (``visnerf.lens.choose_lens``). Parameter values a keyframe leaves out take the axis default,
+    so every keyframe of the result names every axis.
     """
     if not isinstance(doc, dict):
         raise PathError(f"path: must be a JSON object, got {_json_type(doc)}")
@@ -54,8 +59,40 @@ def parse_path(doc: object, axes: Sequence[AxisLike], camera_defaults: Mapping[s
         raise PathError("keyframes: must hold at least one keyframe")
     if len(raw_keys) > MAX_KEYFRAMES:
         raise PathError(f"keyframes: at most {MAX_KEYFRAMES} keyframes, got {len(raw_keys)}")
-    keyframes = tuple(_keyframe(raw, f"keyframes[{i}]", axes, camera_defaults) for i, raw in enumerate(raw_keys))
+    defaults = _with_lens(camera_defaults, _projection(raw_keys, camera_defaults))
+    keyframes = tuple(_keyframe(raw, f"keyframes[{i}]", axes, defaults) for i, raw in enumerate(raw_keys))
     return AnimationPath(keyframes, camera_interpolation, param_interpolation)
+
+
+def _projection(raw_keys: list, camera_defaults: Mapping[str, float]) -> Projection:
+    """The projection of the first keyframe that names a lens, else the scene's."""
+    for raw in raw_keys:
+        camera = raw.get("camera") if isinstance(raw, dict) else None
+        if isinstance(camera, dict):
+            if "view_height" in camera:
+                return "orthographic"
+            if "fov" in camera:
+                return "perspective"
+    return "orthographic" if "view_height" in camera_defaults else "perspective"
+
+
+def _with_lens(camera_defaults: Mapping[str, float], projection: Projection) -> dict[str, float]:
+    """The scene's default camera with the one lens of ``projection`` (``fov`` or ``view_height``,
+    as a keyframe names it); without a lens where the scene has none."""
+    out = {k: float(v) for k, v in camera_defaults.items() if k not in ("fov", "fov_deg", "view_height")}
+    scene = dict(out)
+    if "fov_deg" in camera_defaults or "fov" in camera_defaults:
+        scene["fov_deg"] = float(camera_defaults.get("fov_deg", camera_defaults.get("fov", 0.0)))
+    if "view_height" in camera_defaults:
+        scene["view_height"] = float(camera_defaults["view_height"])
+    if "fov_deg" not in scene and "view_height" not in scene:
+        return out  # a keyframe without a lens is refused, naming it
+    fov, view_height = choose_lens(scene, projection=projection)
+    if fov is not None:
+        out["fov"] = fov
+    else:
+        out["view_height"] = float(view_height)  # type: ignore[arg-type]
+    return out
 
 
 def _keyframe(raw: object, where: str, axes: Sequence[AxisLike], defaults: Mapping[str, float]) -> Keyframe:
@@ -75,25 +112,29 @@ def _keyframe(raw: object, where: str, axes: Sequence[AxisLike], defaults: Mappi
 def _camera(raw: object, where: str, defaults: Mapping[str, float]) -> CameraKey:
     if not isinstance(raw, dict):
         raise PathError(f"{where}: must be a JSON object, got {_json_type(raw)}")
-    fallback = dict(defaults)
-    if "fov" not in fallback and "fov_deg" in fallback:
-        fallback["fov"] = fallback["fov_deg"]
     if "c2w" in raw:
-        _refuse_unknown_keys(raw, MATRIX_CAMERA_KEYS, where, "a camera given by c2w takes only c2w and fov")
+        _refuse_unknown_keys(raw, MATRIX_CAMERA_KEYS, where,
+                             "a camera given by c2w takes only c2w and fov or view_height")
         azimuth, elevation, distance = orbit_from_look_at(raw["c2w"], f"{where}.c2w")
         values = {"azimuth": azimuth, "elevation": elevation, "distance": distance}
     else:
         _refuse_unknown_keys(raw, ORBIT_CAMERA_KEYS, where)
         values = {name: _number(raw[name], f"{where}.{name}") for name in ORBIT_CAMERA_KEYS[:3] if name in raw}
-    if "fov" in raw:
-        values["fov"] = _number(raw["fov"], f"{where}.fov")
-    for name in ORBIT_CAMERA_KEYS:
+    if all(name in raw for name in LENS_KEYS):
+        raise PathError(f"{where}: give fov (perspective) or view_height (orthographic), not both")
+    lens = next((name for name in LENS_KEYS if name in raw), None)
+    if lens is not None:
+        values[lens] = _number(raw[lens], f"{where}.{lens}")
+    else:
+        lens = "view_height" if "view_height" in defaults else "fov"
+    for name in (*ORBIT_CAMERA_KEYS[:3], lens):
         if name not in values:
-            if name not in fallback:
+            if name not in defaults:
                 raise PathError(f"{where}.{name}: missing, and the scene has no default for it")
-            values[name] = float(fallback[name])
+            values[name] = float(defaults[name])
     try:
-        return CameraKey(values["azimuth"], values["elevation"], values["distance"], values["fov"])
+        return CameraKey(values["azimuth"], values["elevation"], values["distance"], values.get("fov"),
+                         values.get("view_height"))
     except PathError as exc:  # its message names camera.<field>
         raise PathError(f"{where.removesuffix('.camera')}.{exc}") from None
 

@@ -3,7 +3,7 @@ describes (``interpolation``) and ready-made paths (``presets``).
 
     path = parse_path(json.loads(text), scene.info.params, scene.info.camera)
     for frame in sample_frames(path, fps=30.0, axes=scene.info.params):
-        scene.render(frame.c2w, frame.fov_deg, 256, 256, frame.params)
+        scene.render(frame.c2w, frame.fov_deg, 256, 256, frame.params, view_height=frame.view_height)
 """
 
 from visnerf.animation.interpolation import MAX_FRAMES, FrameSpec, frame_times, sample_frames

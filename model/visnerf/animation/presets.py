@@ -21,19 +21,20 @@ def orbit_path(
     fps: float,
     elevation: float,
     distance: float,
-    fov: float,
+    fov: float | None,
     params: Mapping[str, float],
     start_azimuth: float = 0.0,
+    view_height: float | None = None,
 ) -> AnimationPath:
     """One full turn in azimuth at a fixed elevation: ``n_frames`` frames at ``fps``, frame i at
     azimuth ``start_azimuth + 360 i / n_frames`` (the last frame does not repeat the first, so the
-    movie loops). Every frame is a keyframe while there are at most ``MAX_KEYFRAMES`` of them
+    movie loops); ``view_height`` instead of ``fov`` for an orthographic camera. Every frame is a keyframe while there are at most ``MAX_KEYFRAMES`` of them
     (so the camera keeps its elevation exactly), else every k-th frame and the last."""
     _check_frames(n_frames, fps, 1)
     step = max(1, math.ceil((n_frames - 1) / (MAX_KEYFRAMES - 1)))
     indices = sorted({*range(0, n_frames, step), n_frames - 1})
     keyframes = tuple(
-        Keyframe(i / fps, CameraKey(start_azimuth + 360.0 * i / n_frames, elevation, distance, fov), dict(params))
+        Keyframe(i / fps, CameraKey(start_azimuth + 360.0 * i / n_frames, elevation, distance, fov, view_height), dict(params))
         for i in indices
     )
     return AnimationPath(keyframes, camera_interpolation="linear", param_interpolation="linear")
@@ -60,7 +61,8 @@ def sweep_path(
     return AnimationPath((first, last), camera_interpolation="linear", param_interpolation="linear")
 
 
-def test_path(n_views: int, axes: Sequence[AxisLike], distance: float, fov: float, fps: float = 30.0) -> AnimationPath:
+def test_path(n_views: int, axes: Sequence[AxisLike], distance: float, fov: float | None, fps: float = 30.0,
+              view_height: float | None = None) -> AnimationPath:
     """The evaluation protocol's test path (``visnerf.scenes.protocol``): ``n_views`` keyframes
     ``1 / fps`` apart, so ``sample_frames(path, fps, axes)`` gives exactly the cameras
     (``orbit_c2w(azimuth, elevation, distance)``) and parameter values of a generated scene's
@@ -76,7 +78,7 @@ def test_path(n_views: int, axes: Sequence[AxisLike], distance: float, fov: floa
     angles = path_angles(n_views)
     settings = path_params(tuple(protocol_axes), n_views)
     keyframes = tuple(
-        Keyframe(i / fps, CameraKey(az, el, distance, fov),
+        Keyframe(i / fps, CameraKey(az, el, distance, fov, view_height),
                  {a.name: float(v) for a, v in zip(axes, setting, strict=True)})
         for i, ((az, el), setting) in enumerate(zip(angles, settings, strict=True))
     )

@@ -3,7 +3,8 @@
 Protocol (the browser client is written against exactly this):
 
 - client -> server, text JSON: ``{"seq": int, "camera": {"azimuth", "elevation", "distance"} or
-  {"c2w": 4x4}, "fov_deg", "width", "height", "params": {name: value}, "quality", "format"}``.
+  {"c2w": 4x4}, "projection", "fov_deg" or "view_height", "width", "height", "params": {name: value},
+  "quality", "format"}`` (``RenderRequest`` documents each field).
 - server -> client, per rendered frame: text JSON ``{"type": "frame", "seq", "render_ms", "width",
   "height", "format", "dropped"}`` then one binary message with the encoded image.
 - an invalid message gets ``{"type": "error", "seq": n or null, "status": 422 or 404, "detail"}``
