@@ -182,6 +182,7 @@ def _train_as_rank(args: argparse.Namespace) -> int:
         return 2
     if "factor_storage" in field_given:  # storage, not shape: a resumed field may change it
         trainer.field.cfg = dataclasses.replace(trainer.field.cfg, factor_storage=field_given["factor_storage"])
+    trainer.dataset_notes = list(parsed.notes)  # how the columns were read, into the checkpoint
     trainer.distribute(ranks)
 
     def report(row: dict) -> None:

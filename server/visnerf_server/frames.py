@@ -21,7 +21,7 @@ from visnerf_server.costs import FrameLimits
 from visnerf_server.frame_cache import CachedFrame, FrameCache
 from visnerf_server.metrics import Metrics
 from visnerf_server.rate_limit import ClientRateLimiter, RateLimited
-from visnerf_server.registry import DEFAULT_FOV_DEG, Scene, default_view
+from visnerf_server.registry import Scene, default_view
 from visnerf_server.render_queue import Lane, QueueFullError, RenderQueue
 from visnerf_server.schemas import MEDIA_TYPES, MatrixCamera, RenderRequest
 
@@ -120,7 +120,7 @@ def prepare_frame(scene: Scene, request: RenderRequest, limits: FrameLimits) -> 
     else:
         c2w = orbit_c2w(camera.azimuth, camera.elevation, camera.distance)
     fov_deg, view_height = choose_lens(scene.renderer.info.camera, request.fov_deg, request.view_height,
-                                       request.projection, DEFAULT_FOV_DEG)
+                                       request.projection)
     values = scene.renderer.resolve_params(request.params)
     params = {axis.name: v for axis, v in zip(scene.renderer.info.params, values, strict=True)}
     cost = limits.cost(width, height, request.quality)

@@ -13,7 +13,7 @@ from visnerf.animation.movie import MovieSettings
 from visnerf.animation.path import AnimationPath, frame_times, orbit_path, parse_path
 from visnerf.lens import choose_lens
 from visnerf_server.costs import FrameLimits
-from visnerf_server.registry import DEFAULT_FOV_DEG, Scene
+from visnerf_server.registry import Scene
 from visnerf_server.schemas import MovieRequest
 from visnerf_server.settings import Settings
 
@@ -86,7 +86,7 @@ def prepare_movie(scene: Scene, request: MovieRequest, frame_limits: FrameLimits
         limits.check(request.orbit, request.width, request.height)  # before anything is sampled
         camera = info.camera
         defaults = {axis.name: axis.default for axis in info.params}
-        fov_deg, view_height = choose_lens(camera, default_fov=DEFAULT_FOV_DEG)
+        fov_deg, view_height = choose_lens(camera)
         path = orbit_path(
             request.orbit,
             fps,

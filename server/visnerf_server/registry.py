@@ -65,10 +65,6 @@ def file_digest(path: Path) -> str:
     return digest.hexdigest()
 
 
-DEFAULT_FOV_DEG = 40.0
-"""Field of view of a scene whose checkpoint names no lens."""
-
-
 def default_view(renderer: SceneRenderer) -> np.ndarray:
     """The scene's default camera pose (c2w); its lens is ``inference.choose_lens`` of its camera."""
     camera = renderer.info.camera
@@ -81,7 +77,7 @@ def default_view(renderer: SceneRenderer) -> np.ndarray:
 
 def probe_render(renderer: SceneRenderer) -> None:
     """Render one tiny frame from the default view; raises ValueError if the result is malformed."""
-    fov_deg, view_height = choose_lens(renderer.info.camera, default_fov=DEFAULT_FOV_DEG)
+    fov_deg, view_height = choose_lens(renderer.info.camera)
     image = renderer.render(default_view(renderer), fov_deg, PROBE_SIZE, PROBE_SIZE, {}, "preview",
                             view_height=view_height)
     if image.shape != (PROBE_SIZE, PROBE_SIZE, 3) or image.dtype != np.uint8:

@@ -175,6 +175,8 @@ class Trainer:
         self.setup_seconds = setup_seconds
         self.recipe_choices: list[dict] = []
         """The settings chosen from the data and why (``training.recipe``), saved in the checkpoint."""
+        self.dataset_notes: list[str] = []
+        """How the reader took the dataset's columns (``ParsedSplit.notes``), saved in the checkpoint."""
         self.carved: tuple[Tensor, Tensor] | None = None  # (grid, its world box)
         if init_field is None:
             aabb = estimate_bbox(train_scene) if carved is None else carved[1].clone()
@@ -561,6 +563,7 @@ class Trainer:
             "field": self.field.current_config().to_dict(),
             "render": self.render_cfg.to_dict(),
             "choices": self.recipe_choices,
+            "dataset_notes": self.dataset_notes,
             "setup_seconds": self.setup_seconds,
             "ema_mse": self.ema_mse,
             "optimizer": optimizer_doc,
@@ -621,6 +624,7 @@ class Trainer:
             self.carved = (tensors["carved.grid"].bool(), tensors["carved.box"].float())
         self.settings_all = tensors["settings"]
         self.recipe_choices = list(document.get("choices", []))
+        self.dataset_notes = list(document.get("dataset_notes", []))
         self.setup_seconds = float(document.get("setup_seconds", 0.0))
         self.ema_mse = document.get("ema_mse")
 
@@ -700,7 +704,8 @@ class Trainer:
                         "run_states": {"written": self.state.states_written,
                                        "seconds": round(self.state.state_seconds, 2)},
                         "recipe": self.cfg.to_dict(),  # the whole TrainConfig (visnerf info shows it)
-                        "choices": self.recipe_choices, **self.ranks.provenance()},
+                        "choices": self.recipe_choices, "dataset_notes": self.dataset_notes,
+                        **self.ranks.provenance()},
         )
         save_checkpoint(self.field, meta, path)
         write_log(self.state.log, path.with_suffix(".log.csv"))

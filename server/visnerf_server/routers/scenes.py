@@ -7,7 +7,7 @@ from fastapi.responses import JSONResponse
 
 from visnerf.inference import choose_lens
 from visnerf_server.dependencies import RegistryDep, ServerDep, TokenDep
-from visnerf_server.registry import DEFAULT_FOV_DEG, SCENE_ID_PATTERN, Scene, SceneRegistry
+from visnerf_server.registry import SCENE_ID_PATTERN, Scene, SceneRegistry
 from visnerf_server.schemas import (
     CameraDefaults,
     ErrorDetail,
@@ -50,8 +50,8 @@ def scene_summary(scene: Scene) -> SceneSummary:
 def scene_detail(scene: Scene) -> SceneDetail:
     info = scene.renderer.info
     camera = info.camera
-    fov_deg, _ = choose_lens(camera, projection="perspective", default_fov=DEFAULT_FOV_DEG)
-    _, view_height = choose_lens(camera, projection="orthographic", default_fov=DEFAULT_FOV_DEG)
+    fov_deg, _ = choose_lens(camera, projection="perspective")
+    _, view_height = choose_lens(camera, projection="orthographic")
     return SceneDetail(
         **scene_summary(scene).model_dump(),
         camera=CameraDefaults(

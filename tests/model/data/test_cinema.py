@@ -265,3 +265,6 @@ def test_cinema_options_reach_the_reader(databases, tmp_path) -> None:
                           "--iterations", "2", "--quiet"], capture_output=True, text=True)
     assert run.returncode == 0, run.stderr
     assert "paraview, detected: the 'producer' column names ParaView" in run.stderr
+    info = subprocess.run([sys.executable, "-m", "visnerf.cli", "info", str(out)], capture_output=True, text=True)
+    notes = json.loads(info.stdout)["provenance"]["dataset_notes"]  # the training record says how columns were read
+    assert any("the 'producer' column names ParaView" in note for note in notes), notes
