@@ -135,11 +135,8 @@ class FieldConfig:
     """Components of each CP parameter-axis vector."""
     hidden_width: int = 64
     """Hidden layer width of both decoders. 64 rather than 128: the decoders are most of a step's
-    and a frame's work, and at 64 the same minutes buy 1.35 to 1.43 times the steps for the same or
-    better held-out figures (side by side on one AMD EPYC: Nyx's hour, vortex_tf1 and tangle_iso;
-    bench/results/nyx_history.md). 32 made 7 to 9 % more steps than 64, scored the same (tangle_iso
-    29.37 against 29.57 dB, vortex_tf1 38.25 against 38.22) and rendered no faster: at 64 the
-    factor lookups cost about as much as the first layer."""
+    and a frame's work, and 64 buys more steps for the same figures, where 32 gains nothing more
+    (docs/decisions.md, "Configuration defaults")."""
     pos_encoding_freqs: int = 2
     """Frequencies of the positional encoding of x fed to the density decoder."""
     sh_degree: int = 3
@@ -156,17 +153,15 @@ class FieldConfig:
     training values give the surfaces between. -1: none (every axis scales the features)."""
     level_normal_step: float = 1.0
     """Distance in voxels along each axis of the probes whose values of the level field give its
-    normal (``field.level_normal_cosines``; only with a level axis). tangle_iso, 10 minutes on one
-    thread each, side by side: 25.81 dB / 0.931 on its test path at 1 voxel, 25.26 / 0.917 at half
-    a voxel, whose normals carry the voxel-scale ripples of the field into the shading."""
+    normal (``field.level_normal_cosines``; only with a level axis). Closer probes carry the
+    field's voxel-scale ripples into the shading (docs/decisions.md, "Configuration defaults")."""
     level_cosine_powers: tuple[int, ...] = (4, 16, 64)
     """Powers of the positive part of the level field's normal cosine that the colour decoder reads
     beside the cosine itself (only with a level axis). An isosurface renderer's highlight is a high
     power of a cosine (Blinn-Phong with a headlight: exponent 40 in the synthetic scenes, half height
     10.6 degrees from the view), too narrow for one ReLU layer to draw from the cosine alone; the
-    decoder mixes the powers instead. tangle_iso, 12 minutes on one thread, side by side: 29.42 dB /
-    0.972 on its test path with (4, 16, 64), 28.45 / 0.955 without (bench/results/nyx_history.md).
-    (): the cosine alone, as checkpoints that do not name this field."""
+    decoder mixes the powers instead (docs/decisions.md, "Configuration defaults"). (): the
+    cosine alone, as checkpoints that do not name this field."""
     density_shift: float = -2.0
     """Added to the raw density before softplus, so that a fresh field is a faint fog (0.13 per world
     unit at a ``density_scale`` of 1): at TensoRF's -10 the photometric gradient behind the density
@@ -181,9 +176,9 @@ class FieldConfig:
     factor_storage: str = "int8"
     """How the checkpoint file stores the VM planes and lines: ``float32``, ``float16`` or ``int8``
     (planes as int8 codes with a float32 scale per row, ``factor_codec``, lines as float16: about
-    a quarter of the float32 bytes). The field computes in float32 either way. int8 planes of a Nyx
-    model rendered its 24 held-out frames 26.8479 against 26.8486 dB from float16, in 6.76
-    instead of 12.17 MB. Checkpoints that do not say hold float32."""
+    a quarter of the float32 bytes, frames indistinguishable from float16's: docs/decisions.md,
+    "Configuration defaults"). The field computes in float32 either way. Checkpoints that do not
+    say hold float32."""
 
     def __post_init__(self) -> None:
         _check_types(type(self), self.__dict__)
@@ -269,11 +264,10 @@ class RenderConfig:
     exceeds this times the sample spacing in voxels; the weight of the others takes the mean colour
     of the ray's decoded samples (``renderer._unshaded_gain``). A sample's weight in a translucent
     medium grows with the spacing, so a threshold per sample skipped more of the medium the finer
-    the frame was sampled: 3e-3 a sample cost the bundled cosmo_sim 0.73 dB at half a voxel and
-    nothing at 1.5, and made the spacing calibration's fallback its worst setting. Per voxel, 2e-3
-    is within 0.13 dB of the exhaustive frames at 0.5 to 1.5 voxel on the bundled DVR scenes' test
-    paths (bench/results/full_quality_threshold.md). Checkpoints from before store ``full_weight_threshold``, a
-    threshold per sample, which is not read: they take this default."""
+    the frame was sampled; per voxel, it skips the same share at every spacing
+    (bench/results/full_quality_threshold.md; docs/decisions.md, "Configuration defaults").
+    Checkpoints from before store ``full_weight_threshold``, a threshold per sample, which is not
+    read: they take this default."""
     early_stop_eps: float = 1e-4
     """Rays stop once transmittance falls below this (inference)."""
     preview_scale: float = 0.5
@@ -321,8 +315,8 @@ class TrainConfig:
     """Seconds of training (validation excluded). Progress is the larger of the time fraction and
     the step fraction (``step_limit``); the schedule's milestones are fractions of it."""
     batch_rays: int = 2048
-    """Rays per iteration: half the paper's 4096; more, noisier steps fit faster on a CPU (Nyx, 40
-    minutes side by side: 25.61 against 25.10 dB; bench/results/nyx_history.md)."""
+    """Rays per iteration: half the paper's 4096; more, noisier steps fit faster on a CPU
+    (docs/decisions.md, "Configuration defaults")."""
     micro_batch_rays: int = 4096
     """Most rays rendered and back-propagated together within an iteration; the step is the same
     for any value (``micro_batch_samples`` bounds the memory)."""
@@ -335,8 +329,8 @@ class TrainConfig:
     lr_factors: float = 0.02
     """Adam learning rate of grid factors and parameter vectors."""
     lr_networks: float = 2e-3
-    """Adam learning rate of the decoders: twice the paper's 0.001 (Nyx, 30 minutes side by side:
-    26.62 against 26.37 dB)."""
+    """Adam learning rate of the decoders: twice the paper's 0.001 (docs/decisions.md,
+    "Configuration defaults")."""
     betas: tuple[float, float] = (0.9, 0.99)
     """Adam's decay rates of the first and second moment estimates."""
     lr_decay_ratio: float = 0.1
@@ -397,39 +391,33 @@ class TrainConfig:
     """L1 pull of the parameter vectors toward 1."""
     tv_weight_density: float = 0.0
     """Total variation on the density factors: none, as in the paper's Nyx configuration; it smooths
-    the density, and thin filaments need it sharp (Nyx, 60 minutes side by side: 23.87 against
-    22.62 dB at 0.1)."""
+    the density, and thin filaments need it sharp (docs/decisions.md, "Configuration defaults";
+    the recipe sets it for opaque surfaces)."""
     tv_weight_appearance: float = 0.0
     """Total variation on the appearance factors: none, the fit is limited by capacity, not noise
-    (Nyx, 35 minutes side by side: 26.46 against 26.36 dB with 0.01)."""
+    (docs/decisions.md, "Configuration defaults"; the recipe sets it for opaque surfaces)."""
     level_curvature_weight: float = 4.0
     """Weight of the curvature prior of a level axis's field ``g`` (``regularizers.level_curvature``:
     its squared second difference along random directions at random points of the box, over the
     squared span of the levels); nothing without a level axis. The images pin ``g`` only at the
     training surfaces, and the surfaces between training values are its level sets; a ``g`` whose
     slope changes smoothly carries the slope across each band, where a merely smooth ``g`` rises
-    evenly between two surfaces and keeps a shrinking blob's arms too long. tangle_iso, 12 minutes,
-    one thread each, three runs at a time, 181-frame test path: 29.31 dB at 1, 30.10 at 2, 30.36 at
-    4 (the top band, isovalues 0.7 to 0.85: 29.05, 30.52, 31.22); in another trio 30.35 at 4, 30.30
-    at 8, 29.36 at 16; with an earlier recipe (no colour
-    floor, no cosine powers), 23.79 at 0, 25.98 at 1, 25.40 at 3, 22.81 at 10
-    (bench/results/nyx_history.md)."""
+    evenly between two surfaces and keeps a shrinking blob's arms too long (docs/decisions.md,
+    "Configuration defaults")."""
     level_spacing_weight: float = 0.1
     """Weight of the bound on how much a level axis's neighbouring bands differ in slope
     (``regularizers.level_spacing``, nothing within ``level_spacing_ratio``). Without it an opaque
     training surface's level can drift off on fading gradients until the whole occupancy grid lies
-    inside that surface (tangle_iso: the lowest level at -113 against about -1 in a 20-minute run,
-    23.87 dB on the test path; at -52 in a 9000-step one, 23.47 dB). A pull toward even bands
-    instead of a bound cost 10 dB on held-out views at weight 1e-2. What pushed the level is the
-    grid's edge cutting the surface (``training.recipe.SURFACE_CARVE_DILATION`` and
-    ``SURFACE_REFINE_DILATION`` answer it); with the bound alone a seed-1 18000-step run still
-    ended with its lowest band held at the bound, 26.10 dB (bench/results/nyx_history.md)."""
+    inside that surface; a pull toward even bands instead of a bound fits held-out views far worse.
+    What pushed the level is the grid's edge cutting the surface
+    (``training.recipe.SURFACE_CARVE_DILATION`` and ``SURFACE_REFINE_DILATION`` answer it;
+    docs/decisions.md, "Configuration defaults")."""
     level_spacing_ratio: float = 4.0
     """Factor by which neighbouring bands' slopes may differ at no cost (trained tangle_iso fields
     have 1.3 to 1.5)."""
     level_curvature_points: int = 1024
-    """Random points a step for ``level_curvature_weight``: 1024 made 883 steps and 26.24 dB in the
-    runs above, 4096 784 steps and 25.98 dB, none 1082 steps."""
+    """Random points a step for ``level_curvature_weight``: more cost steps and gained nothing
+    (docs/decisions.md, "Configuration defaults")."""
     tv_weight_params: float = 0.01
     """Total variation on the parameter vectors (smoothness along each parameter axis)."""
     stop_eps: float = 1e-4
@@ -455,7 +443,7 @@ class TrainConfig:
     weight_average_span: float = 0.03
     """Return the parameters' moving average over the end of the run instead of their last values
     (``training/weight_average.py``): the span of progress over which an old value's weight falls
-    by a factor of e. 0: off. At 0.03, +0.076 dB on 24 held-out Nyx frames."""
+    by a factor of e. 0: off (docs/decisions.md, "Configuration defaults")."""
     weight_average_from: float = 0.5
     """Progress fraction from which the average is kept; it restarts if the grid is upsampled
     later (a resumed run continues it from its run state)."""

@@ -47,9 +47,8 @@ EXHAUSTIVE_STEP_RATIO = 0.5
 
 EXHAUSTIVE_CHUNK_RAYS = 1024
 """Rays per chunk of an exhaustive frame: every sample of every ray is shaded, so a chunk's
-buffers grow with its rays times its segment. With two threads on the 170^3 Nyx model, one
-256x256 frame raised peak RSS by 0.92 GB at 4096 rays and 0.13 GB at 1024, and took 4.3 against
-3.6 s (the end of training renders such frames to choose the spacing)."""
+buffers grow with its rays times its segment; fewer rays bound the memory and cost no time (the
+end of training renders such frames to choose the spacing; docs/decisions.md, "Rendering")."""
 
 
 BLOCK_RAYS = 262144
@@ -112,9 +111,8 @@ class RenderSettings:
 
         The reference marches the grid because the grid is part of the model: training fits only
         the cells it keeps, and outside them the density has had no photometric loss since the grid
-        was last narrowed. Marched everywhere, the bundled cosmo_sim, plume_time and vortex_tf1
-        scored 25.8, 28.0 and 27.5 dB on 20 test frames where their full-quality frames score 43.0,
-        33.8 and 44.3 (``evaluation.spacing`` explains the same for a Nyx model)."""
+        was last narrowed, and marched everywhere the reference scores far under the frames it
+        judges (docs/decisions.md, "Rendering"; ``evaluation.spacing``)."""
         if quality not in ("full", "preview", "exhaustive"):
             raise ValueError(f"quality must be 'full', 'preview' or 'exhaustive', got {quality!r}")
         settings = cls(

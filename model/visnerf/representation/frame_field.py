@@ -16,9 +16,8 @@ Two more things are done once per frame:
 - with ``dtype=torch.bfloat16`` (where the device has bf16 matrix units, see
   ``runtime.bf16_native``) the folded weights and the row tables are cast once, and the lookups
   and matrix products run in bf16, as the decoders already do in training; coordinates,
-  interpolation fractions, softplus, sigmoid and compositing stay float32. bf16 tables made full
-  frames of the bundled checkpoints 12 to 15 % faster than float32 tables, 64 dB apart (8-bit
-  frames, measured side by side).
+  interpolation fractions, softplus, sigmoid and compositing stay float32: faster frames, the
+  same 8-bit pixels (docs/decisions.md, "Rendering").
 
 On the CPU the tables are not copied: one compiled pass per sample (``vm_kernel``) interpolates
 the grid's own float32 tables and writes the decoder's input row (features, and the positional

@@ -5,10 +5,8 @@ In bfloat16 a decoder's last product (``[m, h]`` by ``[h, o]``, ``o`` 1 for dens
 colour) is oneDNN's, which rounds its output to bfloat16: a raw density of 20 then moves by up to
 0.06, and a level field's ``g`` times its sharpness by more. Here one loop per sample widens the
 row of activations to float32 (a bfloat16 is the top half of a float32) and sums its products with
-float32 weights and bias, so the only bfloat16 rounding left is that of the activations. On the
-bundled checkpoints' 128x128 frames, one thread, interleaved frame by frame against the oneDNN
-product (bench/results/render_speed.md): 3 to 5 % faster frames, 1.5 to 2.6 dB closer to the
-float32 renderer's.
+float32 weights and bias, so the only bfloat16 rounding left is that of the activations: faster
+frames, closer to the float32 renderer's (docs/decisions.md, "Rendering").
 
 The loop releases the GIL, like the other compiled passes (``representation.vm_kernel``).
 """

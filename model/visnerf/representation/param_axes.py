@@ -7,12 +7,10 @@ together: ``[n, n_components]``. Tables start at one, so a fresh field ignores i
 K = 0 the features are ones. Differentiable in the tables.
 
 Training sees the tables only at their knots, where every interpolant gives the row itself, so the
-interpolant decides nothing but the frames between training values. Against the piecewise-linear
-one (the paper's), the same trained checkpoints on their 181-frame test paths, every frame between
-training values (bench/results/param_interpolation.md): vortex_tf2 39.46 against 33.77 dB,
-vortex_tf1 43.80 against 43.20, cosmo_sim 40.22 against 39.98, plume_time 33.57 against 33.46,
-tangle_iso 21.16 against 21.09. A feature that a parameter moves along a curve is followed along
-the curve instead of its chords.
+interpolant decides nothing but the frames between training values. A feature that a parameter
+moves along a curve is followed along the curve instead of its chords: the monotone cubic beats
+the paper's piecewise-linear interpolant between training values (docs/decisions.md,
+"Parameter interpolation").
 """
 
 import torch
@@ -175,11 +173,8 @@ class LevelAxis(nn.Module):
     Training sees the levels only at their knots; the interpolant places every surface between
     them. The levels of a trained sweep are a smooth function of the isovalue, which the natural
     spline (twice continuously differentiable) follows more closely than the monotone cubic of
-    the parameter tables, whose slopes are held back at each knot. On tangle_iso's 181-frame test
-    path, five checkpoints rendered both ways (bench/results/nyx_history.md): 30.50 against 30.36,
-    31.04 against 30.87, 30.53 against 30.34, 30.47 against 30.02, 30.46 against 30.18 dB (the
-    piecewise-linear level: 27.99 and 28.44 for the first two). Each piece is kept between its two
-    knot values.
+    the parameter tables, whose slopes are held back at each knot (docs/decisions.md, "Parameter
+    interpolation"). Each piece is kept between its two knot values.
 
     ``sharpness`` multiplies ``g(x) - level(v)``. A surface is opaque where that difference has
     risen by some ten units, so with a fixed scale the field must rise steeply at the training

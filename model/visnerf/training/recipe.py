@@ -18,8 +18,7 @@ the images and cameras alone, each choice with the reason ``visnerf info`` shows
   within a voxel or two. The density is then scaled by one over the final voxel size
   (``FieldConfig.density_scale``), the fog it starts from kept as it is;
 - dropping occluded samples (``TrainConfig.stop_eps``) only for opaque scenes: a translucent
-  scene's rays seldom turn opaque, and the density pass that finds occluded samples cost Nyx 6 %
-  of its steps;
+  scene's rays seldom turn opaque, and the density pass that finds occluded samples costs steps;
 - colouring light samples at random (``TrainConfig.colour_weight_floor``) only for opaque scenes:
   they start as a fog of light samples and end as surfaces of heavy ones; a translucent scene's
   colour stays spread over light samples, where the draws would add noise to every step;
@@ -40,12 +39,10 @@ the images and cameras alone, each choice with the reason ``visnerf info`` shows
   sets of one learnt field, and a value between two training values gives the surface between
   theirs instead of a blend of both (``param_axes.LevelAxis``). A translucent scene's hulls nest
   too when a transfer function fades its content in and out, so they do not count; a timestep
-  series of opaque surfaces does not nest (plume_time's hulls: 8.9 % of one outside the next);
+  series of opaque surfaces does not nest;
 - the parameter factors: none for K = 0 (the field has no parameter axes then).
 
-On Nyx (256x256, a pixel 0.0021 world units at the content, framed) this gives the tuned recipe's
-200 voxels over the carved +-0.19 cube and the 0.75 carving; on the 128x128 synthetic scenes, 88
-to 104 voxels (a pixel 0.0088 at the origin).
+The measurements behind each choice are in docs/decisions.md.
 """
 
 import dataclasses
@@ -68,14 +65,11 @@ if TYPE_CHECKING:
     from visnerf.training.trainer import Trainer
 
 VOXEL_PER_PIXEL = 0.93
-"""Final voxel size over the pixel footprint at the content: Nyx's detail sits at the pixel
-scale (bench/results/nyx_history.md: 200 voxels over its 0.388 box, 0.00194 world units against
-0.00209 a pixel, beat 170 and 230; 0.93 puts Nyx at 199.4 voxels, mid-way between the roundings
-to 192 and 208)."""
+"""Final voxel size over the pixel footprint at the content: detail at the pixel scale needs
+voxels a little under a pixel (docs/decisions.md, "Recipe: grid and carving")."""
 FACING_VECTORS = 4
-"""Facing vectors of opaque scenes. tangle_static, 10 minutes on one thread each, side by side on a
-Xeon with AMX: 28.98 dB / 0.9645 SSIM on its 181-frame test path against 27.71 / 0.9392 without
-(held-out views 30.88 against 26.53 dB; bench/results/nyx_history.md)."""
+"""Facing vectors of opaque scenes: a headlight's shading follows the cosine between normal and
+view, too sharp for spherical harmonics (docs/decisions.md, "Recipe: opaque surfaces")."""
 RESOLUTION_RANGE = (48, 256)
 """Fewest and most voxels per axis the recipe picks (memory and checkpoint size bound the top)."""
 CARVE_FRAMED_FRACTION = 0.75
@@ -84,9 +78,9 @@ FAINT_CONTRAST = 0.25
 """A foreground pixel is faint when its difference from the background is below this fraction of
 the 99th percentile of the foreground's differences."""
 SURFACE_MAX_FAINT = 0.01
-"""Most faint foreground pixels (a fraction) for a scene to count as opaque surfaces: 0.000 on
-tangle_iso and tangle_static (128x128, 32x32), 0.04 to 0.21 on vortex_tf1, vortex_static, plume_time and
-Nyx (32x32 to 256x256 renders)."""
+"""Most faint foreground pixels (a fraction) for a scene to count as opaque surfaces: isosurface
+renderings have none, volume renderings several per cent (docs/decisions.md, "Recipe: grid and
+carving")."""
 CHOSEN_FIELDS = frozenset({("TrainConfig", "resolution_final"), ("TrainConfig", "carve_min_seen_fraction"),
                            ("FieldConfig", "density_scale"), ("FieldConfig", "density_shift"),
                            ("TrainConfig", "stop_eps"), ("FieldConfig", "facing_vectors"),
@@ -97,65 +91,34 @@ CHOSEN_FIELDS = frozenset({("TrainConfig", "resolution_final"), ("TrainConfig", 
 """The configuration fields ``choose_recipe`` sets from the data unless the user gives them."""
 NEST_TOLERANCE = 0.02
 """Largest share of one setting's visual hull outside its neighbour's for an axis to count as nested
-(``data.nesting``, hulls of ``carve_resolution`` cells): 0.00 % on tangle_iso (whose hulls change by
-up to 64 % between isovalues), 8.9 % on plume_time's timesteps."""
+(``data.nesting``, hulls of ``carve_resolution`` cells): an isovalue sweep's hulls nest exactly, a
+timestep series' do not (docs/decisions.md, "Recipe: opaque surfaces")."""
 SURFACE_TV_DENSITY = 0.1
-"""``TrainConfig.tv_weight_density`` of opaque scenes: total variation on the density factors. A
-level axis's field ``g`` is pinned by the images only at the training surfaces, and the surfaces
-between training values are its level sets there: tangle_iso, 10 minutes on one thread, 181-frame
-test path, 21.98 dB at 0, 22.55 at 0.01, 24.98 at 0.1. A static surface seen from 39 views fits
-them to 48 dB and new views to 29: tangle_static 29.58 against 28.78 dB at 0 (normals of ``g``
-8.5 against 12.8 degrees off the true surface's, median); bench/results/nyx_history.md."""
+"""``TrainConfig.tv_weight_density`` of opaque scenes: the images pin a surface's density only
+where it is seen, and a level axis's surfaces between training values are its level sets there;
+total variation keeps them smooth (docs/decisions.md, "Recipe: opaque surfaces")."""
 SURFACE_TV_APPEARANCE = 0.1
-"""``TrainConfig.tv_weight_appearance`` of opaque scenes: total variation on the appearance factors.
-A point of a surface seen by a few views is coloured by features fitted to those views alone; kept
-smooth, its neighbours' fits carry over. tangle_static, 10 minutes on one thread, 181-frame test
-path: 30.19 dB / 0.973 with 0.1 on both the density and the appearance against 29.58 / 0.964 with
-0.1 on the density alone (bench/results/nyx_history.md)."""
+"""``TrainConfig.tv_weight_appearance`` of opaque scenes: a surface point seen by a few views takes
+its neighbours' fits (docs/decisions.md, "Recipe: opaque surfaces")."""
 SURFACE_COLOUR_FLOOR = 0.1
 """``TrainConfig.colour_weight_floor`` of opaque scenes: lighter samples are coloured at random
-(``rendering.colour_sampling``). An opaque scene starts as a faint fog whose every sample has a
-weight of about 1e-3, and colouring them all made its early steps 5 times as long as its late
-ones (tangle_iso on two threads: 0.5 to 0.63 s a step from the start, 0.18 to 0.2 s at a floor of
-0.03 or more). tangle_iso, 12 minutes on one thread, three at a time, 181-frame test path: 26.15
-dB / 0.934 at 0 (880 steps), then in the next trio 26.98 at 0.01, 27.84 at 0.03, 28.11 / 0.952 at
-0.1 (1711 steps); in a third, 28.45 at 0.1 against 25.92 at 0.3, where a surface's own samples are
-drawn too (bench/results/nyx_history.md)."""
+(``rendering.colour_sampling``), so the early fog of light samples does not make the first steps
+several times as long as the last (docs/decisions.md, "Recipe: opaque surfaces")."""
 SURFACE_CARVE_DILATION = 2
-"""``TrainConfig.carve_dilation`` of opaque scenes. Training samples only inside the carved grid,
-so its edge is a hard cut; at the visual hull, a density that fills the grid renders exactly the
-training views' silhouettes with the colours painted on, and training can settle there.
-tangle_iso's lowest isovalue did so in about one run in four (every grid cell inside its surface,
-its level run off to -113, 17 to 20 dB between the two lowest isovalues). Grown by two cells, a
-filled grid renders silhouettes two cells too wide in every view, and the surface has to come from
-the field: of two replayed failures (24 test-path frames), the one without the level bound went
-from 23.47 to 30.42 dB; the other, with the bound, kept a filled grid whose edge was now the
-refined grid's until ``SURFACE_REFINE_DILATION`` was added (bench/results/nyx_history.md).
-Translucent content does not fit its images as a filled hull, and grown on Nyx the grid would take
-33 % more cells of the content box (649,288 to 863,596 of 96^3)."""
+"""``TrainConfig.carve_dilation`` of opaque scenes: training samples only inside the carved grid,
+and a density filling the exact visual hull renders the training silhouettes with the colours
+painted on; grown by two cells the grid's edge cannot stand in for the surface. Translucent
+content does not fit its images as a filled hull (docs/decisions.md, "Recipe: opaque surfaces")."""
 SURFACE_SILHOUETTE_RAYS = 0.25
 """``TrainConfig.silhouette_ray_fraction`` of opaque scenes with a level axis: a quarter of each
 batch's rays come from the training images' silhouette band
-(``training.ray_batches.silhouette_pixels``, 5.8 % of tangle_iso's pixels). An isosurface
-rendering has no partly covered pixel: a ray meets the surface or the background, and 83 to 95 %
-of the squared error of the bundled tangle_iso's test frames lay
-within a pixel of a silhouette. tangle_iso, 10 minutes on one thread, two at a time, views 3, 11,
-25 held out, 181-frame test path: 30.39 dB against 29.78 at 0 (seed 0; held-out views 32.29
-against 31.77) and 30.37 against 29.97 (seed 1; 32.79 against 32.04); 0.1 gave 30.20 and 0.5
-29.64, its held-out views the best (33.38) but its surfaces between isovalues the worst. Only with
-a level axis, whose normals shade the surface: tangle_static (learnt facing vectors), same
-protocol, one pair, 30.24 dB / 0.973 against 30.75 / 0.981 at 0, though its held-out views rose
-from 31.63 to 33.29 (bench/results/nyx_history.md)."""
+(``training.ray_batches.silhouette_pixels``), where an isosurface rendering's error lies. Only
+with a level axis, whose normals shade the surface (docs/decisions.md, "Recipe: opaque surfaces")."""
 SURFACE_REFINE_DILATION = 1
 """``TrainConfig.occupancy_refine_dilation`` of opaque scenes: refined grids keep a ring of one
 empty cell around the content, and a surface that grows into the ring gets a new one
-(``Trainer.refine_occupancy``). Without it, a surface pressed against the grid's edge is cut
-there, and its level can run past the images' surface at no cost while the cut hides it. The
-replayed failure that the grown carve alone left filled (`--iterations 18000 --seed 1`, lowest
-level held at the level bound, 25.71 dB on 24 test-path frames, 19.8 to 21.6 dB at isovalues 0.30
-to 0.34) ended with both at a healthy lowest level (-0.89) and 28.03 dB (26 to 28 there); with
-the ring alone the grid stayed the filled hull. Both on the replay that the grown carve mended:
-30.41 dB against 30.42 (bench/results/nyx_history.md)."""
+(``Trainer.refine_occupancy``); a surface pressed against the grid's edge would be cut there and
+its level could run past the images' surface unseen (docs/decisions.md, "Recipe: opaque surfaces")."""
 BORDER_PIXELS = 1
 """Width of the image border in which a foreground pixel means content cut by the frame."""
 
@@ -392,8 +355,8 @@ def choose_recipe(scene: SceneData, base: TrainConfig, base_field: FieldConfig,
     elif traits.opaque:
         choices.append(Choice("silhouette_ray_fraction", base.silhouette_ray_fraction,
                               "opaque surfaces without a level field: their shading is learnt from the pixels "
-                              "inside the silhouettes, and a share drawn from the silhouettes cost tangle_static "
-                              "0.5 dB on new views"))
+                              "inside the silhouettes, which a share drawn from the silhouettes would take rays "
+                              "from"))
     else:
         choices.append(Choice("silhouette_ray_fraction", base.silhouette_ray_fraction,
                               "translucent content: its silhouettes fade, and its error is spread over the content"))

@@ -99,10 +99,7 @@ class TrainState:
 
 FUSED_ADAM_DEVICES = ("cpu", "cuda")
 """Devices whose parameters get torch's fused Adam: one pass over each tensor instead of about ten
-elementwise kernels, the same update. On the 200^3 Nyx record (7.7 M parameters) on the 2-core
-CPU, 2.9 against 9.4 ms per optimizer step and 50.6 against 56.4 ms per 2048-ray training step
-(1.12x, medians, alternating), parameters within 1e-6 of the default's after a step
-(bench/results/optimizer_speed.md; on a 170^3 field before, 51.0 against 54.6 ms, 1.07x)."""
+elementwise kernels, the same update to 1e-6 (docs/decisions.md, "Training step")."""
 
 
 def make_optimizer(field_: VisNerfField, cfg: TrainConfig, scale: float) -> torch.optim.Adam:
@@ -503,8 +500,7 @@ class Trainer:
         if cfg.choose_full_spacing:
             # Without held-out frames the training frames serve: the choice weighs each spacing's
             # sampling error against the exhaustive render of the same frame, not how the model
-            # generalises. A tangle_iso run on every view, which kept the configured 0.75 voxel,
-            # chooses 1.25 on 8 training frames: 30.72 dB on its test path against 30.73.
+            # generalises, which costs nothing measurable (docs/decisions.md, "Rendering").
             held_out = self.val_scene is not None
             frames = self.val_scene if held_out else self.scene
             choice = choose_full_spacing(self.field, frames, self.render_cfg, cfg.validate_max_images)
