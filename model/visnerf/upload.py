@@ -10,6 +10,8 @@ from pathlib import Path
 
 import httpx
 
+from visnerf.token_file import TOKEN_FILE_NAME, default_state_dir, read_token_file
+
 
 class UploadError(Exception):
     """The upload did not happen: no token, the server unreachable, or its refusal (the message says which)."""
@@ -26,20 +28,20 @@ class Uploaded:
 
 def find_token(explicit: str | None = None) -> str | None:
     """The upload token: ``explicit``, else ``$VISNERF_TOKEN``, else the file ``$VISNERF_TOKEN_FILE``,
-    else ``token`` in ``$VISNERF_STATE_DIR`` (default ``~/.config/visnerf``), as the server writes it."""
+    else ``token`` in the state folder (``token_file.default_state_dir``), as the server looks for
+    it. UploadError for a named or found token file that cannot be read or is empty."""
     if explicit:
         return explicit
-    if os.environ.get("VISNERF_TOKEN"):
+    if os.environ.get("VISNERF_TOKEN", "").strip():
         return os.environ["VISNERF_TOKEN"].strip()
-    candidates = []
-    if os.environ.get("VISNERF_TOKEN_FILE"):
-        candidates.append(Path(os.environ["VISNERF_TOKEN_FILE"]))
-    state_dir = os.environ.get("VISNERF_STATE_DIR")
-    candidates.append((Path(state_dir) if state_dir else Path.home() / ".config" / "visnerf") / "token")
-    for path in candidates:
-        if path.is_file():
-            return path.read_text(encoding="utf-8").strip() or None
-    return None
+    named = os.environ.get("VISNERF_TOKEN_FILE")
+    path = Path(named) if named else default_state_dir() / TOKEN_FILE_NAME
+    if not named and not path.is_file():
+        return None
+    try:
+        return read_token_file(path)
+    except ValueError as exc:
+        raise UploadError(str(exc)) from None
 
 
 def upload_checkpoint(path: Path, server: str, scene_id: str, token: str | None, timeout: float = 300.0) -> Uploaded:

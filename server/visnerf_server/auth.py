@@ -11,21 +11,17 @@ from pathlib import Path
 
 from fastapi import HTTPException, status
 
+from visnerf.token_file import TOKEN_FILE_NAME, read_token_file
 from visnerf_server.settings import Settings
 
 logger = logging.getLogger(__name__)
 
-TOKEN_FILE_NAME = "token"
-
 
 def _read_token_file(path: Path) -> str:
     try:
-        token = path.read_text(encoding="utf-8").strip()
-    except OSError as exc:
-        raise RuntimeError(f"cannot read the upload token file {path}: {exc.strerror}") from None
-    if not token:
-        raise RuntimeError(f"the upload token file {path} is empty")
-    return token
+        return read_token_file(path)
+    except ValueError as exc:  # the server does not start without its token
+        raise RuntimeError(str(exc)) from None
 
 
 def _create_token_file(path: Path) -> str:

@@ -8,10 +8,10 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, field_validator, model_validator
 
 from visnerf.data.cameras import check_rigid_c2w
+from visnerf.inference import Quality
 from visnerf.lens import Projection
 
 FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
-Quality = Literal["preview", "full"]
 ImageFormat = Literal["png", "jpeg", "webp"]
 
 MIN_IMAGE_SIZE = 8

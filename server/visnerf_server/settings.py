@@ -12,6 +12,7 @@ from typing import Annotated, Literal
 from pydantic import Field, SecretStr, field_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
+from visnerf.token_file import default_state_dir
 from visnerf_server.origins import normalize_origin
 
 MIN_FRAME_PIXELS = 64
@@ -42,7 +43,7 @@ class Settings(BaseSettings):
     """Folder of ``<scene id>.safetensors`` files; uploads land here."""
     client_dir: Path | None = Field(default_factory=default_client_dir)
     """Static web client served at ``/``; ``None`` serves the API only."""
-    state_dir: Path = Field(default_factory=lambda: Path.home() / ".config" / "visnerf")
+    state_dir: Path = Field(default_factory=default_state_dir)
     """Where the generated upload token is kept when none is configured."""
     token: SecretStr | None = None
     """Upload/delete token (``VISNERF_TOKEN``)."""
