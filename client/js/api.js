@@ -99,6 +99,11 @@ export function listScenes(options) {
   return getJson("/api/scenes", "Scene list", options);
 }
 
+/** GET /api/limits -> {max_side, max_full_pixels, max_preview_pixels}: the largest frames served. */
+export function getLimits(options) {
+  return getJson("/api/limits", "Limits", options);
+}
+
 /** GET /api/scenes/{id} -> {id, title, kind, params, camera, bbox, image_size, training} */
 export function getScene(sceneId, options) {
   return getJson(`/api/scenes/${encodeURIComponent(sceneId)}`, `Scene '${sceneId}'`, options);

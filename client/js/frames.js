@@ -3,7 +3,10 @@
 //   * while the user drags or slides: low-resolution JPEG previews, at most MAX_IN_FLIGHT
 //     unanswered at a time (the newest state is sent when one comes back; the server also drops
 //     stale requests),
-//   * IDLE_MS after the last input: one full-quality PNG frame at the chosen resolution.
+//   * IDLE_MS after the last input: one full-quality PNG frame at the chosen resolution,
+//   * SCREEN_IDLE_MS after that one is drawn, if the input is still: a full-quality frame at the
+//     size the view is shown (its box times devicePixelRatio, within the server's limits), when
+//     that is larger.
 
 import { ApiError, HttpRenderer, RenderStream } from "./api.js";
 
@@ -14,6 +17,8 @@ export const HELD_IDLE_MS = 600;
 /** After the first preview of a view, the full frame is asked for when the preview is answered, or
  * after this long at the latest. */
 const FIRST_FULL_WAIT_MS = 1500;
+/** After a full frame at the chosen resolution is drawn, the wait before one at the view's size. */
+export const SCREEN_IDLE_MS = 250;
 const MAX_IN_FLIGHT = 2;
 const OPEN_WAIT_MS = 1000; // how long a request waits for the socket before going over HTTP
 
@@ -80,6 +85,7 @@ export class FrameChannel {
     this.http = new HttpRenderer(sceneId);
     this.closed = false;
     this.onAnswer = () => {};
+    this.onDrawn = () => {};
     this.stream = new RenderStream(sceneId, {
       onOpen: () => {
         this.openCount += 1;
@@ -198,8 +204,10 @@ export class FrameChannel {
       dropped: frame.dropped || 0,
       latencyMs: inputTime === null ? null : performance.now() - inputTime,
       requestMs: entry ? performance.now() - entry.sentAt : null,
+      stage: req.stage || req.quality,
     });
     this.onShown(record, req);
+    this.onDrawn(req);
   }
 
   receiveError(err) {
@@ -232,7 +240,9 @@ export class FrameChannel {
 
 /**
  * Decides what a channel renders and when: previews during interaction, one full frame when the
- * input stops. `makeRequest(quality)` builds the request from the current state.
+ * input stops, then one at the view's size. `makeRequest(stage)` builds the request of a stage
+ * ("preview", "full", "screen") from the current state; for "screen" it gives null when the view
+ * is not larger than the full frame.
  */
 export class RenderScheduler {
   constructor(channel, makeRequest, { idleMs = IDLE_MS, heldIdleMs = HELD_IDLE_MS } = {}) {
@@ -249,12 +259,48 @@ export class RenderScheduler {
     this.retryTimer = null;
     this.lastFullKey = null;
     this.lastPreviewKey = null;
+    this.screenTimer = null;
     this.onIdle = () => {};
     channel.onAnswer = () => this.pump();
+    channel.onDrawn = (req) => {
+      if (req && req.quality === "full" && req.stage !== "screen") this.sharpenSoon();
+    };
+  }
+
+  /** A frame at the view's size after SCREEN_IDLE_MS, unless input comes first. */
+  sharpenSoon() {
+    clearTimeout(this.screenTimer);
+    this.screenTimer = setTimeout(() => this.sharpen(), SCREEN_IDLE_MS);
+  }
+
+  /** The view's box changed: a still view is sharpened again at its new size. */
+  resized() {
+    const shown = this.channel.view.shown;
+    if (shown && shown.quality === "full" && this.idleTimer === null && !this.dirty) this.sharpenSoon();
+  }
+
+  sharpen() {
+    clearTimeout(this.screenTimer);
+    this.screenTimer = null;
+    if (this.channel.closed || this.dirty || this.idleTimer !== null) return;
+    const req = this.makeRequest("screen");
+    const shown = this.channel.view.shown;
+    if (!req || (shown && shown.key === requestKey(req))) return;
+    this.channel.request(req, performance.now());
+  }
+
+  /** The screen-size request of the current state when one is due (null when none is). */
+  get screenDue() {
+    if (this.screenTimer !== null) return true;
+    const req = this.makeRequest("screen");
+    const shown = this.channel.view.shown;
+    return Boolean(req && !(shown && shown.key === requestKey(req)));
   }
 
   /** An interactive change (drag, slider move): preview now, full frame after the idle delay. */
   input(inputTime = performance.now()) {
+    clearTimeout(this.screenTimer);
+    this.screenTimer = null;
     if (this.pendingInputTime === null) this.pendingInputTime = inputTime;
     this.dirty = true;
     if (this.rafId === null) {
@@ -293,6 +339,8 @@ export class RenderScheduler {
 
   /** A discrete change (button, typed value, restored URL): go straight to a full frame. */
   commit(inputTime = performance.now()) {
+    clearTimeout(this.screenTimer);
+    this.screenTimer = null;
     if (this.pendingInputTime === null) this.pendingInputTime = inputTime;
     this.dirty = false;
     clearTimeout(this.idleTimer);
@@ -318,7 +366,8 @@ export class RenderScheduler {
     this.pendingInputTime = null;
   }
 
-  /** True when nothing is scheduled and the newest request's full frame is on screen. */
+  /** True when nothing is scheduled and the newest request's full frame, at the view's size
+   * where that is larger, is on screen. */
   get settled() {
     const c = this.channel;
     return (
@@ -326,7 +375,8 @@ export class RenderScheduler {
       this.idleTimer === null &&
       c.lastShownSeq === c.nextSeq - 1 &&
       c.view.shown !== null &&
-      c.view.shown.quality === "full"
+      c.view.shown.quality === "full" &&
+      !this.screenDue
     );
   }
 
@@ -338,8 +388,11 @@ export class RenderScheduler {
     const req = this.makeRequest("full");
     const key = requestKey(req);
     const shown = this.channel.view.shown;
-    if (!force && key === this.lastFullKey && shown && shown.key === key) {
+    const screen = this.makeRequest("screen");
+    const sharp = shown && screen && shown.key === requestKey(screen);
+    if (!force && shown && (sharp || (key === this.lastFullKey && shown.key === key))) {
       this.pendingInputTime = null;
+      if (!sharp && screen) this.sharpenSoon(); // the full frame is shown; the view's size is not
       return;
     }
     this.lastFullKey = key;
@@ -358,6 +411,8 @@ export class RenderScheduler {
   stop() {
     clearTimeout(this.idleTimer);
     this.idleTimer = null;
+    clearTimeout(this.screenTimer);
+    this.screenTimer = null;
     clearTimeout(this.retryTimer);
     if (this.rafId !== null) cancelAnimationFrame(this.rafId);
     this.rafId = null;

@@ -36,6 +36,9 @@ const controls = { A: null, B: null };
 let sceneList = [];
 let urlTimer = null;
 let openGeneration = 0;
+/** The server's frame limits (GET /api/limits); its defaults until they are known. */
+let frameLimits = { max_side: 2048, max_full_pixels: 1920 * 1080 };
+api.getLimits().then((limits) => (frameLimits = limits), () => {});
 
 // ---- scenes -----------------------------------------------------------------------------------
 
@@ -98,6 +101,7 @@ async function openScene(sceneId, query = null) {
   state.setScene(scene);
   scene = state.scene;
   state.resolution = defaultResolution(scene);
+  state.fitScreen = true;
   if (query) state.applyQuery(query);
   if (state.pathWarning) {
     alerts.set("link-path", `The camera path in this link is malformed (${state.pathWarning}); it was left out.`, "warning");
@@ -138,9 +142,23 @@ async function refreshSceneList() {
 
 // ---- render channels --------------------------------------------------------------------------
 
+/** The box a view's frames are shown in, in device pixels (the canvas scales its frame to fit). */
+function viewBox(set) {
+  const canvas = views[set].canvas;
+  const dpr = window.devicePixelRatio || 1;
+  return { width: Math.floor(canvas.clientWidth * dpr), height: Math.floor(canvas.clientHeight * dpr) };
+}
+
+/** Request of a stage: "preview", "full" (the chosen resolution) or "screen" (the view's size, or
+ * null when that is not larger). */
 function requestBuilder(set) {
-  return (quality) => {
-    const size = quality === "full" ? state.frameSize() : sizer.size(state);
+  return (stage) => {
+    let size = stage === "preview" ? sizer.size(state) : state.frameSize();
+    if (stage === "screen") {
+      size = state.screenSize(viewBox(set), frameLimits);
+      if (!size) return null;
+    }
+    const quality = stage === "preview" ? "preview" : "full";
     return {
       camera: { ...state.camera },
       ...state.lens(),
@@ -149,6 +167,7 @@ function requestBuilder(set) {
       params: { ...(set === "B" ? state.paramsB : state.params) },
       quality,
       format: quality === "full" ? "png" : "jpeg",
+      ...(stage === "screen" ? { stage } : {}),
     };
   };
 }
@@ -423,7 +442,10 @@ $("#scene-select").addEventListener("change", (event) => {
 $("#reset-view").addEventListener("click", () => state.resetCamera());
 $("#projection").addEventListener("change", (event) => state.setProjection(event.target.value));
 
-$("#resolution").addEventListener("change", (event) => state.setResolution(Number(event.target.value)));
+$("#resolution").addEventListener("change", (event) => state.chooseResolution(event.target.value));
+new ResizeObserver(() => {
+  for (const set of activeSets()) schedulers[set]?.resized();
+}).observe($("#canvas-a"));
 
 $("#compare-toggle").addEventListener("change", (event) => state.setCompare(event.target.checked));
 

@@ -63,10 +63,11 @@ export function fillResolutions(select, state) {
   const [w, h] = state.scene.image_size;
   const trained = Math.max(w, h);
   const options = [...new Set([...RESOLUTIONS, trained, state.resolution])].sort((a, b) => a - b);
+  select.append(new Option("Fit the view", "screen", false, state.fitScreen));
   for (const px of options) {
     const size = state.frameSize(px / state.resolution);
     const label = `${size.width}×${size.height}${px === trained ? " (trained)" : ""}`;
-    select.append(new Option(label, String(px), false, px === state.resolution));
+    select.append(new Option(label, String(px), false, !state.fitScreen && px === state.resolution));
   }
 }
 

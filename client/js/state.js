@@ -41,6 +41,7 @@ export class ViewState extends EventTarget {
     this.paramsB = {}; // B (comparison)
     this.compare = false;
     this.resolution = 256; // long side of a full-quality frame, in pixels
+    this.fitScreen = true; // after that frame, one at the size the view is shown (screenSize)
     this.path = emptyPath(); // the movie's keyframes (path.js document)
     this.pathWarning = null; // why the path of the last applied URL was left out, or null
   }
@@ -240,10 +241,38 @@ export class ViewState extends EventTarget {
     this.emit("path", { interactive: false });
   }
 
+  /** Full frames of this long side alone (no frame at the view's size after them). */
   setResolution(px) {
-    if (!Number.isFinite(px) || px <= 0 || px === this.resolution) return;
+    this.chooseResolution(px);
+  }
+
+  /** The Resolution menu: "screen" (a full frame at ``resolution``, then one at the view's size),
+   * or a long side in pixels alone. */
+  chooseResolution(value) {
+    const screen = value === "screen";
+    const px = screen ? this.resolution : Math.round(Number(value));
+    if (!(px >= 16) || (screen === this.fitScreen && px === this.resolution)) return;
+    this.fitScreen = screen;
     this.resolution = px;
     this.emit("resolution", { interactive: false });
+  }
+
+  /**
+   * The frame that fills a view `box` ({width, height} in device pixels) at the training aspect,
+   * within the server's `limits` ({max_side, max_full_pixels}); null unless `fitScreen` is on and
+   * it is larger than the full-quality frame (`frameSize`), which it then follows when still.
+   */
+  screenSize(box, limits) {
+    if (!this.fitScreen || !(box && box.width > 0 && box.height > 0)) return null;
+    const [w, h] = (this.scene && this.scene.image_size) || [1, 1];
+    let scale = Math.min(box.width / w, box.height / h);
+    if (limits) {
+      if (limits.max_side > 0) scale = Math.min(scale, limits.max_side / Math.max(w, h));
+      if (limits.max_full_pixels > 0) scale = Math.min(scale, Math.sqrt(limits.max_full_pixels / (w * h)));
+    }
+    const size = { width: Math.max(16, Math.floor(w * scale)), height: Math.max(16, Math.floor(h * scale)) };
+    const full = this.frameSize();
+    return Math.max(size.width, size.height) > Math.max(full.width, full.height) ? size : null;
   }
 
   /** Full-quality frame size: the long side is `resolution`, the aspect is the training images'. */
@@ -277,7 +306,7 @@ export class ViewState extends EventTarget {
       q.set("cmp", "1");
       for (const axis of this.scene.params) q.set(B_PREFIX + axis.name, String(roundTo(this.paramsB[axis.name], 6)));
     }
-    q.set("res", String(this.resolution));
+    q.set("res", this.fitScreen ? "screen" : String(this.resolution));
     const names = this.scene.params.map((a) => a.name);
     for (const [key, value] of pathToQueryEntries(this.path, names)) q.append(key, value);
     return q;
@@ -309,7 +338,10 @@ export class ViewState extends EventTarget {
       const b = num(B_PREFIX + axis.name);
       if (b !== undefined) this.paramsB[axis.name] = clamp(b, axis.min, axis.max);
     }
-    if (num("res") !== undefined && num("res") >= 16) this.resolution = Math.round(num("res"));
+    if (num("res") !== undefined && num("res") >= 16) {
+      this.resolution = Math.round(num("res"));
+      this.fitScreen = false;
+    } else if (query.get("res") === "screen") this.fitScreen = true;
     this.compare = query.get("cmp") === "1";
     this.path = emptyPath();
     this.pathWarning = null;

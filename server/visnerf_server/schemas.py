@@ -188,6 +188,17 @@ class Health(BaseModel):
     ready: bool
 
 
+class FrameSizeLimits(BaseModel):
+    """The largest frames this server renders (a client sizes its frames to the screen within them)."""
+
+    max_side: int
+    """Largest width or height, in pixels."""
+    max_full_pixels: int
+    """Most pixels of a full-quality frame."""
+    max_preview_pixels: int
+    """Most pixels of a preview frame."""
+
+
 class Readiness(BaseModel):
     ready: bool
     scenes: int

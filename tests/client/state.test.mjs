@@ -142,3 +142,27 @@ test("an orthographic scene starts orthographic; zoom scales the view height; sw
   assert.equal(p.projection, "perspective");
   assert.ok(Math.abs(p.sceneViewHeight - 2 * 2.5 * Math.tan(Math.PI / 12)) < 1e-12);
 });
+
+test("frames at the view's size: the training aspect, within the server's limits, only when larger", () => {
+  const s = fresh(); // trained 64x32
+  s.setResolution(256);
+  s.chooseResolution("screen");
+  assert.equal(s.fitScreen, true);
+  assert.deepEqual(s.frameSize(), { width: 256, height: 128 });
+  assert.deepEqual(s.screenSize({ width: 1400, height: 1000 }), { width: 1400, height: 700 });
+  assert.deepEqual(s.screenSize({ width: 800, height: 1000 }), { width: 800, height: 400 });
+  const limits = { max_side: 1024, max_full_pixels: 1920 * 1080 };
+  assert.deepEqual(s.screenSize({ width: 4000, height: 4000 }, limits), { width: 1024, height: 512 });
+  const pixels = s.screenSize({ width: 4000, height: 4000 }, { max_side: 8192, max_full_pixels: 400 * 200 });
+  assert.ok(pixels.width * pixels.height <= 400 * 200 && pixels.width === 2 * pixels.height);
+  assert.equal(s.screenSize({ width: 200, height: 200 }), null, "not larger than the full frame");
+  assert.equal(s.toQuery().get("res"), "screen");
+  s.chooseResolution("384");
+  assert.equal(s.fitScreen, false);
+  assert.equal(s.screenSize({ width: 1400, height: 1000 }), null, "a chosen size alone");
+  const t = fresh();
+  t.applyQuery(new URLSearchParams("res=screen"));
+  assert.equal(t.fitScreen, true);
+  t.applyQuery(new URLSearchParams("res=128"));
+  assert.deepEqual([t.fitScreen, t.resolution], [false, 128]);
+});

@@ -32,6 +32,7 @@ REQUEST_TIMEOUT_S = 60.0
 OPERATIONS = [
     ("GET", "/api/health"),
     ("GET", "/api/ready"),
+    ("GET", "/api/limits"),
     ("GET", "/api/scenes"),
     ("GET", "/api/scenes/{scene_id}"),
     ("GET", "/api/scenes/{scene_id}/render"),

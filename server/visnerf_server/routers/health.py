@@ -4,8 +4,9 @@ from fastapi import APIRouter, Response
 from fastapi.responses import JSONResponse
 from prometheus_client import CONTENT_TYPE_LATEST
 
-from visnerf_server.dependencies import MetricsDep, ServerDep
-from visnerf_server.schemas import Health, Readiness
+from visnerf_server.costs import FrameLimits
+from visnerf_server.dependencies import MetricsDep, ServerDep, SettingsDep
+from visnerf_server.schemas import FrameSizeLimits, Health, Readiness
 from visnerf_server.version import server_version
 
 router = APIRouter(prefix="/api", tags=["health"])
@@ -24,6 +25,14 @@ async def ready(server: ServerDep) -> JSONResponse:
     body = Readiness(ready=server.ready, scenes=len(server.registry), failed=server.load_errors)
     headers = None if server.ready else {"Retry-After": "1"}
     return JSONResponse(body.model_dump(), status_code=200 if server.ready else 503, headers=headers)
+
+
+@router.get("/limits", response_model=FrameSizeLimits)
+async def limits(settings: SettingsDep) -> FrameSizeLimits:
+    """The largest frames this server renders: larger ones are refused (422), naming the limit."""
+    frame = FrameLimits.from_settings(settings)
+    return FrameSizeLimits(max_side=frame.max_side, max_full_pixels=frame.max_full_pixels,
+                           max_preview_pixels=frame.max_preview_pixels)
 
 
 metrics_router = APIRouter(tags=["metrics"])
