@@ -1,6 +1,8 @@
 """Turning a render request into an encoded frame: validation against the scene, the frame cache,
 the bounded render queue and image encoding. Shared by the HTTP render routes and the stream."""
 
+import asyncio
+import contextlib
 import hashlib
 import io
 import threading
@@ -14,7 +16,7 @@ from PIL import Image
 
 from visnerf import inference
 from visnerf.data.cameras import orbit_c2w
-from visnerf.inference import choose_lens
+from visnerf.inference import RenderCancelled, choose_lens
 from visnerf.rendering.empty_space import EmptySpace
 from visnerf.runtime import release_free_memory
 from visnerf_server.costs import FrameLimits
@@ -245,6 +247,28 @@ class FrameRenderer:
         except QueueFullError:
             self._refund(job, client)
             raise
+
+    async def render_unless_superseded(self, job: FrameJob, client: str | None, wakeup: asyncio.Event,
+                                       superseded: Callable[[], bool]) -> Frame | None:
+        """``render_async``; a large frame (``FrameJob.large``) is stopped, and None returned, once
+        ``wakeup`` is set while ``superseded()`` holds (a stream's newer request): it takes seconds
+        the newer one would wait behind, e.g. a client's frame at its screen's size, given up when
+        the user moves again. ``wakeup`` is cleared when it was set for nothing newer."""
+        if not job.large:
+            return await self.render_async(job, client)
+        task = asyncio.ensure_future(self.render_async(job, client))
+        while not task.done():
+            waiter = asyncio.ensure_future(wakeup.wait())
+            await asyncio.wait({task, waiter}, return_when=asyncio.FIRST_COMPLETED)
+            waiter.cancel()
+            if not task.done() and superseded():
+                task.cancel()
+                with contextlib.suppress(asyncio.CancelledError, RenderCancelled):
+                    await task
+                return None
+            if not task.done():
+                wakeup.clear()
+        return task.result()
 
     async def render_async(self, job: FrameJob, client: str | None = None) -> Frame:
         """``render`` for coroutines; cancelling the awaiting task stops the render."""

@@ -259,7 +259,6 @@ def test_a_newer_request_stops_a_large_frame(client: TestClient) -> None:
         header, _ = receive_frame(ws)
         assert header["seq"] == 2 and header["dropped"] == 1  # the large frame was given up
         assert blocking.cancelled == 1
-        ws.send_text(message(3, width=600, height=600, quality="full", format="png"))
-        # alone, a large frame is rendered: it starts (closing the stream stops it)
         blocking.started.clear()
-        assert blocking.started.wait(10.0)
+        ws.send_text(message(3, width=600, height=600, quality="full", format="png"))
+        assert blocking.started.wait(10.0)  # alone, a large frame is rendered (closing the stream stops it)

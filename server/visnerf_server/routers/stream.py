@@ -49,7 +49,6 @@ from fastapi import APIRouter, WebSocket
 from pydantic import ValidationError
 from starlette.websockets import WebSocketDisconnect, WebSocketState
 
-from visnerf.inference import RenderCancelled
 from visnerf_server.costs import FrameLimits
 from visnerf_server.dependencies import (
     ClientKeyDep,
@@ -59,7 +58,7 @@ from visnerf_server.dependencies import (
     ServerDep,
     SettingsDep,
 )
-from visnerf_server.frames import Frame, FrameJob, FrameRenderer, prepare_frame
+from visnerf_server.frames import FrameJob, FrameRenderer, prepare_frame
 from visnerf_server.metrics import Metrics
 from visnerf_server.origins import origin_allowed
 from visnerf_server.rate_limit import RateLimited
@@ -260,7 +259,8 @@ class StreamSession:
             deadline = loop.time() + self.frames.timeout_s
             while True:
                 try:
-                    frame = await self._render_unless_superseded(job)
+                    frame = await self.frames.render_unless_superseded(
+                        job, self.client, self.wakeup, lambda: self.pending is not None or self.closed)
                     if frame is None:  # a newer request came while a large frame rendered
                         self._drop()
                     break
@@ -313,26 +313,6 @@ class StreamSession:
             async with self.send_lock:
                 await self.websocket.send_text(json.dumps(header))
                 await self.websocket.send_bytes(frame.data)
-
-    async def _render_unless_superseded(self, job: FrameJob) -> Frame | None:
-        """``render_async``; a large frame (``FrameJob.large``) is stopped, and None returned, as
-        soon as a newer request arrives: it takes seconds the newer one would wait behind (a
-        client's frame at its screen's size, given up when the user moves again)."""
-        if not job.large:
-            return await self.frames.render_async(job, self.client)
-        task = asyncio.ensure_future(self.frames.render_async(job, self.client))
-        while not task.done():
-            waiter = asyncio.ensure_future(self.wakeup.wait())
-            await asyncio.wait({task, waiter}, return_when=asyncio.FIRST_COMPLETED)
-            waiter.cancel()
-            if not task.done() and (self.pending is not None or self.closed):
-                task.cancel()
-                with contextlib.suppress(asyncio.CancelledError, RenderCancelled):
-                    await task
-                return None
-            if not task.done():
-                self.wakeup.clear()  # woken with nothing newer (e.g. a refused message)
-        return task.result()
 
     async def run(self) -> None:
         receiver = asyncio.create_task(self.receive_loop())

@@ -237,44 +237,44 @@ def _parameters(table: CinemaTable, skip: set[str]) -> tuple[list[str], np.ndarr
     return names, values, notes
 
 
-def read_cinema(path: str | Path, camera: CinemaCamera | None = None, max_workers: int = 2) -> ParsedSplit:
-    """Read a Cinema database: every row a frame. ``camera`` overrides the database's ``visnerf_camera.json``."""
-    folder = database_folder(path)
-    table = read_table(folder / TABLE_FILE)
-    options = (camera or CinemaCamera()).over(read_camera_file(folder))
-    image_column = _image_column(table)
-    paths = _image_paths(table, image_column, folder)
-    labels = [f"{table.path}: row {i + 1} ({table.strings(image_column)[i]})" for i in range(table.n_rows)]
+def _convention(table: CinemaTable, folder: Path, paths: list[Path], labels: list[str],
+                options: CinemaCamera) -> tuple[Convention, str]:
+    """The camera convention (named, else detected) and how it was known; DatasetError when neither
+    says, or when the images' kind does not fit it."""
     detected, why = _detect(table, folder, paths)
     convention = options.convention or detected
     if convention is None:
         raise DatasetError(f"{table.path}: the database does not say how its cameras were placed; name the "
                            f"convention (pycinema, paraview or ascent) as 'convention' in {CAMERA_FILE} or as an option")
-    how = f"named ({convention})" if options.convention else f"{convention}, detected: {why}"
     h5 = [p.suffix.lower() == ".h5" for p in paths]
     if convention == "pycinema" and not all(h5):
         raise DatasetError(f"{labels[h5.index(False)]}: the pycinema convention reads cameras from .h5 images")
     if convention != "pycinema" and any(h5):
         raise DatasetError(f"{labels[h5.index(True)]}: .h5 images carry their own cameras: use the pycinema convention")
-    notes = [f"cameras: {how}", f"column {image_column!r}: the images"]
-    skip = set(table.file_columns())
+    return convention, f"named ({convention})" if options.convention else f"{convention}, detected: {why}"
+
+
+def _cameras(table: CinemaTable, convention: Convention, options: CinemaCamera, paths: list[Path], labels: list[str],
+             skip: set[str], notes: list[str]) -> tuple[np.ndarray, tuple[str, float] | None]:
+    """Camera-to-world matrices [n, 4, 4] and the images' own lens (pycinema), else None; the angle
+    columns join ``skip`` and what they are goes into ``notes``."""
     if convention == "pycinema":
         c2w, lens = _h5_cameras(paths, labels)
         for name in (table.find(*PHI_NAMES), table.find(*THETA_NAMES)):
             if name is not None:
                 skip.add(name)
                 notes.append(f"column {name!r}: a camera angle (the cameras come from the images)")
-    else:
-        c2w, lens = _angle_cameras(table, convention, options), None
-        phi, theta = _angles(table, convention)
-        skip |= {phi, theta}
-        notes.append(f"columns {phi!r}, {theta!r}: the camera's angles")
-    check_rigid(c2w, labels)
-    names, values, text_notes = _parameters(table, skip)
-    notes += text_notes
-    background = np.asarray(options.background, dtype=np.float32)
-    if lens is None:
-        options.intrinsics(8, 8, str(table.path))  # the lens is known before any image is decoded
+        return c2w, lens
+    phi, theta = _angles(table, convention)
+    skip |= {phi, theta}
+    notes.append(f"columns {phi!r}, {theta!r}: the camera's angles")
+    return _angle_cameras(table, convention, options), None
+
+
+def _decode_images(paths: list[Path], labels: list[str], background: np.ndarray,
+                   max_workers: int) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """Images [n, h, w, 3] composited on ``background``, and the depths [n, h, w] when every image
+    (pycinema ``.h5``) has a depth channel."""
     depths: dict[Path, np.ndarray | None] = {}
 
     def decode(p: Path, bg: np.ndarray, label: str) -> np.ndarray:
@@ -288,12 +288,34 @@ def read_cinema(path: str | Path, camera: CinemaCamera | None = None, max_worker
         return rgb
 
     images = load_images(paths, labels, background, max_workers, decode)
+    has_depth = bool(depths) and all(depths[p] is not None for p in paths)
+    return images, torch.from_numpy(np.stack([depths[p] for p in paths])) if has_depth else None  # type: ignore[misc]
+
+
+def read_cinema(path: str | Path, camera: CinemaCamera | None = None, max_workers: int = 2) -> ParsedSplit:
+    """Read a Cinema database: every row a frame. ``camera`` overrides the database's ``visnerf_camera.json``."""
+    folder = database_folder(path)
+    table = read_table(folder / TABLE_FILE)
+    options = (camera or CinemaCamera()).over(read_camera_file(folder))
+    image_column = _image_column(table)
+    paths = _image_paths(table, image_column, folder)
+    labels = [f"{table.path}: row {i + 1} ({table.strings(image_column)[i]})" for i in range(table.n_rows)]
+    convention, how = _convention(table, folder, paths, labels, options)
+    notes = [f"cameras: {how}", f"column {image_column!r}: the images"]
+    skip = set(table.file_columns())
+    c2w, lens = _cameras(table, convention, options, paths, labels, skip, notes)
+    check_rigid(c2w, labels)
+    names, values, text_notes = _parameters(table, skip)
+    notes += text_notes
+    background = np.asarray(options.background, dtype=np.float32)
+    if lens is None:
+        options.intrinsics(8, 8, str(table.path))  # the lens is known before any image is decoded
+    images, depths = _decode_images(paths, labels, background, max_workers)
     height, width = images.shape[1:3]
     intrinsics = _h5_intrinsics(lens, width, height) if lens else options.intrinsics(width, height, str(table.path))
     keep, axes = axes_from_values(names, values)
     notes += [f"column {n!r}: a parameter axis" for j, n in enumerate(names) if j in keep]
     notes += [f"column {n!r}: constant, dropped" for j, n in enumerate(names) if j not in keep]
-    has_depth = bool(depths) and all(depths[p] is not None for p in paths)
     scene = SceneData(
         images=images,
         c2w=torch.from_numpy(c2w).float(),
@@ -307,6 +329,6 @@ def read_cinema(path: str | Path, camera: CinemaCamera | None = None, max_worker
         kind=options.kind,
         file_paths=tuple(str(p) for p in paths),
         source=str(table.path),
-        depths=torch.from_numpy(np.stack([depths[p] for p in paths])) if has_depth else None,  # type: ignore[misc]
+        depths=depths,
     )
     return ParsedSplit(scene, tuple(names), values, tuple(notes))
