@@ -7,6 +7,7 @@ import pickle
 import socket
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -21,7 +22,7 @@ from PIL import Image
 from safetensors import safe_open
 from safetensors.torch import save_file
 
-from visnerf.inference import SceneRenderer
+from visnerf.inference import RenderCancelled, SceneRenderer
 from visnerf_server.settings import Settings
 
 TOKEN = "test-token-0123456789"
@@ -110,6 +111,35 @@ class SlowRenderer:
         self.calls += 1
         time.sleep(self.delay_s)
         return self.inner.render(*args, **kwargs)
+
+
+class UntilCancelledRenderer:
+    """Wraps a real scene; a frame of at least ``min_pixels`` "renders" until its cancel check says
+    stop (or 20 s), counting ``started`` and ``stopped`` (``began`` is set at each start); smaller
+    frames render at once."""
+
+    def __init__(self, inner: SceneRenderer, min_pixels: int = 0) -> None:
+        self.inner = inner
+        self.info = inner.info
+        self.min_pixels = min_pixels
+        self.started = 0
+        self.stopped = 0
+        self.began = threading.Event()
+
+    def resolve_params(self, params):  # noqa: ANN001, ANN201
+        return self.inner.resolve_params(params)
+
+    def render(self, c2w, fov_deg, width, height, *args, cancel=None, **kwargs) -> np.ndarray:  # noqa: ANN001, ANN002, ANN003
+        if width * height >= self.min_pixels:
+            self.started += 1
+            self.began.set()
+            deadline = time.monotonic() + 20
+            while time.monotonic() < deadline:
+                if cancel is not None and cancel():
+                    self.stopped += 1
+                    raise RenderCancelled("render cancelled")
+                time.sleep(0.005)
+        return self.inner.render(c2w, fov_deg, width, height, *args, cancel=cancel, **kwargs)
 
 
 # --- a real server process ---------------------------------------------------------------------

@@ -16,9 +16,8 @@ import av
 import pytest
 from fastapi.testclient import TestClient
 from PIL import Image
-from server_helpers import AUTH, ORBIT, make_settings
+from server_helpers import AUTH, ORBIT, UntilCancelledRenderer, make_settings
 
-from visnerf.inference import RenderCancelled
 from visnerf_server.app import create_app
 from visnerf_server.registry import Scene
 from visnerf_server.render_queue import Lane
@@ -222,33 +221,10 @@ def test_cancel_a_running_job_frees_the_worker(movies: TestClient) -> None:
     assert movies.get(f"/api/movies/{job_id}").status_code == 404
 
 
-class EndlessRenderer:
-    """Wraps a real scene; a frame "renders" until its cancel check says stop (or 20 s)."""
-
-    def __init__(self, inner: Any) -> None:
-        self.inner = inner
-        self.info = inner.info
-        self.started = 0
-        self.stopped = 0
-
-    def resolve_params(self, params):  # noqa: ANN001, ANN201
-        return self.inner.resolve_params(params)
-
-    def render(self, *args: Any, cancel: Any = None, **kwargs: Any) -> Any:
-        self.started += 1
-        deadline = time.monotonic() + 20
-        while time.monotonic() < deadline:
-            if cancel is not None and cancel():
-                self.stopped += 1
-                raise RenderCancelled("render cancelled")
-            time.sleep(0.005)
-        return self.inner.render(*args, cancel=cancel, **kwargs)
-
-
 def test_cancel_stops_the_frame_being_rendered(movies: TestClient) -> None:
     registry = movies.app.state.server.registry
     real = registry.get("tiny")
-    endless = EndlessRenderer(real.renderer)
+    endless = UntilCancelledRenderer(real.renderer)
     with registry.mutation_lock:
         registry.install(Scene("endless", endless, real.path, "endless-v1"))  # type: ignore[arg-type]
     created = create(movies, {"orbit": 4, "width": 32, "height": 32}, scene="endless")

@@ -3,15 +3,13 @@ connection open, unknown scenes."""
 
 import json
 import threading
-import time
 
 import pytest
 from fastapi.testclient import TestClient
-from server_helpers import AUTH, ORBIT, SlowRenderer, image_size
+from server_helpers import AUTH, ORBIT, SlowRenderer, UntilCancelledRenderer, image_size
 from starlette.websockets import WebSocketDisconnect
 
 from visnerf.data.cameras import orbit_c2w
-from visnerf.inference import RenderCancelled
 from visnerf_server.dependencies import get_frame_renderer
 from visnerf_server.frame_cache import FrameCache
 from visnerf_server.frames import FrameRenderer
@@ -224,41 +222,19 @@ def test_overload_errors_keep_the_session_open(client: TestClient) -> None:
         client.app.dependency_overrides.clear()
 
 
-class BlockingRenderer:
-    """Wraps a real scene; a large frame renders until it is cancelled (10 s at most)."""
-
-    def __init__(self, inner) -> None:  # noqa: ANN001
-        self.inner, self.info = inner, inner.info
-        self.started = threading.Event()
-        self.cancelled = 0
-
-    def resolve_params(self, params):  # noqa: ANN001, ANN201
-        return self.inner.resolve_params(params)
-
-    def render(self, c2w, fov_deg, width, height, *args, cancel=None, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN201
-        if width * height >= 512 * 512:
-            self.started.set()
-            for _ in range(1000):
-                if cancel is not None and cancel():
-                    self.cancelled += 1
-                    raise RenderCancelled("cancelled")
-                time.sleep(0.01)
-        return self.inner.render(c2w, fov_deg, width, height, *args, cancel=cancel, **kwargs)
-
-
 def test_a_newer_request_stops_a_large_frame(client: TestClient) -> None:
     registry = client.app.state.server.registry
     real = registry.get("tiny")
-    blocking = BlockingRenderer(real.renderer)
+    blocking = UntilCancelledRenderer(real.renderer, min_pixels=512 * 512)
     with registry.mutation_lock:
         registry.install(Scene("big", blocking, real.path, "big-v1"))  # type: ignore[arg-type]
     with client.websocket_connect("/api/scenes/big/stream") as ws:
         ws.send_text(message(1, width=600, height=600, quality="full", format="png"))
-        assert blocking.started.wait(10.0)
+        assert blocking.began.wait(10.0)
         ws.send_text(message(2))
         header, _ = receive_frame(ws)
         assert header["seq"] == 2 and header["dropped"] == 1  # the large frame was given up
-        assert blocking.cancelled == 1
-        blocking.started.clear()
+        assert blocking.stopped == 1
+        blocking.began.clear()
         ws.send_text(message(3, width=600, height=600, quality="full", format="png"))
-        assert blocking.started.wait(10.0)  # alone, a large frame is rendered (closing the stream stops it)
+        assert blocking.began.wait(10.0)  # alone, a large frame is rendered (closing the stream stops it)
