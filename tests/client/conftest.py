@@ -19,6 +19,7 @@ from pathlib import Path
 
 import pytest
 from client_helpers import ARTIFACTS
+from required_tools import skip_unless_present
 
 REPO = Path(__file__).resolve().parents[2]
 CHROMIUM = os.environ.get("VISNERF_CHROMIUM") or shutil.which("chromium") or "/usr/bin/chromium"
@@ -115,8 +116,7 @@ def browser() -> Iterator[object]:
     """One Chromium for the client tests, closed when they end: Playwright's sync API keeps an
     event loop running in the main thread while it is open, which later tests may not expect."""
     playwright_sync = pytest.importorskip("playwright.sync_api")
-    if not Path(CHROMIUM).exists():
-        pytest.skip(f"no Chromium at {CHROMIUM} (set VISNERF_CHROMIUM)")
+    skip_unless_present("chromium", Path(CHROMIUM).exists(), f"no Chromium at {CHROMIUM} (set VISNERF_CHROMIUM)")
     with playwright_sync.sync_playwright() as p:
         instance = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
         yield instance

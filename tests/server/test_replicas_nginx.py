@@ -19,6 +19,7 @@ from pathlib import Path
 import httpx
 import pytest
 from nginx_helpers import nginx_binary, running_nginx
+from required_tools import skip_unless_present
 from server_helpers import AUTH, LiveServer, free_port, image_size, serve_process
 from websockets.exceptions import InvalidStatus
 from websockets.sync.client import connect
@@ -37,7 +38,11 @@ RENDER_LOG_LINE = '"method": "GET", "path": "/api/scenes/tangle_iso/render", "st
 RENDER = {"azimuth": 30.0, "elevation": 20.0, "width": 24, "height": 24, "quality": "preview", "format": "jpeg"}
 
 NGINX = nginx_binary()
-pytestmark = pytest.mark.skipif(NGINX is None, reason="nginx is not installed (scripts/test.sh installs it as root)")
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _needs_nginx() -> None:
+    skip_unless_present("nginx", NGINX is not None, "nginx is not installed (scripts/test.sh installs it as root)")
 
 
 def wait_for(condition: Callable[[], bool], what: str, timeout_s: float = PROPAGATION_TIMEOUT_S) -> float:
