@@ -65,6 +65,22 @@ class TokenBucket:
             raise RateLimited((cost - self.tokens) / self.rate, cost, self.tokens)
         self.tokens -= cost
 
+    @classmethod
+    def full(cls, capacity: float, rate: float, now: float) -> "TokenBucket":
+        return cls(capacity, rate, capacity, now)
+
+    def try_take(self, cost: float, now: float) -> bool:
+        """``take``, answering False (and taking none) instead of raising."""
+        try:
+            self.take(cost, now)
+        except RateLimited:
+            return False
+        return True
+
+    def wait_s(self, cost: float = 1.0) -> float:
+        """Seconds until ``cost`` tokens are there, as of the last refill."""
+        return max(0.0, (min(cost, self.capacity) - self.tokens) / self.rate)
+
     def give_back(self, cost: float) -> None:
         self.tokens = min(self.capacity, self.tokens + min(cost, self.capacity))
 

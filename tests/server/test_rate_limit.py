@@ -5,7 +5,7 @@ import threading
 
 import pytest
 
-from visnerf_server.rate_limit import ClientRateLimiter, RateLimited, client_key
+from visnerf_server.rate_limit import ClientRateLimiter, RateLimited, TokenBucket, client_key
 
 
 class FakeClock:
@@ -116,3 +116,12 @@ def test_client_key_uses_the_token_only_when_it_is_the_servers() -> None:
 def test_limits_must_be_positive() -> None:
     with pytest.raises(ValueError, match="positive"):
         ClientRateLimiter(rate=0.0, burst=10.0)
+
+
+def test_a_bucket_of_messages_takes_one_at_a_time_and_says_the_wait() -> None:
+    bucket = TokenBucket.full(3.0, 2.0, now=0.0)  # the stream's: 3 at once, then 2 a second
+    assert [bucket.try_take(1.0, 0.0) for _ in range(4)] == [True, True, True, False]
+    assert bucket.wait_s() == pytest.approx(0.5) and bucket.tokens == 0.0  # the refusal took nothing
+    assert not bucket.try_take(1.0, 0.4) and bucket.wait_s() == pytest.approx(0.1)
+    assert bucket.try_take(1.0, 0.5)
+    assert bucket.try_take(1.0, 10.0) and bucket.tokens == pytest.approx(2.0)  # refilled to 3, at most

@@ -41,7 +41,6 @@ import json
 import logging
 import math
 import time
-from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -61,7 +60,7 @@ from visnerf_server.dependencies import (
 from visnerf_server.frames import FrameJob, FrameRenderer, prepare_frame
 from visnerf_server.metrics import Metrics
 from visnerf_server.origins import origin_allowed
-from visnerf_server.rate_limit import RateLimited
+from visnerf_server.rate_limit import RateLimited, TokenBucket
 from visnerf_server.registry import SceneRegistry
 from visnerf_server.render_queue import QueueFullError, RenderTimeoutError, WouldOutwaitError
 from visnerf_server.routers.scenes import LOADING_RETRY_S
@@ -87,38 +86,13 @@ slows down); longer, and it gets an error with status 429."""
 class StreamLimits:
     """What one session may send (``Settings.ws_*``)."""
 
-    max_message_chars: int = 64 * 1024
-    messages_per_s: float = 30.0
-    message_burst: int = 60
+    max_message_chars: int
+    messages_per_s: float
+    message_burst: int
 
     @classmethod
     def from_settings(cls, settings: Settings) -> "StreamLimits":
         return cls(settings.ws_max_message_bytes, settings.ws_messages_per_s, settings.ws_message_burst)
-
-
-class MessageBucket:
-    """A token bucket: ``burst`` messages at once, then ``rate`` a second."""
-
-    def __init__(self, rate: float, burst: int, clock: Callable[[], float] = time.monotonic) -> None:
-        self.rate = rate
-        self.burst = burst
-        self.clock = clock
-        self.tokens = float(burst)
-        self.updated = clock()
-
-    def take(self) -> bool:
-        """Spend one token if there is one."""
-        now = self.clock()
-        self.tokens = min(float(self.burst), self.tokens + (now - self.updated) * self.rate)
-        self.updated = now
-        if self.tokens < 1.0:
-            return False
-        self.tokens -= 1.0
-        return True
-
-    def wait_s(self) -> float:
-        """Seconds until the next token."""
-        return max(0.0, (1.0 - self.tokens) / self.rate)
 
 
 def format_validation_error(exc: ValidationError) -> str:
@@ -148,8 +122,8 @@ class StreamSession:
         frames: FrameRenderer,
         metrics: Metrics,
         frame_limits: FrameLimits,
-        retry_after_s: int = 1,
-        limits: StreamLimits | None = None,
+        retry_after_s: int,
+        limits: StreamLimits,
         client: str | None = None,
     ) -> None:
         self.websocket = websocket
@@ -166,8 +140,8 @@ class StreamSession:
         self.closed = False
         self.dropped = 0
         self.send_lock = asyncio.Lock()
-        self.limits = limits or StreamLimits()
-        self.bucket = MessageBucket(self.limits.messages_per_s, self.limits.message_burst)
+        self.limits = limits
+        self.bucket = TokenBucket.full(float(limits.message_burst), limits.messages_per_s, time.monotonic())
 
     async def send_json(self, message: dict[str, Any]) -> None:
         async with self.send_lock:
@@ -192,7 +166,7 @@ class StreamSession:
         data, not_json = _parse_json(text)
         seq = data.get("seq") if isinstance(data, dict) else None
         seq = seq if isinstance(seq, int) and not isinstance(seq, bool) else None
-        if not self.bucket.take():  # every message counts, valid or not
+        if not self.bucket.try_take(1.0, time.monotonic()):  # every message counts, valid or not
             await self._refuse_over_rate(seq)
             return
         if not_json is not None:
@@ -235,7 +209,7 @@ class StreamSession:
                     return
                 text = message.get("text")
                 if text is None:
-                    if self.bucket.take():
+                    if self.bucket.try_take(1.0, time.monotonic()):
                         await self.send_error(None, 422, "messages must be text JSON")
                     else:
                         await self._refuse_over_rate(None)
