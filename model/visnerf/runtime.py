@@ -7,6 +7,8 @@ import sys
 
 import torch
 
+from visnerf.cpu_quota import quota_cores
+
 _libc: ctypes.CDLL | None = None
 
 
@@ -70,7 +72,7 @@ def default_threads() -> int:
     """Threads for torch: ``VISNERF_THREADS``, else ``OMP_NUM_THREADS`` (the convention torch and
     OpenMP programs follow: a job started with it set to 1 beside another must not take two
     threads; two 2-thread trainings on 2 busy cores made a tenth of their 1-thread steps), else the
-    cores this process may use."""
+    cores this process may use (``available_cores``)."""
     for name in ("VISNERF_THREADS", "OMP_NUM_THREADS"):
         env = os.environ.get(name, "").strip()
         if env:
@@ -82,11 +84,8 @@ def default_threads() -> int:
 
 
 def available_cores() -> int:
-    """The cores this process may run on (its CPU affinity)."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:
-        return max(1, os.cpu_count() or 1)
+    """The cores this process may use: its affinity, capped by its cgroup's CPU quota (``cpu_quota``)."""
+    return quota_cores()
 
 
 _explicit_threads: int | None = None

@@ -18,9 +18,9 @@ from fastapi.staticfiles import StaticFiles
 from starlette.concurrency import run_in_threadpool
 from uvicorn.middleware.proxy_headers import ProxyHeadersMiddleware
 
+from visnerf.runtime import default_threads
 from visnerf_server.api_docs import add_offline_docs
 from visnerf_server.auth import resolve_token
-from visnerf_server.cpu_threads import apply_threads
 from visnerf_server.dependencies import ServerState
 from visnerf_server.frame_cache import FrameCache
 from visnerf_server.metrics import Metrics
@@ -64,7 +64,8 @@ def _lifespan(settings: Settings, metrics: Metrics):
             )
         elif removed := remove_stale_uploads(settings.checkpoints_dir):
             logger.info("removed %d stale upload temporaries", removed)
-        threads = apply_threads(settings.threads)
+        threads = settings.threads if settings.threads is not None else default_threads()  # the quota or cores
+        torch.set_num_threads(threads)
         workers = settings.render_workers or threads
         logger.info("rendering with %d torch thread(s)%s, %d render(s) at once", threads,
                     "" if settings.threads else " (CPU quota or cores)", workers)

@@ -1,8 +1,9 @@
-"""How many torch threads the server renders with: ``Settings.threads`` when given, else the CPU
-quota of the cgroup the server runs in (a container's ``--cpus``), else the cores it may run on.
+"""The cores this process may use: its CPU affinity, capped by the CPU quota of the cgroup it runs
+in (a container's ``--cpus``). ``runtime.default_threads`` gives torch that many threads, in
+training and in the server.
 
 torch's default is every core of the machine, which in a container limited to two CPUs means
-threads that mostly wait for their share (throttled by the CFS quota) and slower frames.
+threads that mostly wait for their share (throttled by the CFS quota): slower steps and frames.
 
 cgroup v2: ``cpu.max`` holds ``"<quota> <period>"`` in microseconds, or ``"max <period>"`` for no
 limit, in the process's own cgroup and each one above it (the smallest limit applies). cgroup v1:
@@ -14,8 +15,6 @@ import math
 import os
 from collections.abc import Iterator
 from pathlib import Path
-
-import torch
 
 CGROUP_ROOT = Path("/sys/fs/cgroup")
 PROC_SELF_CGROUP = Path("/proc/self/cgroup")
@@ -85,7 +84,7 @@ def usable_cores() -> int:
     return max(1, os.cpu_count() or 1)
 
 
-def default_threads(root: Path = CGROUP_ROOT, proc_cgroup: Path = PROC_SELF_CGROUP) -> int:
+def quota_cores(root: Path = CGROUP_ROOT, proc_cgroup: Path = PROC_SELF_CGROUP) -> int:
     """The cgroup's CPU quota rounded down (at least 1, at most the usable cores), else the usable
     cores."""
     cores = usable_cores()
@@ -93,11 +92,3 @@ def default_threads(root: Path = CGROUP_ROOT, proc_cgroup: Path = PROC_SELF_CGRO
     if quota is None:
         return cores
     return max(1, min(cores, math.floor(quota + 1e-9)))
-
-
-def apply_threads(threads: int | None) -> int:
-    """Set torch's intra-op thread count for rendering (``threads``, or ``default_threads()``);
-    returns it."""
-    count = threads if threads is not None else default_threads()
-    torch.set_num_threads(count)
-    return count

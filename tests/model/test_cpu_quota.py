@@ -1,14 +1,13 @@
-"""Render threads: the CPU quota of the cgroup read from fake ``/sys/fs/cgroup`` and
-``/proc/self/cgroup`` files, the fallback to the usable cores, and ``visnerf serve --threads``."""
+"""The cores a process may use: the CPU quota of the cgroup read from fake ``/sys/fs/cgroup`` and
+``/proc/self/cgroup`` files, and the fallback to the usable cores; the thread rule on top of it."""
 
-import argparse
 from pathlib import Path
 
 import pytest
 
-from visnerf_server import cpu_threads
-from visnerf_server.commands import register
-from visnerf_server.cpu_threads import cgroup_cpu_quota, default_threads
+from visnerf import cpu_quota, runtime
+from visnerf.cpu_quota import cgroup_cpu_quota
+from visnerf.cpu_quota import quota_cores as default_threads
 
 
 def write(path: Path, text: str) -> None:
@@ -24,7 +23,7 @@ def cgroup(tmp_path: Path) -> tuple[Path, Path]:
 
 @pytest.fixture
 def eight_cores(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(cpu_threads, "usable_cores", lambda: 8)
+    monkeypatch.setattr(cpu_quota, "usable_cores", lambda: 8)
 
 
 @pytest.mark.parametrize(
@@ -67,20 +66,12 @@ def test_no_cgroup_files_means_the_usable_cores(cgroup, eight_cores) -> None:  #
     assert default_threads(root, proc) == 8
 
 
-def test_serve_takes_threads() -> None:
-    parser = argparse.ArgumentParser()
-    register(parser.add_subparsers())
-    assert parser.parse_args(["serve", "--threads", "3"]).threads == 3
-    assert parser.parse_args(["serve"]).threads is None
-    for bad in ("0", "two"):
-        with pytest.raises(SystemExit):
-            parser.parse_args(["serve", "--threads", bad])
-
-
-def test_threads_setting_from_the_environment(monkeypatch: pytest.MonkeyPatch) -> None:
-    from visnerf_server.settings import Settings
-
-    monkeypatch.setenv("VISNERF_THREADS", "3")
-    assert Settings().threads == 3
-    monkeypatch.delenv("VISNERF_THREADS")
-    assert Settings().threads is None
+def test_threads_come_from_the_environment_else_the_quota(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(runtime, "quota_cores", lambda: 3)
+    for name in ("VISNERF_THREADS", "OMP_NUM_THREADS"):
+        monkeypatch.delenv(name, raising=False)
+    assert runtime.default_threads() == runtime.available_cores() == 3
+    monkeypatch.setenv("OMP_NUM_THREADS", "1")
+    assert runtime.default_threads() == 1
+    monkeypatch.setenv("VISNERF_THREADS", "2")
+    assert runtime.default_threads() == 2
