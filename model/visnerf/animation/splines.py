@@ -75,29 +75,12 @@ def catmull_rom(
     return mix(b1, b2, (t - t1) / (t2 - t1))
 
 
-def pchip_slopes(x: Float[np.ndarray, " n"], y: Float[np.ndarray, " n"]) -> Float[np.ndarray, " n"]:
-    """Derivatives at the knots of the monotone piecewise cubic Hermite interpolant (the scheme of
-    ``scipy.interpolate.PchipInterpolator``): those the parameter tables use between training
-    values (``representation.param_axes.pchip_slopes``), in float64. A knot where the data turn
-    gets slope 0, so each piece stays between its two knot values: no overshoot."""
-    slopes = param_axes.pchip_slopes(torch.as_tensor(np.asarray(y, dtype=np.float64))[:, None],
-                                     torch.as_tensor(np.asarray(x, dtype=np.float64)))
-    return slopes[:, 0].numpy()
-
-
 def pchip(x: Float[np.ndarray, " n"], y: Float[np.ndarray, " n"], t: float) -> float:
-    """The monotone cubic through (x, y) at ``t`` (held at the end values outside [x0, xn])."""
-    if len(x) == 1 or t <= x[0]:
-        return float(y[0])
-    if t >= x[-1]:
-        return float(y[-1])
-    d = pchip_slopes(x, y)
-    k = int(np.searchsorted(x, t, side="right")) - 1
-    h = x[k + 1] - x[k]
-    s = (t - x[k]) / h
-    h00, h10 = 2 * s**3 - 3 * s**2 + 1, s**3 - 2 * s**2 + s  # cubic Hermite basis
-    h01, h11 = -2 * s**3 + 3 * s**2, s**3 - s**2
-    return float(h00 * y[k] + h10 * h * d[k] + h01 * y[k + 1] + h11 * h * d[k + 1])
+    """The monotone cubic through (x, y) at ``t`` (held at the end values outside [x0, xn]): the
+    parameter tables' interpolant (``representation.param_axes.interpolate_knots``), in float64."""
+    table = torch.as_tensor(np.asarray(y, dtype=np.float64))[:, None]  # [n, 1]
+    knots = torch.as_tensor(np.asarray(x, dtype=np.float64))
+    return float(param_axes.interpolate_knots(table, knots, torch.tensor([float(t)], dtype=torch.float64))[0, 0])
 
 
 def turn_between(a: Float[np.ndarray, " 3"], b: Float[np.ndarray, " 3"], v: Float[np.ndarray, " 3"]) -> Float[np.ndarray, " 3"]:
