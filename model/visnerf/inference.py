@@ -18,7 +18,7 @@ from typing import Literal
 import numpy as np
 import torch
 
-from visnerf.checkpoint import CheckpointError, CheckpointMeta, load_checkpoint
+from visnerf.checkpoint import CheckpointError, CheckpointMeta, ParamAxis, load_checkpoint
 from visnerf.data.cameras import Intrinsics, check_rigid_c2w
 from visnerf.lens import Projection, choose_lens
 from visnerf.rendering.cancel import CancelCheck, RenderCancelled
@@ -34,7 +34,7 @@ __all__ = [
     "BackgroundRunner",
     "CancelCheck",
     "CheckpointError",
-    "ParamAxisInfo",
+    "ParamAxis",
     "Projection",
     "Quality",
     "RenderCancelled",
@@ -46,25 +46,13 @@ __all__ = [
 
 
 @dataclass(frozen=True)
-class ParamAxisInfo:
-    """One explorable parameter of a scene."""
-
-    name: str
-    min: float
-    max: float
-    values: tuple[float, ...]
-    """The distinct values the model was trained on."""
-    default: float
-
-
-@dataclass(frozen=True)
 class SceneInfo:
     """Everything a client needs to know to explore a scene."""
 
     title: str
     kind: str
     """``dvr`` (direct volume rendering) or ``ir`` (isosurface rendering)."""
-    params: tuple[ParamAxisInfo, ...]
+    params: tuple[ParamAxis, ...]
     camera: dict[str, float]
     """Default camera: azimuth, elevation, distance (orbit degrees), and fov_deg, or view_height for
     a scene trained from orthographic images."""
@@ -78,7 +66,7 @@ class SceneInfo:
 
 def _scene_info(meta: CheckpointMeta) -> SceneInfo:
     params = tuple(
-        ParamAxisInfo(a.name, a.min, a.max, tuple(a.values), a.default) for a in meta.param_axes
+        ParamAxis(a.name, a.min, a.max, tuple(a.values), a.default) for a in meta.param_axes
     )
     return SceneInfo(
         title=meta.title,

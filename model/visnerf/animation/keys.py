@@ -37,7 +37,7 @@ class PathError(ValueError):
 
 @runtime_checkable
 class AxisLike(Protocol):
-    """A parameter axis: ``visnerf.inference.ParamAxisInfo`` and ``visnerf.checkpoint.ParamAxis`` both are."""
+    """A parameter axis, as ``visnerf.checkpoint.ParamAxis`` is."""
 
     @property
     def name(self) -> str: ...

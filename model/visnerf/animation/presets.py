@@ -67,7 +67,7 @@ def test_path(n_views: int, axes: Sequence[AxisLike], distance: float, fov: floa
     ``1 / fps`` apart, so ``sample_frames(path, fps, axes)`` gives exactly the cameras
     (``orbit_c2w(azimuth, elevation, distance)``) and parameter values of a generated scene's
     test split. Each axis needs ``values`` (its training values: the protocol keeps the test
-    values between them), as ``ParamAxisInfo`` and the checkpoint's ``ParamAxis`` have."""
+    values between them), as the checkpoint's ``ParamAxis`` has."""
     _check_frames(n_views, fps, 2)
     protocol_axes = []
     for axis in axes:

@@ -20,12 +20,12 @@ from visnerf.animation.path import (
 )
 from visnerf.animation.path import test_path as protocol_test_path
 from visnerf.animation.splines import catmull_rom, lerp
+from visnerf.checkpoint import ParamAxis
 from visnerf.data.cameras import check_rigid_c2w, orbit_c2w, orbit_from_c2w
-from visnerf.inference import ParamAxisInfo
 from visnerf.scenes.catalog import get_scene
 from visnerf.scenes.writer import DatasetOptions, write_scene
 
-AXES = (ParamAxisInfo("a", 0.0, 1.0, (0.0, 0.5, 1.0), 0.5),)
+AXES = (ParamAxis("a", 0.0, 1.0, (0.0, 0.5, 1.0), 0.5),)
 
 
 def key(t: float, az: float, el: float, distance: float = 2.0, fov: float = 30.0, **params: float) -> Keyframe:
@@ -136,7 +136,7 @@ def test_smooth_parameters_never_leave_their_range() -> None:
 
 
 def test_linear_parameters_and_defaults() -> None:
-    axes = (*AXES, ParamAxisInfo("b", -1.0, 1.0, (-1.0, 1.0), 0.25))
+    axes = (*AXES, ParamAxis("b", -1.0, 1.0, (-1.0, 1.0), 0.25))
     frames = sample_frames(AnimationPath((key(0.0, 0.0, 0.0, a=0.2), key(1.0, 0.0, 0.0, a=0.6))), 4.0, axes)
     np.testing.assert_allclose([f.params["a"] for f in frames], [0.2, 0.3, 0.4, 0.5, 0.6])
     assert all(f.params["b"] == 0.25 for f in frames)
@@ -167,7 +167,7 @@ def test_orbit_turns_once_without_repeating_a_frame(n_frames: int) -> None:
 
 
 def test_sweep_moves_one_axis_from_min_to_max_at_a_fixed_camera() -> None:
-    axes = (*AXES, ParamAxisInfo("b", -1.0, 3.0, (-1.0, 3.0), 0.0))
+    axes = (*AXES, ParamAxis("b", -1.0, 3.0, (-1.0, 3.0), 0.0))
     camera = CameraKey(40.0, 10.0, 2.0, 30.0)
     frames = sample_frames(sweep_path("b", 5, 30.0, axes, camera, {"a": 0.9}), 30.0, axes)
     np.testing.assert_allclose([f.params["b"] for f in frames], [-1.0, 0.0, 1.0, 2.0, 3.0])
@@ -182,7 +182,7 @@ def test_the_test_path_is_the_generated_scenes_test_split(tmp_path) -> None:
     spec = get_scene("cosmo_sim")  # three axes: the protocol's one-at-a-time and together halves
     write_scene(spec, tmp_path, DatasetOptions(resolution=8, n_views=12, n_test_views=9))
     test_split = json.loads((tmp_path / "transforms_test.json").read_text())
-    axes = tuple(ParamAxisInfo(a.name, a.low, a.high, a.values(), a.values()[1]) for a in spec.axes)
+    axes = tuple(ParamAxis(a.name, a.low, a.high, a.values(), a.values()[1]) for a in spec.axes)
     path = protocol_test_path(9, axes, spec.camera_distance, spec.fov_x_deg, fps=30.0)
     frames = sample_frames(path, 30.0, axes)
     assert len(frames) == len(test_split["frames"]) == 9

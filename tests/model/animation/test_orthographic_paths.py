@@ -11,11 +11,12 @@ from PIL import Image
 
 from visnerf.animation import commands
 from visnerf.animation.path import CameraKey, PathError, orbit_path, parse_path, sample_frames
+from visnerf.checkpoint import ParamAxis
 from visnerf.data.cameras import orbit_c2w
-from visnerf.inference import ParamAxisInfo, load_scene
+from visnerf.inference import load_scene
 from visnerf.testing import make_tiny_checkpoint
 
-AXES = (ParamAxisInfo("a", 0.0, 1.0, (0.0, 1.0), 0.5),)
+AXES = (ParamAxis("a", 0.0, 1.0, (0.0, 1.0), 0.5),)
 ORTHO_SCENE = {"azimuth": 30.0, "elevation": 20.0, "distance": 2.5, "view_height": 1.4}
 PERSPECTIVE_SCENE = {"azimuth": 30.0, "elevation": 20.0, "distance": 2.5, "fov_deg": 30.0}
 

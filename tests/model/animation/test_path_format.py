@@ -10,9 +10,8 @@ import pytest
 from visnerf.animation.path import MAX_KEYFRAMES, AnimationPath, CameraKey, Keyframe, PathError, parse_path
 from visnerf.checkpoint import ParamAxis
 from visnerf.data.cameras import orbit_c2w
-from visnerf.inference import ParamAxisInfo
 
-AXES = (ParamAxisInfo("isovalue", 0.2, 0.8, (0.2, 0.5, 0.8), 0.5), ParamAxisInfo("time", 0.0, 10.0, (0.0, 10.0), 5.0))
+AXES = (ParamAxis("isovalue", 0.2, 0.8, (0.2, 0.5, 0.8), 0.5), ParamAxis("time", 0.0, 10.0, (0.0, 10.0), 5.0))
 DEFAULTS = {"azimuth": 30.0, "elevation": 20.0, "distance": 2.5, "fov_deg": 30.0}
 
 
@@ -61,7 +60,7 @@ def test_checkpoint_axes_work_as_well_as_inference_axes() -> None:
 
 
 def test_a_value_at_the_float32_end_of_a_range_is_clamped_not_refused() -> None:
-    axes = (ParamAxisInfo("omega", 0.12, float(np.float32(0.16)), (0.12, 0.16), 0.14),)  # 0.1599999964
+    axes = (ParamAxis("omega", 0.12, float(np.float32(0.16)), (0.12, 0.16), 0.14),)  # 0.1599999964
     doc = {"version": 1, "keyframes": [{"time": 0, "params": {"omega": 0.16}}]}
     assert parse_path(doc, axes, DEFAULTS).keyframes[0].params["omega"] == float(np.float32(0.16))
 
