@@ -62,3 +62,11 @@ def non_negative_int(text: str) -> int:
 def whole_number_at_least(least: int) -> Callable[[str], int]:
     """The argument type of a whole number of at least ``least``."""
     return lambda text: whole_number(text, least, f"of at least {least}")
+
+
+DEVICE_HELP = "auto (CUDA when present), cpu, cuda or cuda:N"
+
+
+def add_device_option(parser: argparse.ArgumentParser) -> None:
+    """``--device``, as every command that runs a model takes it (``runtime.pick_device`` reads it)."""
+    parser.add_argument("--device", default="auto", help=DEVICE_HELP)

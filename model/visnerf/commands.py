@@ -11,8 +11,8 @@ from typing import TYPE_CHECKING
 
 import torch
 
+from visnerf.arg_types import add_device_option, positive_float
 from visnerf.arg_types import number as parse_number
-from visnerf.arg_types import positive_float
 from visnerf.checkpoint import CheckpointError, read_checkpoint
 from visnerf.cinema_options import add_cinema_options, cinema_camera
 from visnerf.config import FieldConfig, HoldoutConfig, RenderConfig, TrainConfig
@@ -364,7 +364,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--bbox", type=parse_bbox, default=None, metavar="X0,Y0,Z0,X1,Y1,Z1",
                    help="world box that holds the content (write --bbox=-1,... for negative numbers); "
                         "default: the dataset's bbox, else a box every camera sees, carved from the images")
-    p.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N")
+    add_device_option(p)
     p.add_argument("--resume", nargs="?", const="", default=None, metavar="STATE|CKPT",
                    help="go on with a run. Alone: from the run state beside --out (M.resume, written every "
                         "--checkpoint-every-s seconds and when SIGTERM or Ctrl-C stops the run), exactly where it "
@@ -389,7 +389,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.add_argument("--param", action="append", default=[], metavar="NAME=VALUE")
     r.add_argument("--size", default="256x256", metavar="WxH")
     r.add_argument("--quality", choices=("full", "preview"), default="full")
-    r.add_argument("--device", default="auto")
+    add_device_option(r)
     r.add_argument("-o", "--output", required=True)
     r.set_defaults(func=_render)
 
@@ -408,7 +408,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     c.add_argument("--tolerance", type=float, default=0.05, metavar="DB",
                    help="PSNR the full-quality frames may lose against exhaustive ones (default 0.05)")
     c.add_argument("--dry-run", action="store_true", help="measure and print, leave the checkpoint alone")
-    c.add_argument("--device", default="auto")
+    add_device_option(c)
     add_cinema_options(c)
     c.set_defaults(func=_calibrate)
 

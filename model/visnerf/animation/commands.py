@@ -14,8 +14,8 @@ import sys
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from visnerf.arg_types import add_device_option, whole_number_at_least
 from visnerf.arg_types import number as parse_number
-from visnerf.arg_types import whole_number_at_least
 
 if TYPE_CHECKING:
     from visnerf.animation.movie import MovieSettings
@@ -188,7 +188,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                       help="world units the frame spans vertically: an orthographic movie")
     a.add_argument("--param", action="append", default=[], metavar="NAME=VALUE",
                    help="a parameter value held during --orbit and --sweep (default: the axis default)")
-    a.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N")
+    add_device_option(a)
     a.add_argument("--quiet", action="store_true", help="no progress bar")
     a.add_argument("-o", "--output", required=True, metavar="OUT",
                    help="movie.mp4 (H.264), movie.gif, or any other name: a folder of numbered PNG frames")

@@ -4,6 +4,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from visnerf.arg_types import add_device_option
 from visnerf.checkpoint import CheckpointError
 from visnerf.cinema_options import add_cinema_options, cinema_camera
 from visnerf.data.datasets import SPLITS
@@ -50,7 +51,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--sweep-frames", type=int, default=SweepConfig.n_frames, metavar="N",
                    help=f"frames rendered per render setting in the sweep (default {SweepConfig.n_frames})")
     p.add_argument("--no-sweep", action="store_true", help="skip the render-settings sweep")
-    p.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N")
+    add_device_option(p)
     add_cinema_options(p)
     p.set_defaults(func=eval_command, requires=("skimage", "matplotlib"))  # SSIM, report figures
 
