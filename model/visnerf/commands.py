@@ -12,57 +12,17 @@ from typing import TYPE_CHECKING
 import torch
 
 from visnerf.arg_types import add_device_option, positive_float
-from visnerf.arg_types import number as parse_number
 from visnerf.checkpoint import CheckpointError, read_checkpoint
 from visnerf.cinema_options import add_cinema_options, cinema_camera
-from visnerf.config import FieldConfig, HoldoutConfig, RenderConfig, TrainConfig
+from visnerf.config import FieldConfig, RenderConfig, TrainConfig
 from visnerf.config_options import add_config_options, given_options
 from visnerf.data.cameras import orbit_c2w
+from visnerf.holdout_options import add_holdout_options, holdout_config
 from visnerf.runtime import pick_device
 
 if TYPE_CHECKING:
     from visnerf.data.scene import SceneData
     from visnerf.training.trainer import Trainer
-
-
-def parse_settings(text: str) -> tuple[tuple[float, ...], ...]:
-    """``"0.12,0.0225,0.7;0.155,0.0215,0.55"`` -> settings."""
-    if not text:
-        return ()
-    try:
-        return tuple(tuple(float(v) for v in part.split(",")) for part in text.split(";") if part.strip())
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"cannot read parameter settings {text!r}: use 'a,b,c;d,e,f'") from None
-
-
-def parse_axis_value(text: str) -> tuple[str, float]:
-    """``"OmM=0.1375"`` or ``"0=0.1375"`` -> (axis name or index, value), for ``--holdout-value``
-    (the axis is resolved against the dataset once it is loaded: ``holdout_config``)."""
-    axis, sep, value = text.partition("=")
-    axis = axis.strip()
-    if not sep or not axis:
-        raise argparse.ArgumentTypeError(f"cannot read held-out axis value {text!r}: use AXIS=VALUE, the axis "
-                                         "by its name or its index among the varying parameters (OmM=0.1375, 0=0.1375)")
-    number = parse_number(value)
-    if not math.isfinite(number):
-        raise argparse.ArgumentTypeError(f"held-out axis value {text!r}: {value.strip()!r} is not a finite number")
-    return axis, number
-
-
-def holdout_config(scene: "SceneData", args: argparse.Namespace) -> HoldoutConfig:
-    """The hold-out that ``--holdout-views``, ``--holdout-params`` and ``--holdout-value`` name, the
-    axes of ``--holdout-value`` resolved against ``scene`` (ValueError naming an unknown axis)."""
-    from visnerf.data.holdout import axis_index
-
-    values = tuple((axis_index(scene, axis), value) for axis, value in getattr(args, "holdout_value", ()))
-    return HoldoutConfig(views=args.holdout_views, settings=args.holdout_params, axis_values=values)
-
-
-def parse_views(text: str) -> tuple[int, ...]:
-    try:
-        return tuple(int(v) for v in text.split(",") if v.strip())
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"cannot read view indices {text!r}: use '0,7,21'") from None
 
 
 def parse_bbox(text: str) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
@@ -353,14 +313,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", required=True, help="checkpoint to write (.safetensors)")
     p.add_argument("--time-budget", type=positive_float, default=None, metavar="MINUTES",
                    help="wall-clock training budget; the schedule is given as fractions of it")
-    p.add_argument("--holdout-views", type=parse_views, default=(), metavar="I,J,..",
-                   help="view indices held out for validation at every parameter setting")
-    p.add_argument("--holdout-params", type=parse_settings, default=(), metavar="A,B;C,D",
-                   help="parameter settings held out for validation (all their views)")
-    p.add_argument("--holdout-value", type=parse_axis_value, action="append", default=[], metavar="AXIS=VALUE",
-                   help="hold out for validation every frame where parameter AXIS (its name, or its index among "
-                        "the varying parameters) has VALUE, e.g. an axis' middle value to validate between "
-                        "sampled values; repeatable")
+    add_holdout_options(p, "for validation")
     p.add_argument("--bbox", type=parse_bbox, default=None, metavar="X0,Y0,Z0,X1,Y1,Z1",
                    help="world box that holds the content (write --bbox=-1,... for negative numbers); "
                         "default: the dataset's bbox, else a box every camera sees, carved from the images")
@@ -398,12 +351,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     c.add_argument("checkpoint", help="checkpoint to measure and update in place (written atomically)")
     c.add_argument("data", help="dataset folder: transforms_val.json, the training split with --holdout-*, else "
                                 "the training frames")
-    c.add_argument("--holdout-views", type=parse_views, default=(), metavar="I,J,..",
-                   help="the views held out in training (frames of transforms_train.json)")
-    c.add_argument("--holdout-params", type=parse_settings, default=(), metavar="A,B;C,D",
-                   help="the parameter settings held out in training")
-    c.add_argument("--holdout-value", type=parse_axis_value, action="append", default=[], metavar="AXIS=VALUE",
-                   help="the axis values held out in training (repeatable)")
+    add_holdout_options(c, "in training: give those the run held out")
     c.add_argument("--frames", type=int, default=16, help="frames to measure on (evenly chosen, default 16)")
     c.add_argument("--tolerance", type=float, default=0.05, metavar="DB",
                    help="PSNR the full-quality frames may lose against exhaustive ones (default 0.05)")

@@ -13,9 +13,9 @@ import torch
 from PIL import Image
 
 from visnerf import cli
-from visnerf.commands import holdout_config, parse_axis_value
 from visnerf.data.cameras import Intrinsics, orbit_c2w
 from visnerf.data.scene import SceneData, axes_from_values
+from visnerf.holdout_options import holdout_config, parse_axis_value
 
 
 def _scene() -> SceneData:
