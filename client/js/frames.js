@@ -273,6 +273,17 @@ export class RenderScheduler {
     this.screenTimer = setTimeout(() => this.sharpen(), SCREEN_IDLE_MS);
   }
 
+  cancelSharpen() {
+    clearTimeout(this.screenTimer);
+    this.screenTimer = null;
+  }
+
+  /** Whether the view shows the frame of request `req`. */
+  shows(req) {
+    const shown = this.channel.view.shown;
+    return Boolean(req && shown && shown.key === requestKey(req));
+  }
+
   /** The view's box changed: a still view is sharpened again at its new size. */
   resized() {
     const shown = this.channel.view.shown;
@@ -280,27 +291,23 @@ export class RenderScheduler {
   }
 
   sharpen() {
-    clearTimeout(this.screenTimer);
-    this.screenTimer = null;
+    this.cancelSharpen();
     if (this.channel.closed || this.dirty || this.idleTimer !== null) return;
     const req = this.makeRequest("screen");
-    const shown = this.channel.view.shown;
-    if (!req || (shown && shown.key === requestKey(req))) return;
+    if (!req || this.shows(req)) return;
     this.channel.request(req, performance.now());
   }
 
-  /** The screen-size request of the current state when one is due (null when none is). */
+  /** Whether a frame at the view's size is still to come for the current state. */
   get screenDue() {
     if (this.screenTimer !== null) return true;
     const req = this.makeRequest("screen");
-    const shown = this.channel.view.shown;
-    return Boolean(req && !(shown && shown.key === requestKey(req)));
+    return Boolean(req) && !this.shows(req);
   }
 
   /** An interactive change (drag, slider move): preview now, full frame after the idle delay. */
   input(inputTime = performance.now()) {
-    clearTimeout(this.screenTimer);
-    this.screenTimer = null;
+    this.cancelSharpen();
     if (this.pendingInputTime === null) this.pendingInputTime = inputTime;
     this.dirty = true;
     if (this.rafId === null) {
@@ -339,8 +346,7 @@ export class RenderScheduler {
 
   /** A discrete change (button, typed value, restored URL): go straight to a full frame. */
   commit(inputTime = performance.now()) {
-    clearTimeout(this.screenTimer);
-    this.screenTimer = null;
+    this.cancelSharpen();
     if (this.pendingInputTime === null) this.pendingInputTime = inputTime;
     this.dirty = false;
     clearTimeout(this.idleTimer);
@@ -389,7 +395,7 @@ export class RenderScheduler {
     const key = requestKey(req);
     const shown = this.channel.view.shown;
     const screen = this.makeRequest("screen");
-    const sharp = shown && screen && shown.key === requestKey(screen);
+    const sharp = this.shows(screen);
     if (!force && shown && (sharp || (key === this.lastFullKey && shown.key === key))) {
       this.pendingInputTime = null;
       if (!sharp && screen) this.sharpenSoon(); // the full frame is shown; the view's size is not
@@ -411,8 +417,7 @@ export class RenderScheduler {
   stop() {
     clearTimeout(this.idleTimer);
     this.idleTimer = null;
-    clearTimeout(this.screenTimer);
-    this.screenTimer = null;
+    this.cancelSharpen();
     clearTimeout(this.retryTimer);
     if (this.rafId !== null) cancelAnimationFrame(this.rafId);
     this.rafId = null;
