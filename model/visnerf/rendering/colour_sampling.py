@@ -38,19 +38,31 @@ class ColourSampling:
             raise ValueError(f"floor must be in (0, 1), got {self.floor}")
 
 
+def draw_coloured(
+    weights: Float[Tensor, " m"], candidates: Int[Tensor, " k"], sampling: ColourSampling | None
+) -> tuple[Int[Tensor, " j"], Float[Tensor, " j"]]:
+    """Of the ``candidates`` (indices into ``weights``), those to colour and the constant factor
+    on each one's weight: 1 where it reaches the floor (or without ``sampling``), ``1 / p`` for a
+    lighter one drawn with probability ``p = weight / floor``. No gradient."""
+    if sampling is None:
+        return candidates, torch.ones(candidates.shape[0], dtype=weights.dtype, device=weights.device)
+    with torch.no_grad():
+        w = weights.index_select(0, candidates)  # [k]
+        p = (w / sampling.floor).clamp(max=1.0)  # [k] probability of colouring
+        drawn = uniform_noise(tuple(p.shape), sampling.generator, p.device, p.dtype) < p
+        keep = drawn.nonzero()[:, 0]  # [j]
+        gain = 1.0 / p.index_select(0, keep).clamp_min(torch.finfo(p.dtype).tiny)  # [j], 1 at or above the floor
+    return candidates.index_select(0, keep), gain
+
+
 def pick_coloured(
     weights: Float[Tensor, " m"], candidates: Int[Tensor, " k"], sampling: ColourSampling | None
 ) -> tuple[Int[Tensor, " j"], Float[Tensor, " j"]]:
     """Of the ``candidates`` (indices into ``weights``), those to colour and the weight each one's
     colour counts with: its own weight where it reaches the floor (or without ``sampling``),
     ``floor`` in value for a drawn lighter one, whose gradient is its weight's times
-    ``floor / weight``."""
-    w = weights.index_select(0, candidates)  # [k]
+    ``floor / weight`` (``draw_coloured``)."""
     if sampling is None:
-        return candidates, w
-    with torch.no_grad():
-        p = (w / sampling.floor).clamp(max=1.0)  # [k] probability of colouring
-        drawn = uniform_noise(tuple(p.shape), sampling.generator, p.device, p.dtype) < p
-        keep = drawn.nonzero()[:, 0]  # [j]
-        gain = 1.0 / p.index_select(0, keep).clamp_min(torch.finfo(p.dtype).tiny)  # [j], 1 at or above the floor
-    return candidates.index_select(0, keep), w.index_select(0, keep) * gain
+        return candidates, weights.index_select(0, candidates)
+    picked, gain = draw_coloured(weights, candidates, sampling)
+    return picked, weights.index_select(0, picked) * gain

@@ -18,7 +18,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
-from jaxtyping import Float
+from jaxtyping import Float, Int
 from torch import Tensor
 
 from visnerf.rendering.sampling import uniform_noise
@@ -40,6 +40,20 @@ class DensityGradientSampling:
             raise ValueError(f"keep must be in (0, 1], got {self.keep}")
 
 
+def traced_samples(
+    sigma: Float[Tensor, " m"], deltas: Float[Tensor, " m"] | float, sampling: DensityGradientSampling
+) -> tuple[Int[Tensor, " k"], Float[Tensor, " k"]]:
+    """The samples whose densities a step back-propagates, and the factor on each one's gradient:
+    every sample with ``1 - exp(-sigma * delta) >= sampling.floor`` (factor 1) and a random
+    ``sampling.keep`` fraction of the rest (factor ``1 / keep``). No gradient."""
+    with torch.no_grad():
+        low = -torch.expm1(-sigma * deltas) < sampling.floor
+        drawn = uniform_noise(tuple(sigma.shape), sampling.generator, sigma.device) < sampling.keep
+        traced = (~low | drawn).nonzero()[:, 0]  # [k]
+        gain = torch.where(low.index_select(0, traced), 1.0 / sampling.keep, 1.0).to(sigma.dtype)
+    return traced, gain
+
+
 def density_with_sampled_gradients(
     density: DensityFn,
     points: Float[Tensor, "m 3"],
@@ -48,22 +62,18 @@ def density_with_sampled_gradients(
     sampling: DensityGradientSampling,
     known: Float[Tensor, " m"] | None = None,
 ) -> Float[Tensor, " m"]:
-    """``density(points, q_density)`` in value; differentiable through the samples with
-    ``1 - exp(-sigma * delta) >= sampling.floor`` and a random ``sampling.keep`` fraction of the
-    rest (scaled by ``1 / keep``). A keep of 1 back-propagates every sample (the plain call).
-    ``known``: the same densities computed earlier without a graph, which saves that pass."""
-    floor, keep, generator = sampling.floor, sampling.keep, sampling.generator
-    if keep == 1.0 or not torch.is_grad_enabled():
+    """``density(points, q_density)`` in value; differentiable through the samples
+    ``traced_samples`` picks, scaled by its factors. A keep of 1 back-propagates every sample (the
+    plain call). ``known``: the same densities computed earlier without a graph, which saves that
+    pass."""
+    if sampling.keep == 1.0 or not torch.is_grad_enabled():
         return density(points, q_density)
     with torch.no_grad():
         sigma = density(points, q_density) if known is None else known  # [m]
-        low = -torch.expm1(-sigma * deltas) < floor
-        drawn = uniform_noise(tuple(sigma.shape), generator, sigma.device) < keep
-        traced = (~low | drawn).nonzero()[:, 0]  # [k]
+    traced, gain = traced_samples(sigma, deltas, sampling)
     if traced.numel() == 0:
         return sigma
     exact = density(points.index_select(0, traced), q_density.index_select(0, traced))  # [k]
-    gain = torch.where(low.index_select(0, traced), 1.0 / keep, 1.0).to(exact.dtype)
     # Value ``exact`` (the added term is exactly zero), gradient ``gain`` times its own.
-    scaled = exact + (exact - exact.detach()) * (gain - 1.0)
+    scaled = exact + (exact - exact.detach()) * (gain.to(exact.dtype) - 1.0)
     return sigma.index_copy(0, traced, scaled)

@@ -134,6 +134,22 @@ def _compiled(n_components: int):  # noqa: ANN202 - a numba dispatcher
     return compiled.jit(_kernel_source(n_components))
 
 
+def table_layout(resolution: tuple[int, int, int], plane_rows: int, line_rows: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(resolution, first plane row of each mode, first line row of each mode) as the compiled
+    loops read them (int64); ``ValueError`` where tables of ``plane_rows`` and ``line_rows`` rows
+    do not hold a grid of ``resolution``."""
+    plane_off, line_off, p0, l0 = [], [], 0, 0
+    for (a, b), c in MODES:
+        plane_off.append(p0)
+        line_off.append(l0)
+        p0 += resolution[a] * resolution[b]
+        l0 += resolution[c]
+    if (p0, l0) != (plane_rows, line_rows):
+        raise ValueError(f"tables of {plane_rows} plane and {line_rows} line rows do not "
+                         f"match resolution {resolution} ({p0} and {l0})")
+    return np.asarray(resolution, np.int64), np.asarray(plane_off, np.int64), np.asarray(line_off, np.int64)
+
+
 @dataclass(frozen=True)
 class KernelTables:
     """A VM grid's row tables (float32, the layout of ``vm_taps.TapLayout``) and where each mode's
@@ -154,17 +170,8 @@ class KernelTables:
     def of(cls, plane_table: Float[Tensor, "p c"], line_table: Float[Tensor, "l c"],
            resolution: tuple[int, int, int]) -> "KernelTables":
         plane_t, line_t = (t.detach().to(torch.float32).contiguous() for t in (plane_table, line_table))
-        plane_off, line_off, p0, l0 = [], [], 0, 0
-        for (a, b), c in MODES:
-            plane_off.append(p0)
-            line_off.append(l0)
-            p0 += resolution[a] * resolution[b]
-            l0 += resolution[c]
-        if (p0, l0) != (plane_t.shape[0], line_t.shape[0]):
-            raise ValueError(f"tables of {plane_t.shape[0]} plane and {line_t.shape[0]} line rows do not "
-                             f"match resolution {resolution} ({p0} and {l0})")
-        return cls(plane_t.numpy(), line_t.numpy(), np.asarray(resolution, np.int64), np.asarray(plane_off, np.int64),
-                   np.asarray(line_off, np.int64), int(plane_t.shape[1]), (plane_t, line_t))
+        res, plane_off, line_off = table_layout(resolution, plane_t.shape[0], line_t.shape[0])
+        return cls(plane_t.numpy(), line_t.numpy(), res, plane_off, line_off, int(plane_t.shape[1]), (plane_t, line_t))
 
     def write_rows(self, coords: Float[Tensor, "m 3"], out: Tensor, n_freqs: int = -1) -> None:
         """Write the features of grid coordinates ``coords`` (float32, CPU) into ``out[:, :3c]``

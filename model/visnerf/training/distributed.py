@@ -161,6 +161,20 @@ class Ranks:
         return float(values[0]), bool(values[1] > 0)
 
     @torch.no_grad()
+    def merge_row_marks(self, marks: list[np.ndarray]) -> None:
+        """Set each row mark (``vm_rows.RowGradients``) that any rank set, on every rank: a row one
+        rank's samples touched holds the averaged gradient on all of them. One all-reduce."""
+        if self.world_size == 1 or not marks:
+            return
+        flat = torch.from_numpy(np.concatenate(marks)).to(device=self.device, dtype=torch.float32)
+        dist.all_reduce(flat)
+        merged = (flat > 0).to(torch.uint8).cpu().numpy()
+        start = 0
+        for m in marks:
+            m[:] = merged[start:start + m.shape[0]]
+            start += m.shape[0]
+
+    @torch.no_grad()
     def average_gradients(self, params: Iterable[nn.Parameter], *values: float) -> tuple[float, ...]:
         """Replace each parameter's gradient by its mean over the ranks, and return the means of
         ``values`` (a batch statistic, say). A gradient that no rank has stays None; one that

@@ -123,3 +123,27 @@ class RayBatchSampler:
             self.params_norm[frame].to(self.device),
             frame, px, py,
         )
+
+
+def micro_batches(per_ray: Int[Tensor, " n"], max_rays: int, max_samples: int) -> list[slice]:
+    """Consecutive slices of a batch whose rays evaluate ``per_ray`` samples each
+    (``RaySamples.per_ray``), with at most ``max_rays`` rays and, where a single ray does not
+    exceed it alone, at most ``max_samples`` samples per slice.
+
+    Activation memory grows with the samples evaluated and back-propagated, so a sample budget
+    keeps it flat as the grid (and with it the samples per ray) grows, and in a fresh field's fog,
+    where every sample in the box is evaluated. Once content is carved or learned, most samples in
+    the box are skipped and the same budget holds many more rays: each micro-batch costs its
+    backward pass's fixed work (a sort of its taps per table, the decoders' weight gradients), so
+    fewer, fuller micro-batches are faster.
+    """
+    counts = per_ray.tolist()
+    slices, start, total = [], 0, 0
+    for i, c in enumerate(counts):
+        if i > start and (i - start >= max_rays or total + c > max_samples):
+            slices.append(slice(start, i))
+            start, total = i, 0
+        total += c
+    if start < len(counts):
+        slices.append(slice(start, len(counts)))
+    return slices

@@ -2,6 +2,7 @@
 on a level axis: the curvature of its field ``g`` and the bound on its bands' slopes."""
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -107,14 +108,20 @@ LEVEL_SPAN_EPS = 1e-6
 """Added to the squared span of the levels before dividing by it (a guarded division)."""
 
 
+RawDensity = Callable[[Float[Tensor, "m 3"], Float[Tensor, "m c"]], Float[Tensor, " m"]]
+"""The level field ``g`` at grid coordinates with per-point density features (the factors')."""
+
+
 def level_curvature(
-    field: VisNerfField, params: Float[Tensor, "n k"], generator: torch.Generator, step_voxels: float = 2.0
+    field: VisNerfField, params: Float[Tensor, "n k"], generator: torch.Generator, step_voxels: float = 2.0,
+    raw_density: RawDensity | None = None,
 ) -> Tensor:
     """Mean squared second difference of the level field ``g`` at ``n`` random points of the box
     along random unit directions, ``h = step_voxels`` voxels, over the squared span of the levels:
     unchanged when ``g`` and the levels are scaled together (the sharpness absorbs the scale).
     ``params``: normalised parameter values of the points (the density features of the other axes).
-    0 for a field without a level axis."""
+    0 for a field without a level axis. ``raw_density`` evaluates ``g`` (default: the field's own
+    ``raw_density`` over its grid's lookups)."""
     if field.levels is None:
         return torch.zeros((), device=field.device)
     n = params.shape[0]
@@ -126,7 +133,10 @@ def level_curvature(
     points = torch.cat([x - h * u, x, x + h * u])  # [3n, 3]
     q, _ = field.split_density_features(field.param_features(params)[0])
     coords = field.to_grid(points)
-    g = field.raw_density(coords, field.density_grid.sample(coords), q.repeat(3, 1)).view(3, n)
+    if raw_density is None:
+        g = field.raw_density(coords, field.density_grid.sample(coords), q.repeat(3, 1)).view(3, n)
+    else:
+        g = raw_density(coords, q.repeat(3, 1)).view(3, n)
     second = g[0] - 2.0 * g[1] + g[2]  # [n]
     table = field.levels.table[:, 0]
     span = table.max() - table.min()

@@ -23,6 +23,7 @@ from jaxtyping import Float, Int
 from torch import Tensor
 from tqdm import tqdm
 
+from visnerf import compiled
 from visnerf.checkpoint import CheckpointMeta, save_checkpoint
 from visnerf.config import FieldConfig, RenderConfig, TrainConfig
 from visnerf.data.carving import carve_occupancy
@@ -53,7 +54,8 @@ from visnerf.representation.field import VisNerfField
 from visnerf.representation.vm_taps import table_gradients_in_place
 from visnerf.runtime import bf16_native, keep_freed_blocks, release_free_memory
 from visnerf.training.distributed import Ranks
-from visnerf.training.ray_batches import RayBatchSampler, silhouette_pixels
+from visnerf.training.fused_step import FusedStep, Sampling, StepBatch
+from visnerf.training.ray_batches import RayBatchSampler, micro_batches, silhouette_pixels
 from visnerf.training.regularizers import RegularizerWeights, backward_regularization, level_curvature, level_spacing
 from visnerf.training.run_state import (
     RunStateError,
@@ -63,6 +65,7 @@ from visnerf.training.run_state import (
     unpack_optimizer,
     write_run_state,
 )
+from visnerf.training.sparse_adam import RowSparseAdam
 from visnerf.training.stop_signals import StopRequest
 from visnerf.training.weight_average import WeightAverage
 
@@ -98,11 +101,14 @@ class TrainState:
 
 
 FUSED_ADAM_DEVICES = ("cpu", "cuda")
-"""Devices whose parameters get torch's fused Adam: one pass over each tensor instead of about ten
-elementwise kernels, the same update to 1e-6 (docs/decisions.md, "Training step")."""
+"""Devices whose parameters get torch's fused Adam on the torch path: one pass over each tensor
+instead of about ten elementwise kernels, the same update to 1e-6 (docs/decisions.md, "Training step")."""
 
 
-def make_optimizer(field_: VisNerfField, cfg: TrainConfig, scale: float) -> torch.optim.Adam:
+def make_optimizer(field_: VisNerfField, cfg: TrainConfig, scale: float,
+                   row_sparse: bool = False) -> torch.optim.Optimizer:
+    """Adam over the factors and the networks (two learning rates); ``row_sparse``: the fused
+    step's ``RowSparseAdam``, which updates the VM tables at the rows a step touched."""
     factors = [*field_.density_grid.parameters(), *field_.appearance_grid.parameters(),
                *field_.density_params.parameters(), *field_.appearance_params.parameters()]
     if field_.levels is not None:
@@ -110,12 +116,17 @@ def make_optimizer(field_: VisNerfField, cfg: TrainConfig, scale: float) -> torc
     networks = [*field_.density_decoder.parameters(), *field_.color_decoder.parameters()]
     if field_.facing is not None:
         networks += list(field_.facing.parameters())
-    return torch.optim.Adam(
-        [{"params": factors, "lr": cfg.lr_factors * scale, "base_lr": cfg.lr_factors},
-         {"params": networks, "lr": cfg.lr_networks * scale, "base_lr": cfg.lr_networks}],
-        betas=cfg.betas,
-        fused=field_.device.type in FUSED_ADAM_DEVICES,
-    )
+    groups = [{"params": factors, "lr": cfg.lr_factors * scale, "base_lr": cfg.lr_factors},
+              {"params": networks, "lr": cfg.lr_networks * scale, "base_lr": cfg.lr_networks}]
+    if row_sparse:
+        return RowSparseAdam(groups, betas=cfg.betas)
+    return torch.optim.Adam(groups, betas=cfg.betas, fused=field_.device.type in FUSED_ADAM_DEVICES)
+
+
+def fused_step_serves(field_: VisNerfField) -> bool:
+    """Whether the fused step (``training.fused_step``) trains ``field_``: float32 on the CPU,
+    where the compiled loops run."""
+    return compiled.serves(field_.device) and field_.density_grid.plane_table.dtype == torch.float32
 
 
 @torch.no_grad()
@@ -157,10 +168,13 @@ class Trainer:
         start: TrainState | None = None,
         carved: tuple[Tensor, Tensor] | None = None,
         setup_seconds: float = 0.0,
+        fused: bool | None = None,
     ) -> None:
         """``carved``: the scene's carved grid and the box it covers, where the caller has carved
         already (``training.recipe``); otherwise the trainer carves when ``cfg.carve``.
-        ``setup_seconds``: the caller's time spent on the data before (counted as training)."""
+        ``setup_seconds``: the caller's time spent on the data before (counted as training).
+        ``fused``: take the fused step (None: where ``fused_step_serves``; False: the torch path,
+        which every device has)."""
         self.scene, self.val_scene, self.cfg, self.device = train_scene, val_scene, cfg, device
         self.render_cfg = render_cfg or RenderConfig()
         self.spacing_note: str | None = None
@@ -205,7 +219,10 @@ class Trainer:
         if cfg.silhouette_ray_fraction > 0.0:
             band = silhouette_pixels(train_scene.images, train_scene.background, cfg.carve_tolerance)
             self.sampler.set_silhouette_band(band, cfg.silhouette_ray_fraction)
-        self.optimizer = make_optimizer(self.field, cfg, 1.0)
+        self.fused: FusedStep | None = None
+        """The fused step where it serves (``fused_step_serves``; ``fused=False`` takes the torch path)."""
+        self._use_fused = fused_step_serves(self.field) if fused is None else fused
+        self._new_optimizer(1.0)
         self.settings_all = parameter_settings(train_scene.knots(), cfg.occupancy_max_settings, self.generator)
         self.weight_average: WeightAverage | None = None
         self.ema_mse: float | None = None
@@ -241,7 +258,13 @@ class Trainer:
         return self.cfg.lr_decay_ratio ** min(1.0, self.progress())
 
     def _rebuild_optimizer(self) -> None:
-        self.optimizer = make_optimizer(self.field, self.cfg, self.lr_scale())
+        self._new_optimizer(self.lr_scale())
+
+    def _new_optimizer(self, scale: float) -> None:
+        """A new optimizer over the field's parameters (and, on the fused path, their row marks)."""
+        self.optimizer = make_optimizer(self.field, self.cfg, scale, row_sparse=self._use_fused)
+        if self._use_fused:
+            self.fused = FusedStep(self.field, self.optimizer)  # type: ignore[arg-type]
 
     def step_size(self) -> float:
         return self.field.voxel_size() * self.render_cfg.step_ratio
@@ -367,12 +390,39 @@ class Trainer:
         The photometric loss is a mean over the whole batch, so each chunk's squared error is
         divided by the batch size and its gradient accumulated: the step is the same as one pass
         over the batch, with activation memory bounded by ``micro_batch_rays`` rays and
-        ``micro_batch_samples`` evaluated samples per chunk (see ``micro_batches``).
+        ``micro_batch_samples`` evaluated samples per chunk (``ray_batches.micro_batches``). On the
+        CPU the fused path renders and back-propagates (``training.fused_step``), elsewhere the
+        torch path (``_render_backward``); both take the same samples and draws.
         """
-        cfg = self.cfg
         scale = self.lr_scale()
         for group in self.optimizer.param_groups:
             group["lr"] = group["base_lr"] * scale
+        self.optimizer.zero_grad(set_to_none=True)
+        batch = self._step_batch()
+        sampling = self._sampling(batch)
+        if self.fused is not None:
+            sq_error, n_samples = self.fused.render_backward(batch, sampling, self.generator, self.state.iteration)
+            terms = self.fused.priors(self._weights())
+        else:
+            sq_error, n_samples = self._render_backward(batch, sampling)
+            terms = backward_regularization(self.field, self._weights())
+        terms.update(self._level_priors(batch.params))
+        reg_value = sum(terms.values())
+        if not math.isfinite(reg_value):  # before the step: the factors stay as they were
+            raise FloatingPointError(f"non-finite regularization at iteration {self.state.iteration}")
+        if self.fused is not None:
+            self.ranks.merge_row_marks(self.fused.row_marks())
+        (sq_error,) = self.ranks.average_gradients(self.field.parameters(), sq_error)
+        self.optimizer.step()
+        stats = {"mse": sq_error, "loss": sq_error + reg_value, "samples": float(n_samples)}
+        for name in ("level_curvature", "level_spacing"):
+            if name in terms:
+                stats[name] = terms[name]
+        return stats
+
+    def _step_batch(self) -> StepBatch:
+        """This step's rays (this rank's share of the batch), targets and backgrounds."""
+        cfg = self.cfg
         rays, n = self.ranks.batch_share(cfg.batch_rays)  # one process: all of them, their count
         batch = self.sampler.sample(rays)
         if cfg.random_background:
@@ -384,10 +434,12 @@ class Trainer:
             # Target pixels of background colour stand for empty space: re-composite them on bg.
             is_bg = (batch.rgb - torch.tensor(self.scene.background, device=self.device)).abs().amax(-1) < 1e-3
             target = torch.where(is_bg[:, None], bg, batch.rgb)
-        self.optimizer.zero_grad(set_to_none=True)
-        sq_error = 0.0
+        return StepBatch(batch.rays_o, batch.rays_d, batch.params, target, bg, n)
+
+    def _sampling(self, batch: StepBatch) -> Sampling:
+        """Where this step samples its rays (each only its occupied span) and how it shades them."""
+        cfg = self.cfg
         step = self.step_size()
-        # Each ray samples only its occupied span.
         empty = empty_space_of(self.field)
         if empty is not None and step > empty.min_cell_size():
             empty = None  # a grid finer than the step: the windows would not hold every jittered sample
@@ -398,45 +450,48 @@ class Trainer:
         colour_sampling = None
         if cfg.colour_weight_floor > 0.0:
             colour_sampling = ColourSampling(cfg.colour_weight_floor, self.generator)
-        # The whole batch's positions at once; micro-batches count the samples each ray evaluates.
-        samples = place_samples(self.field, batch.rays_o, batch.rays_d, step,
-                                self.render_cfg.max_samples, self.field.occupancy, self.generator, windows)
-        samples = drop_occluded(self.field, samples, batch.params, cfg.stop_eps)
+        return Sampling(step, self.render_cfg.max_samples, self.field.occupancy, windows, cfg.stop_eps,
+                        self.render_cfg.weight_threshold, density_grads, colour_sampling, cfg.micro_batch_rays,
+                        cfg.micro_batch_samples)
+
+    def _render_backward(self, batch: StepBatch, sampling: Sampling) -> tuple[float, int]:
+        """The torch path of ``FusedStep.render_backward`` (every device)."""
+        samples = place_samples(self.field, batch.rays_o, batch.rays_d, sampling.step, sampling.max_samples,
+                                sampling.occupancy, self.generator, sampling.windows)
+        samples = drop_occluded(self.field, samples, batch.params, sampling.stop_eps)
         per_ray = samples.per_ray()
-        for sl in micro_batches(per_ray, cfg.micro_batch_rays, cfg.micro_batch_samples):
-            out = shade_rays(self.field, batch.rays_d[sl], batch.params[sl], bg[sl], samples.of_rays(sl),
-                             self.render_cfg.weight_threshold, density_grads, colour_sampling)
-            ray_error = ((out["rgb"] - target[sl]) ** 2).mean(-1)  # [chunk]
-            part = ray_error.sum() / n  # this chunk's share of the batch mean
+        sq_error = 0.0
+        for sl in micro_batches(per_ray, sampling.micro_batch_rays, sampling.micro_batch_samples):
+            out = shade_rays(self.field, batch.rays_d[sl], batch.params[sl], batch.background[sl], samples.of_rays(sl),
+                             sampling.weight_threshold, sampling.density_grads, sampling.colour_sampling)
+            part = ((out["rgb"] - batch.target[sl]) ** 2).mean(-1).sum() / batch.divisor  # this chunk's share
             if not torch.isfinite(part):
                 raise FloatingPointError(f"non-finite loss at iteration {self.state.iteration}")
             if part.requires_grad:  # a chunk whose rays meet no occupied cell has nothing to learn
                 with table_gradients_in_place():  # each chunk's factor gradients add into .grad
                     part.backward()
             sq_error += float(part.detach())
-        terms = backward_regularization(self.field, self._weights())
-        if cfg.level_curvature_weight > 0 and self.field.levels is not None:
+        return sq_error, int(per_ray.sum())
+
+    def _level_priors(self, params: Tensor) -> dict[str, float]:
+        """A level axis's curvature and spacing priors, back-propagated; their values."""
+        cfg, terms = self.cfg, {}
+        if self.field.levels is None:
+            return terms
+        if cfg.level_curvature_weight > 0:
             # at the parameter values of random rays of the batch (the other axes' density features)
-            pick = torch.randint(0, batch.params.shape[0], (cfg.level_curvature_points,), generator=self.generator)
-            curvature = cfg.level_curvature_weight * level_curvature(self.field, batch.params[pick.to(self.device)],
-                                                                     self.generator)
+            pick = torch.randint(0, params.shape[0], (cfg.level_curvature_points,), generator=self.generator)
+            raw = None if self.fused is None else self.fused.raw_density
+            curvature = cfg.level_curvature_weight * level_curvature(self.field, params[pick.to(self.device)],
+                                                                     self.generator, raw_density=raw)
             curvature.backward()
             terms["level_curvature"] = float(curvature.detach())
-        if cfg.level_spacing_weight > 0 and self.field.levels is not None:
+        if cfg.level_spacing_weight > 0:
             spacing = cfg.level_spacing_weight * level_spacing(self.field, cfg.level_spacing_ratio)
             if spacing.requires_grad:  # fewer than three levels: no neighbouring bands to hold
                 spacing.backward()
                 terms["level_spacing"] = float(spacing.detach())
-        reg_value = sum(terms.values())
-        if not math.isfinite(reg_value):  # before the step: the factors stay as they were
-            raise FloatingPointError(f"non-finite regularization at iteration {self.state.iteration}")
-        (sq_error,) = self.ranks.average_gradients(self.field.parameters(), sq_error)
-        self.optimizer.step()
-        stats = {"mse": sq_error, "loss": sq_error + reg_value, "samples": float(per_ray.sum())}
-        for name in ("level_curvature", "level_spacing"):
-            if name in terms:
-                stats[name] = terms[name]
-        return stats
+        return terms
 
     def run(
         self,
@@ -719,30 +774,6 @@ def occupied_windows(
         raise ValueError(f"step {step} is larger than the occupancy grid's cells ({empty_space.min_cell_size()})")
     windows = ray_windows(field_, rays_o, rays_d, step, None, empty_space, near=1)
     return windows.first, windows.last
-
-
-def micro_batches(per_ray: Int[Tensor, " n"], max_rays: int, max_samples: int) -> list[slice]:
-    """Consecutive slices of a batch whose rays evaluate ``per_ray`` samples each
-    (``RaySamples.per_ray``), with at most ``max_rays`` rays and, where a single ray does not
-    exceed it alone, at most ``max_samples`` samples per slice.
-
-    Activation memory grows with the samples evaluated and back-propagated, so a sample budget
-    keeps it flat as the grid (and with it the samples per ray) grows, and in a fresh field's fog,
-    where every sample in the box is evaluated. Once content is carved or learned, most samples in
-    the box are skipped and the same budget holds many more rays: each micro-batch costs its
-    backward pass's fixed work (a sort of its taps per table, the decoders' weight gradients), so
-    fewer, fuller micro-batches are faster.
-    """
-    counts = per_ray.tolist()
-    slices, start, total = [], 0, 0
-    for i, c in enumerate(counts):
-        if i > start and (i - start >= max_rays or total + c > max_samples):
-            slices.append(slice(start, i))
-            start, total = i, 0
-        total += c
-    if start < len(counts):
-        slices.append(slice(start, len(counts)))
-    return slices
 
 
 def set_mixed_precision(field_: VisNerfField, enabled: bool) -> bool:
