@@ -14,7 +14,7 @@ from typing import Literal
 from visnerf.scenes.fields import CosmicWebField, PlumeField, TangleField, VortexField
 from visnerf.scenes.protocol import ParamAxis
 from visnerf.scenes.reference_renderer import Box, DvrVolume, IsoVolume, Volume
-from visnerf.scenes.transfer_function import cosmic_tf, plume_tf, translated_range_tf, two_range_tf
+from visnerf.scenes.transfer_function import cosmic_tf, plume_tf, shells_tf, translated_range_tf, two_range_tf
 
 
 @dataclass(frozen=True)
@@ -44,6 +44,8 @@ class SceneSpec:
     """Horizontal field of view (``camera_angle_x``)."""
     bbox: Box = ((-0.5, -0.5, -0.5), (0.5, 0.5, 0.5))
     """Content box written to the dataset."""
+    n_views: int = 42
+    """Training views per parameter setting (``make-scene --views`` overrides it)."""
 
     @property
     def param_names(self) -> list[str]:
@@ -76,6 +78,10 @@ def _vortex_tf2(shift: float) -> Volume:
     return DvrVolume(VortexField(), translated_range_tf(shift), support_radius=0.5)
 
 
+def _lit_plume(time: float) -> Volume:
+    return DvrVolume(PlumeField(time), shells_tf(), support_radius=0.5, lit=True)
+
+
 def _cosmo(omega_m: float, omega_b: float, hubble: float) -> Volume:
     return DvrVolume(CosmicWebField(omega_m, omega_b, hubble), cosmic_tf(), support_radius=0.5)
 
@@ -83,6 +89,7 @@ def _cosmo(omega_m: float, omega_b: float, hubble: float) -> Volume:
 def scene_catalog() -> dict[str, SceneSpec]:
     """All scenes by name, varying scenes first, then their static versions."""
     time = ParamAxis("time", 0.0, 1.0, 5, "plumes grow, lean in and merge")
+    series_time = ParamAxis("time", 0.0, 1.0, 30, "plumes grow, lean in and merge, seen as three lit shells")
     isovalue = ParamAxis("isovalue", 0.25, 0.85, 5, "blobs (high) -> branching frame -> holed shell (low)")
     opacity_low = ParamAxis("opacity_low", 0.02, 0.2, 3, "TF-1 opacity of the sheath range [0.15, 0.45]")
     opacity_high = ParamAxis("opacity_high", 0.1, 0.8, 3, "TF-1 opacity of the core range [0.6, 1.0]")
@@ -108,6 +115,10 @@ def scene_catalog() -> dict[str, SceneSpec]:
                   description="vortex ring and helix; one visible range translated onto another", step=fine),
         SceneSpec("cosmo_sim", "Toy cosmology, three simulation parameters", "dvr", _cosmo,
                   (omega_m, omega_b, hubble), description="log-normal cosmic web; DVR", step=coarse),
+        SceneSpec("lit_series", "Lit translucent shells over 30 timesteps", "dvr", _lit_plume, (series_time,),
+                  description="three contour shells of the plumes, shaded with a headlight (highlights move "
+                              "with the view); 20 views a timestep, as in situ series are kept",
+                  step=fine, n_views=20),
         SceneSpec("plume_static", "Merging plumes (static)", "dvr", _plume, fixed=(("time", 0.5),),
                   description="plume_time at time 0.5", step=coarse),
         SceneSpec("tangle_static", "Tangle isosurface (static)", "ir", _tangle, fixed=(("isovalue", 0.5),),

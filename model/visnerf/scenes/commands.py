@@ -26,7 +26,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     make.add_argument("--out", type=Path, required=True, help="output directory")
     make.add_argument("--res", type=int, default=128, help="image width and height in pixels (default 128)")
     make.add_argument(
-        "--views", type=int, default=42, help="training views per parameter setting (default 42)"
+        "--views", type=int, default=None, help="training views per parameter setting (default: the scene's, "
+        "42 for most; `visnerf scenes`)"
     )
     make.add_argument("--test-views", type=int, default=181, help="views on the test path (default 181)")
     make.add_argument("--threads", type=int, default=1, help="torch CPU threads (default 1)")
@@ -58,8 +59,9 @@ def make_scene_command(args: argparse.Namespace) -> int:
         return _fail(str(exc.args[0]))
     if args.res < 8:
         return _fail(f"--res must be at least 8, got {args.res}")
-    if args.views < 1:
-        return _fail(f"--views must be at least 1, got {args.views}")
+    views = spec.n_views if args.views is None else args.views
+    if views < 1:
+        return _fail(f"--views must be at least 1, got {views}")
     if args.test_views < 2:
         return _fail(f"--test-views must be at least 2, got {args.test_views}")
     if args.threads < 1 or args.workers < 1:
@@ -68,7 +70,7 @@ def make_scene_command(args: argparse.Namespace) -> int:
     if problem is not None:
         return _fail(problem)
     torch.set_num_threads(args.threads)
-    options = DatasetOptions(resolution=args.res, n_views=args.views, n_test_views=args.test_views)
+    options = DatasetOptions(resolution=args.res, n_views=views, n_test_views=args.test_views)
     if args.format == "cinema":
         started = time.perf_counter()
         count = write_cinema_scene(spec, args.out, options, args.convention)
@@ -95,6 +97,7 @@ def describe_scene(spec: SceneSpec) -> dict:
             for a in spec.axes
         ],
         "fixed": dict(spec.fixed),
+        "views_per_setting": spec.n_views,
     }
 
 

@@ -41,6 +41,10 @@ class DvrVolume:
     """The volume's box; rays are marched inside it only."""
     support_radius: float | None = None
     """If set, the field is zero outside the ball of this radius at the origin (rays are clipped)."""
+    lit: bool = False
+    """Shade each sample's colour with a headlight (Blinn-Phong, ``RenderConfig.shading``) about the
+    field's gradient, as volume renderers' shading option does (``lit_colours``): translucent
+    layers then show shading and highlights that change with the view."""
 
 
 @dataclass(frozen=True)
@@ -186,6 +190,9 @@ def _render_dvr(volume: DvrVolume, rays_o: Tensor, rays_d: Tensor, config: Rende
         points = o[:, None, :] + t_mid[..., None] * d[:, None, :]  # [m, s', 3]
         values = volume.field(points.reshape(-1, 3))  # [m * s']
         colour, sigma = volume.transfer_function.colour_and_extinction(values)
+        if volume.lit:
+            directions = d[:, None, :].expand(-1, index.numel(), -1).reshape(-1, 3)
+            colour = lit_colours(volume.field, points.reshape(-1, 3), directions, colour, sigma, config)
         tau = sigma.reshape(m, -1) * dt  # [m, s']
         if int(cnt.min()) < start + index.numel():  # some rays end inside this pass
             tau = torch.where(index < cnt, tau, torch.zeros_like(dt))
@@ -276,6 +283,27 @@ def field_gradient(field: ScalarField, points: Float[Tensor, "n 3"], eps: float)
     probes = torch.cat([points[:, None, :] + step, points[:, None, :] - step], dim=1)  # [n, 6, 3]
     values = field(probes.reshape(-1, 3)).reshape(-1, 6)  # [n, 6]
     return (values[:, :3] - values[:, 3:]) / (2.0 * eps)
+
+
+def lit_colours(
+    field: ScalarField, points: Float[Tensor, "n 3"], rays_d: Float[Tensor, "n 3"], colour: Float[Tensor, "n 3"],
+    sigma: Float[Tensor, " n"], config: RenderConfig,
+) -> Float[Tensor, "n 3"]:
+    """The transfer function's colours of a lit volume: Blinn-Phong with a headlight about the
+    field's gradient (central differences, only where the extinction is not zero), two-sided, with
+    a white highlight, clamped to [0, 1]. A flat field (zero gradient) shades as facing the eye."""
+    shading = config.shading
+    out = colour.clone()
+    seen = (sigma > 0).nonzero()[:, 0]
+    if seen.numel() == 0:
+        return out
+    grad = field_gradient(field, points[seen], config.normal_eps)  # [m, 3]
+    norm = torch.linalg.norm(grad, dim=-1)  # [m]
+    facing = (grad * rays_d[seen]).sum(dim=-1).abs() / norm.clamp_min(torch.finfo(norm.dtype).tiny)
+    cos_light = torch.where(norm > 0, facing, torch.ones_like(facing)).clamp(max=1.0)[:, None]  # [m, 1]
+    highlight = shading.specular * cos_light**shading.shininess
+    out[seen] = (colour[seen] * (shading.ambient + shading.diffuse * cos_light) + highlight).clamp(0.0, 1.0)
+    return out
 
 
 def _shade(volume: IsoVolume, points: Tensor, rays_d: Tensor, config: RenderConfig) -> Tensor:

@@ -158,3 +158,18 @@ def cosmic_tf() -> TransferFunction:
     knots = (0.15, 0.35, 0.55, 0.8, 1.0)
     opacities = (0.0, 0.01, 0.06, 0.3, 0.6)
     return TransferFunction(knots, tuple(_plasma(t) for t in (0.0, 0.25, 0.5, 0.8, 1.0)), opacities)
+
+
+def shells_tf() -> TransferFunction:
+    """Three translucent shells: narrow opacity peaks at values 0.25 (blue), 0.5 (green) and 0.75
+    (orange), transparent between them, as a contour-style transfer function draws surfaces."""
+    knots, colours, opacities = [0.0], [(0.1, 0.3, 0.9)], [0.0]
+    for centre, colour, alpha in ((0.25, (0.15, 0.4, 0.95), 0.35), (0.5, (0.2, 0.8, 0.35), 0.5),
+                                  (0.75, (1.0, 0.55, 0.1), 0.8)):
+        knots += [centre - 0.04, centre, centre + 0.04]
+        colours += [colour] * 3
+        opacities += [0.0, alpha, 0.0]
+    knots.append(1.0)
+    colours.append((1.0, 0.55, 0.1))
+    opacities.append(0.0)
+    return TransferFunction(tuple(knots), tuple(colours), tuple(opacities))

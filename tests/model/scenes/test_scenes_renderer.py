@@ -9,7 +9,7 @@ import torch
 
 from visnerf.data.cameras import Intrinsics, image_rays, orbit_c2w
 from visnerf.scenes.fields import ConstantField, LinearRampField, RadialDistanceField
-from visnerf.scenes.reference_renderer import DvrVolume, IsoVolume, RenderConfig, render_image, render_rays
+from visnerf.scenes.reference_renderer import DvrVolume, IsoVolume, RenderConfig, lit_colours, render_image, render_rays
 from visnerf.scenes.transfer_function import TransferFunction, constant_extinction_tf
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")  # small renders: one thread (conftest)
@@ -185,3 +185,21 @@ def test_early_stop_and_chunking_do_not_change_the_result() -> None:
     )
     assert torch.allclose(whole.rgb, chunked.rgb, atol=1e-6)
     assert (whole.rgb - stopped.rgb).abs().max() < 2e-4
+
+
+def test_lit_colours_follow_blinn_phong_about_the_gradient() -> None:
+    """A ramp's gradient is known: seen along it, a sample takes the full diffuse light and the
+    highlight; seen at 60 degrees to it, cos = 1/2 (two-sided: from behind as well); where the
+    extinction is zero the colour stays the transfer function's."""
+    config = RenderConfig()
+    s = config.shading
+    points = torch.zeros(4, 3, dtype=torch.float64)
+    half = math.sqrt(3.0) / 2.0
+    rays_d = torch.tensor([[0.0, 0.0, 1.0], [0.0, 0.0, -1.0], [half, 0.0, 0.5], [half, 0.0, 0.5]], dtype=torch.float64)
+    colour = torch.full((4, 3), 0.5, dtype=torch.float64)
+    sigma = torch.tensor([1.0, 1.0, 1.0, 0.0], dtype=torch.float64)
+    lit = lit_colours(LinearRampField((0.0, 0.0, 2.0)), points, rays_d, colour, sigma, config)
+    full = 0.5 * (s.ambient + s.diffuse) + s.specular
+    oblique = 0.5 * (s.ambient + 0.5 * s.diffuse) + s.specular * 0.5**s.shininess
+    expected = torch.tensor([full, full, oblique, 0.5], dtype=torch.float64)[:, None].expand(4, 3)
+    assert torch.allclose(lit, expected.clamp(0.0, 1.0), atol=1e-9)

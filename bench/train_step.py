@@ -1,0 +1,145 @@
+"""A late training step: the fused CPU step against the torch path, side by side, on trained models.
+
+Each ``--scene CHECKPOINT DATA`` is stepped as the end of its run does (its grid and occupancy, the
+recipe it records, no milestones left), by two trainers on two copies of its field: the fused step
+(``training.fused_step``, the product on the CPU) and the torch path (the step before it, which
+every device keeps). Both draw the same rays from the same seed. Timing alternates between them,
+``--rounds`` rounds of ``--steps`` steps each, after one untimed step each. Reports the median
+milliseconds of a step, rays and samples a second, and the ratio.
+
+With ``--loss-steps N`` the two trainers then train ``N`` further steps each from the same field
+and seed (one after the other), and the report compares their photometric loss in windows of
+``--window`` steps: the fused step's lazy optimizer and priors against the torch path's dense ones.
+
+    .venv/bin/python bench/train_step.py --scene runs/nyx.safetensors ../shared/data/nyx \\
+        --scene runs/lit512.safetensors data/lit_series_512 --loss-steps 2000
+
+Writes train_step.json and train_step.md to --results (bench/results).
+"""
+
+import argparse
+import dataclasses
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+from bench_common import RESULTS, alternate_steps, load_average, machine_record, markdown_header, write_results
+
+from visnerf.checkpoint import load_checkpoint
+from visnerf.config import TrainConfig
+from visnerf.data.datasets import load_dataset
+from visnerf.data.scene import SceneData
+from visnerf.runtime import configure
+from visnerf.training.trainer import Trainer
+
+PATHS = ("fused", "torch")
+
+
+def late_trainer(ckpt: Path, scene: SceneData, batch_rays: int, fused: bool) -> Trainer:
+    """A trainer that steps the trained field of ``ckpt`` on ``scene`` as the late phase of its run:
+    the recipe the checkpoint records (its priors and step), no milestones left."""
+    field, meta = load_checkpoint(ckpt, torch.device("cpu"))
+    res = max(field.resolution)
+    recipe = dict(meta.provenance.get("recipe", {}))
+    late = dict(iterations=10**9, time_budget_s=None, resolution_init=res, resolution_final=res, upsample_at=(),
+                occupancy_at=(), occupancy_refine_at=(), trim_every=10**9, batch_rays=batch_rays,
+                l1_switch_iteration=0, weight_average_span=0.0)
+    cfg = TrainConfig.from_dict({**recipe, **late})
+    return Trainer(scene, None, cfg, torch.device("cpu"), render_cfg=dataclasses.replace(meta.render),
+                   init_field=field, fused=fused)
+
+
+def loss_windows(trainer: Trainer, steps: int, window: int) -> tuple[list[float], float]:
+    """Mean photometric loss of each ``window`` steps of ``steps``, and the seconds they took."""
+    losses, t0 = [], time.perf_counter()
+    for _ in range(steps):
+        losses.append(trainer.train_step()["mse"])
+        trainer.state.iteration += 1
+    seconds = time.perf_counter() - t0
+    return [float(np.mean(losses[i:i + window])) for i in range(0, steps, window)], seconds
+
+
+def measure_scene(ckpt: Path, data: Path, args: argparse.Namespace) -> dict:
+    scene = load_dataset(data, "train")
+    trainers = {path: late_trainer(ckpt, scene, args.batch_rays, path == "fused") for path in PATHS}
+    times, outputs = alternate_steps(trainers, args.rounds, args.steps, warm_up=True)
+    row: dict = {"checkpoint": str(ckpt), "data": str(data), "image": f"{scene.intrinsics.width}x{scene.intrinsics.height}",
+                 "frames": scene.n_frames, "resolution": list(trainers["fused"].field.resolution)}
+    for path in PATHS:
+        ms = statistics.median(times[path])
+        samples = statistics.median(o["samples"] for o in outputs[path])
+        row[path] = {"ms_median": ms, "ms_min": min(times[path]), "ms_max": max(times[path]),
+                     "samples_median": samples, "rays_per_s": args.batch_rays / ms * 1000.0,
+                     "samples_per_s": samples / ms * 1000.0}
+    row["speedup"] = row["torch"]["ms_median"] / row["fused"]["ms_median"]
+    if args.loss_steps > 0:
+        fresh = {path: late_trainer(ckpt, scene, args.batch_rays, path == "fused") for path in PATHS}
+        row["loss"] = {}
+        for path, trainer in fresh.items():
+            windows, seconds = loss_windows(trainer, args.loss_steps, args.window)
+            row["loss"][path] = {"windows": windows, "seconds": seconds}
+        fused, plain = (np.array(row["loss"][p]["windows"]) for p in PATHS)
+        row["loss"]["fused_over_torch"] = (fused / plain).tolist()
+    return row
+
+
+def write_markdown(path: Path, record: dict) -> None:
+    lines = markdown_header("A late training step: fused against the torch path", record)
+    lines += ["", f"{record['batch_rays']} rays a step, {record['rounds']} rounds of {record['steps']} steps each "
+                  "path, in turn, after one untimed step each; each path on its own copy of the field.", "",
+              "| scene | image | grid | path | ms a step (median) | rays / s | samples a step | samples / s | speedup |",
+              "| --- | --- | --- | --- | --- | --- | --- | --- | --- |"]
+    for row in record["scenes"]:
+        name = Path(row["checkpoint"]).stem
+        grid = "x".join(str(r) for r in row["resolution"])
+        for path in PATHS:
+            r = row[path]
+            speed = f"{row['speedup']:.2f}x" if path == "fused" else ""
+            lines.append(f"| {name} | {row['image']} | {grid} | {path} | {r['ms_median']:.1f} | {r['rays_per_s']:,.0f} | "
+                         f"{r['samples_median']:,.0f} | {r['samples_per_s']:,.0f} | {speed} |")
+    for row in record["scenes"]:
+        if "loss" not in row:
+            continue
+        name = Path(row["checkpoint"]).stem
+        loss = row["loss"]
+        lines += ["", f"**{name}: photometric loss over {record['loss_steps']} further steps** (mean of each "
+                      f"{record['window']} steps; fused {loss['fused']['seconds']:.0f} s, torch "
+                      f"{loss['torch']['seconds']:.0f} s in all)", "",
+                  "| steps | fused | torch | fused / torch |", "| --- | --- | --- | --- |"]
+        for i, (a, b, q) in enumerate(zip(loss["fused"]["windows"], loss["torch"]["windows"], loss["fused_over_torch"],
+                                          strict=True)):
+            lines.append(f"| {i * record['window']}-{(i + 1) * record['window'] - 1} | {a:.6f} | {b:.6f} | {q:.3f} |")
+    path.write_text("\n".join(lines) + "\n")
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scene", nargs=2, action="append", metavar=("CHECKPOINT", "DATA"), required=True)
+    ap.add_argument("--batch-rays", type=int, default=TrainConfig.batch_rays)
+    ap.add_argument("--rounds", type=int, default=6)
+    ap.add_argument("--steps", type=int, default=10, help="steps per path and round")
+    ap.add_argument("--loss-steps", type=int, default=0, help="further steps of each path compared by loss")
+    ap.add_argument("--window", type=int, default=200)
+    ap.add_argument("--threads", type=int, default=None)
+    ap.add_argument("--results", type=Path, default=RESULTS)
+    args = ap.parse_args()
+    for ckpt, data in args.scene:
+        for p in (ckpt, data):
+            if not Path(p).exists():
+                ap.error(f"{p} does not exist")
+    configure(args.threads)
+    record = {**machine_record(), "command": "python bench/train_step.py " + " ".join(sys.argv[1:]),
+              "batch_rays": args.batch_rays, "rounds": args.rounds, "steps": args.steps,
+              "loss_steps": args.loss_steps, "window": args.window, "load_average_1min": {"before": load_average()}}
+    record["scenes"] = [measure_scene(Path(c), Path(d), args) for c, d in args.scene]
+    record["load_average_1min"]["after"] = load_average()
+    write_results(args.results, "train_step", record, write_markdown)
+    print(Path(args.results / "train_step.md").read_text())
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
