@@ -95,10 +95,10 @@ def write_markdown(path: Path, record: dict) -> None:
     for row in record["scenes"]:
         name = Path(row["checkpoint"]).stem
         grid = "x".join(str(r) for r in row["resolution"])
-        for path in PATHS:
-            r = row[path]
-            speed = f"{row['speedup']:.2f}x" if path == "fused" else ""
-            lines.append(f"| {name} | {row['image']} | {grid} | {path} | {r['ms_median']:.1f} | {r['rays_per_s']:,.0f} | "
+        for kind in PATHS:
+            r = row[kind]
+            speed = f"{row['speedup']:.2f}x" if kind == "fused" else ""
+            lines.append(f"| {name} | {row['image']} | {grid} | {kind} | {r['ms_median']:.1f} | {r['rays_per_s']:,.0f} | "
                          f"{r['samples_median']:,.0f} | {r['samples_per_s']:,.0f} | {speed} |")
     for row in record["scenes"]:
         if "loss" not in row:

@@ -13,6 +13,8 @@ Stratified jitter (one random offset per ray, drawn from each rank's own stream)
 cannot be split between ranks the way it is drawn by one process, so samples sit at the midpoints of
 their steps here; random backgrounds and sampled density gradients are off for the same reason, and
 the decoders multiply in float32 (bfloat16 products round differently as the batch is cut).
+The second argument names the step: ``torch`` (its gradients are kept too) or ``fused``, whose
+table gradients the optimizer consumes (only the parameters are compared).
 """
 
 import sys
@@ -21,6 +23,7 @@ from pathlib import Path
 import torch
 from safetensors.torch import save_file
 
+import visnerf.training.fused_step as fused_step_module
 import visnerf.training.trainer as trainer_module
 from visnerf.config import FieldConfig, TrainConfig
 from visnerf.testing import make_noise_scene
@@ -41,8 +44,16 @@ def midpoint_samples(field, rays_o, rays_d, step, max_samples, occupancy, genera
     return place_samples(field, rays_o, rays_d, step, max_samples, occupancy, None, windows)
 
 
+def midpoint_compact(aabb, rays_o, rays_d, step, max_samples, occupancy, generator=None, windows=None):  # noqa: ANN001, ANN201
+    """``place_compact`` without its stratified jitter."""
+    return place_compact(aabb, rays_o, rays_d, step, max_samples, occupancy, None, windows)
+
+
 place_samples = trainer_module.place_samples
 trainer_module.place_samples = midpoint_samples
+place_compact = fused_step_module.place_compact
+fused_step_module.place_compact = midpoint_compact
+FUSED = len(sys.argv) > 2 and sys.argv[2] == "fused"
 
 
 class FixedBatches:
@@ -67,7 +78,8 @@ class GradientTrainer(Trainer):
 
     def train_step(self) -> dict[str, float]:
         stats = super().train_step()
-        self.gradients = {name: p.grad.clone() for name, p in self.field.named_parameters() if p.grad is not None}
+        self.gradients = {} if FUSED else {name: p.grad.clone() for name, p in self.field.named_parameters()
+                                           if p.grad is not None}
         self.first_gradients = getattr(self, "first_gradients", self.gradients)
         return stats
 
@@ -87,7 +99,8 @@ class StopOnLastRank:
 
 
 def train(batches: list[RayBatch], ranks: Ranks, stop_at: int | None = None) -> GradientTrainer:
-    trainer = GradientTrainer(make_noise_scene(n_views=6, size=16), None, CONFIG, ranks.device, field_cfg=FIELD)
+    trainer = GradientTrainer(make_noise_scene(n_views=6, size=16), None, CONFIG, ranks.device, field_cfg=FIELD,
+                              fused=FUSED)
     trainer.distribute(ranks)
     trainer.sampler = FixedBatches(batches, ranks.rank, ranks.world_size)  # type: ignore[assignment]
     trainer.run(progress_bar=False, stop=None if stop_at is None else StopOnLastRank(trainer, stop_at))
@@ -119,7 +132,7 @@ def main(out: Path) -> int:
     finally:
         leave_process_group()
     if ranks.is_main:
-        solo = Trainer(scene, None, CONFIG, device, field_cfg=FIELD)
+        solo = Trainer(scene, None, CONFIG, device, field_cfg=FIELD, fused=FUSED)
         save_file(parameters(solo), str(out / "init.safetensors"))
         save_file(results(train(batches, Ranks.solo(device))), str(out / "solo.safetensors"))
     return 0

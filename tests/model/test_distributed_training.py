@@ -31,14 +31,16 @@ def torchrun(tmp: Path, *args: str, timeout: float = 120.0) -> subprocess.Comple
                           env={**os.environ, "TMPDIR": str(tmp)})
 
 
-def test_two_ranks_with_half_the_batch_each_step_as_one_process_with_the_whole_batch(tmp_path) -> None:
-    run = torchrun(tmp_path, str(STEPS_SCRIPT), str(tmp_path))
+@pytest.mark.parametrize("step", ["torch", "fused"])
+def test_two_ranks_with_half_the_batch_each_step_as_one_process_with_the_whole_batch(tmp_path, step: str) -> None:
+    run = torchrun(tmp_path, str(STEPS_SCRIPT), str(tmp_path), step)
     assert run.returncode == 0, run.stderr[-3000:]
     ranks = [load_file(tmp_path / f"rank{r}.safetensors") for r in (0, 1)]
     # A stop asked of rank 1 alone before step 2 stops both ranks there (rank 0 learns it in step).
     assert [r.pop("stopped_at").tolist() for r in ranks] == [[2, 1], [2, 1]]
     solo, init = load_file(tmp_path / "solo.safetensors"), load_file(tmp_path / "init.safetensors")
     assert ranks[0].keys() == ranks[1].keys() == solo.keys()
+    assert any(name.startswith("grad") for name in solo) == (step == "torch")
     for name in solo:
         # The ranks took the same steps from the same averaged gradients: bit for bit the same field.
         assert torch.equal(ranks[0][name], ranks[1][name]), name

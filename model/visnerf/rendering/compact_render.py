@@ -124,13 +124,14 @@ def shade_compact(
         sigma = traced_sigma.detach()
         traced = torch.arange(len(samples))
         traced_gain = torch.ones(len(samples), dtype=sigma.dtype)
-    else:
+    elif samples.sigma is not None:  # densities known (occluded samples dropped): trace some again
         sigma = samples.sigma
-        if sigma is None:
-            with torch.no_grad():
-                sigma = tfield.density(points, ray, q_d)
         traced, traced_gain = traced_samples(sigma, step, density_grads)
         traced_sigma = tfield.density(points.index_select(0, traced), ray.index_select(0, traced), q_d)
+    else:  # every density once without a graph, the traced ones made differentiable from the same rows
+        sigma, taken = tfield.density_taken(points, ray, q_d)
+        traced, traced_gain = traced_samples(sigma, step, density_grads)
+        traced_sigma = tfield.density_of_taken(taken, traced, q_d)
     weights = sample_weights(samples.offsets, sigma, step)
     candidates = (weights > weight_threshold).nonzero()[:, 0]
     shade, gain = draw_coloured(weights, candidates, colour_sampling)

@@ -4,7 +4,7 @@
 whose parameter features are their rays' (``q[ray]``): each grid's decoder rows come from one
 compiled loop (``vm_rows.GridRows``), the decoders, the level and the facing cosines are the
 field's own modules. Differentiable in the decoders and parameter tables (autograd) and in the VM
-tables, whose gradients land in ``RowGradients`` with the rows they touched marked.
+tables, whose gradients are left as pending taps in ``RowGradients`` (``table_gradients``).
 """
 
 import torch
@@ -14,7 +14,8 @@ from torch import Tensor
 
 from visnerf.representation.decoders import encode_sh
 from visnerf.representation.field import N_PROBES, VisNerfField, facing_cosines, level_cosines, probe_points
-from visnerf.representation.vm_rows import GridRows, RowGradients
+from visnerf.representation.table_gradients import RowGradients
+from visnerf.representation.vm_rows import GridRows, TakenRows
 
 
 class TrainingField:
@@ -44,16 +45,38 @@ class TrainingField:
         rows = self.density_rows.rows(coords, ray, q_factors, self.field.cfg.pos_encoding_freqs)
         return self.field.density_decoder(rows)[:, 0]
 
+    def _density_of_raw(self, raw: Float[Tensor, " m"], ray: Int[Tensor, " m"], level: Tensor | None) -> Tensor:
+        field = self.field
+        if level is not None and field.levels is not None:
+            raw = (raw - level.index_select(0, ray)) * field.levels.sharpness()
+        return F.softplus(raw + field.cfg.density_shift) * field.cfg.density_scale
+
     def density(
         self, points: Float[Tensor, "m 3"], ray: Int[Tensor, " m"], q_density: Float[Tensor, "n d"]
     ) -> Float[Tensor, " m"]:
         """``VisNerfField.density`` at world points with ``q_density[ray]`` per sample."""
         field = self.field
         q, level = field.split_density_features(q_density)
-        raw = self.raw_density(field.to_grid(points), ray, q)
-        if level is not None and field.levels is not None:
-            raw = (raw - level.index_select(0, ray)) * field.levels.sharpness()
-        return F.softplus(raw + field.cfg.density_shift) * field.cfg.density_scale
+        return self._density_of_raw(self.raw_density(field.to_grid(points), ray, q), ray, level)
+
+    @torch.no_grad()
+    def density_taken(
+        self, points: Float[Tensor, "m 3"], ray: Int[Tensor, " m"], q_density: Float[Tensor, "n d"]
+    ) -> tuple[Float[Tensor, " m"], TakenRows]:
+        """``density`` without a graph, and the decoder rows it read, from which
+        ``density_of_taken`` makes any subset differentiable without reading the grid again."""
+        field = self.field
+        q, level = field.split_density_features(q_density)
+        taken = self.density_rows.take(field.to_grid(points), ray, q, field.cfg.pos_encoding_freqs)
+        return self._density_of_raw(field.density_decoder(taken.rows)[:, 0], ray, level), taken
+
+    def density_of_taken(
+        self, taken: TakenRows, index: Int[Tensor, " k"], q_density: Float[Tensor, "n d"]
+    ) -> Float[Tensor, " k"]:
+        """The densities of samples ``index`` of ``taken`` (``density_taken``), differentiable."""
+        q, level = self.field.split_density_features(q_density)
+        rows = self.density_rows.select(taken, index, q)
+        return self._density_of_raw(self.field.density_decoder(rows)[:, 0], taken.ray.index_select(0, index), level)
 
     def direction_terms(self, directions: Float[Tensor, "n 3"]) -> Float[Tensor, "n e"]:
         """The spherical harmonics of each ray's direction (encoded once per ray)."""

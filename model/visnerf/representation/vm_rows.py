@@ -1,10 +1,9 @@
 """A VM grid read by the fused training step: decoder rows forward, row-sparse factor gradients backward.
 
 ``GridRows.rows`` is differentiable in the parameter features ``q`` (autograd) and in the grid's
-tables, whose gradient its backward adds straight into ``RowGradients``: the tables' ``.grad``,
-kept from step to step, and one mark per table row that holds a gradient, so that the optimizer
-updates (and clears) only the rows a step touched (``training.sparse_adam``). The loops are
-``vm_rows_kernel``'s; ``VMGrid.sample`` with ``field.modulate`` is the slow twin.
+tables, whose gradient its backward leaves as pending taps in ``RowGradients``
+(``table_gradients``): the optimizer updates only the rows they reach (``training.sparse_adam``).
+The loops are ``vm_rows_kernel``'s; ``VMGrid.sample`` with ``field.modulate`` is the slow twin.
 """
 
 from dataclasses import dataclass
@@ -14,75 +13,136 @@ import torch
 from jaxtyping import Float, Int
 from torch import Tensor
 
+from visnerf import compiled
+from visnerf.representation.table_gradients import PendingTaps, RowGradients
 from visnerf.representation.vm import VMGrid
 from visnerf.representation.vm_kernel import table_layout
 from visnerf.representation.vm_rows_kernel import loops
+from visnerf.representation.vm_taps import MODES
 
 FLOAT_TYPES = {torch.float32: np.float32, torch.float64: np.float64}
 
 
 @dataclass
-class RowGradients:
-    """Gradients of one VM grid's tables as the fused step accumulates them.
+class Taps:
+    """What a forward keeps for a backward: each sample's first plane row, four plane weights,
+    first line row and two line weights per mode, and its plane values ``[3, m, c]``."""
 
-    ``plane`` and ``line`` are the tables' ``.grad`` (made once, zeroed row by row by the
-    optimizer after each step); ``plane_marks[i]`` is 1 where row ``i`` holds a gradient."""
-
-    plane: Tensor
-    line: Tensor
-    plane_marks: np.ndarray
-    line_marks: np.ndarray
+    plane_rows: np.ndarray
+    plane_weights: np.ndarray
+    line_rows: np.ndarray
+    line_weights: np.ndarray
+    plane_values: np.ndarray
 
     @classmethod
-    def of(cls, grid: VMGrid) -> "RowGradients":
-        """Zero gradients over ``grid``'s tables, installed as their ``.grad``."""
-        planes, lines = grid.row_tables()
-        for table in (planes, lines):
-            table.grad = torch.zeros_like(table)
-        return cls(planes.grad, lines.grad, np.zeros(planes.shape[0], np.uint8),
-                   np.zeros(lines.shape[0], np.uint8))
+    def empty(cls, m: int, c: int, float_type: type) -> "Taps":
+        return cls(np.empty((m, 3), np.int64), np.empty((m, 3, 4), float_type), np.empty((m, 3), np.int64),
+                   np.empty((m, 3, 2), float_type), np.empty((3, m, c), float_type))
 
-    def follows(self, grid: VMGrid) -> bool:
-        """Whether these are still the gradients of ``grid``'s tables (resampling replaces them)."""
-        planes, lines = grid.row_tables()
-        return planes.grad is self.plane and lines.grad is self.line
+    def __len__(self) -> int:
+        return self.plane_rows.shape[0]
 
-    def mark_all(self) -> None:
-        """Count every row as touched (a prior or a rank's gradient reached all of them)."""
-        self.plane_marks[:] = 1
-        self.line_marks[:] = 1
+    def select(self, index: np.ndarray) -> "Taps":
+        """The taps of samples ``index``."""
+        return Taps(self.plane_rows[index], self.plane_weights[index], self.line_rows[index], self.line_weights[index],
+                    np.ascontiguousarray(self.plane_values[:, index]))
+
+
+def _forward(rows: "GridRows", q: Tensor, coords: Tensor, ray: Tensor, tail: Tensor, n_freqs: int,
+             save: bool) -> tuple[Tensor, Taps]:
+    """The rows of the samples (and, with ``save``, their taps), on one thread per part."""
+    planes, lines = rows.grid.row_tables()
+    m = coords.shape[0]
+    out = torch.empty(m, rows.width(q.shape[1], n_freqs, tail.shape[1]), dtype=planes.dtype)
+    forward, _ = rows.loops(q.shape[1])
+    res, plane_off, line_off = rows.layout
+    taps = Taps.empty(m if save else 1, rows.n_components, rows.float_type)
+    arrays = (_np(coords), _np(ray), _np(q), _np(tail), planes.detach().numpy(), lines.detach().numpy(),
+              res, plane_off, line_off, n_freqs, out.numpy(), bool(save), taps.plane_rows, taps.plane_weights,
+              taps.line_rows, taps.line_weights, taps.plane_values)
+    parts = _parts(m, MIN_SAMPLES_A_PART)
+
+    def part(i: int) -> None:
+        forward(*arrays, m * i // parts, m * (i + 1) // parts)
+
+    compiled.run_parts(part, parts)
+    return out, taps
+
+
+def _backward(rows: "GridRows", q: Tensor, ray: Tensor, taps: Taps, grad_out: Tensor) -> Tensor:
+    """Leave the tables' gradient as pending taps in ``rows.gradients``; returns ``q``'s."""
+    grads = rows.gradients
+    if grads is None or not grads.follows(rows.grid):
+        raise RuntimeError("the fused lookups' gradients were not set up for this grid (GridRows.gradients)")
+    if len(taps) != ray.shape[0]:
+        raise RuntimeError("the fused lookups kept no taps for a backward (rows taken without gradients)")
+    _, row_gradients = rows.loops(q.shape[1])
+    planes, lines = rows.grid.row_tables()
+    m, c = ray.shape[0], rows.n_components
+    parts = _parts(m, MIN_SAMPLES_A_PART)
+    grad_q = [torch.zeros_like(q) for _ in range(parts)]
+    grad_plane_value = np.empty((3, m, c), rows.float_type)
+    grad_line_value = np.empty((3, m, c), rows.float_type)
+    arrays = (_np(ray), _np(q), _np(grad_out.to(planes.dtype)), lines.detach().numpy(), taps.line_rows,
+              taps.line_weights, taps.plane_values, grad_plane_value, grad_line_value)
+
+    def per_sample(i: int) -> None:
+        row_gradients(*arrays, grad_q[i].numpy(), m * i // parts, m * (i + 1) // parts)
+
+    compiled.run_parts(per_sample, parts)
+    grads.plane.add(PendingTaps(taps.plane_rows, taps.plane_weights, rows.plane_corners, grad_plane_value))
+    grads.line.add(PendingTaps(taps.line_rows, taps.line_weights, rows.line_corners, grad_line_value))
+    return sum(grad_q[1:], grad_q[0])
 
 
 class _Rows(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, q, plane_table, line_table, rows: "GridRows", coords, ray, tail, n_freqs):  # noqa: ANN001, ANN205
-        width = rows.width(q.shape[1], n_freqs, tail.shape[1])
-        out = torch.empty(coords.shape[0], width, dtype=plane_table.dtype)
-        forward, _ = rows.loops(q.shape[1])
-        res, plane_off, line_off = rows.layout
-        if coords.shape[0]:
-            forward(_np(coords), _np(ray), _np(q), _np(tail), plane_table.detach().numpy(),
-                    line_table.detach().numpy(), res, plane_off, line_off, n_freqs, out.numpy())
-        ctx.save_for_backward(q, coords, ray)
-        ctx.rows = rows
+    def forward(ctx, q, plane_table, line_table, rows: "GridRows", coords, ray, tail, n_freqs, save):  # noqa: ANN001, ANN205
+        out, taps = _forward(rows, q, coords, ray, tail, n_freqs, save)
+        ctx.save_for_backward(q, ray)
+        ctx.rows, ctx.taps = rows, taps
         return out
 
     @staticmethod
     def backward(ctx, grad_out):  # noqa: ANN001, ANN205
-        q, coords, ray = ctx.saved_tensors
-        rows: GridRows = ctx.rows
-        grads = rows.gradients
-        if grads is None or not grads.follows(rows.grid):
-            raise RuntimeError("the fused lookups' gradients were not set up for this grid (GridRows.gradients)")
-        grad_q = torch.zeros_like(q)
-        _, backward = rows.loops(q.shape[1])
-        res, plane_off, line_off = rows.layout
-        planes, lines = rows.grid.row_tables()
-        if coords.shape[0]:
-            backward(_np(coords), _np(ray), _np(q), _np(grad_out.to(planes.dtype)), planes.detach().numpy(),
-                     lines.detach().numpy(), res, plane_off, line_off, grads.plane.numpy(), grads.line.numpy(),
-                     grad_q.numpy(), grads.plane_marks, grads.line_marks)
-        return grad_q, None, None, None, None, None, None, None
+        q, ray = ctx.saved_tensors
+        return _backward(ctx.rows, q, ray, ctx.taps, grad_out), None, None, None, None, None, None, None, None
+
+
+class _Selected(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, q, plane_table, line_table, taken: "TakenRows", index):  # noqa: ANN001, ANN205
+        ctx.save_for_backward(q, index)
+        ctx.taken = taken
+        return taken.rows.index_select(0, index)
+
+    @staticmethod
+    def backward(ctx, grad_out):  # noqa: ANN001, ANN205
+        q, index = ctx.saved_tensors
+        taken: TakenRows = ctx.taken
+        chosen = index.numpy()
+        grad_q = _backward(taken.grid_rows, q, taken.ray.index_select(0, index), taken.taps.select(chosen), grad_out)
+        return grad_q, None, None, None, None
+
+
+@dataclass(frozen=True)
+class TakenRows:
+    """Rows taken once without a graph, with their taps, so that any subset of them can be made
+    differentiable afterwards (``GridRows.select``) without reading the tables again."""
+
+    grid_rows: "GridRows"
+    rows: Tensor
+    ray: Tensor
+    taps: Taps
+
+
+MIN_SAMPLES_A_PART = 2048
+"""Fewest samples worth a thread of their own (smaller calls run on the caller's thread alone)."""
+
+
+def _parts(m: int, least: int) -> int:
+    """Threads for a call over ``m`` samples: one per torch thread, each with at least ``least``."""
+    return max(1, min(torch.get_num_threads(), m // least))
 
 
 def _np(t: Tensor) -> np.ndarray:
@@ -101,10 +161,15 @@ class GridRows:
         self.grid = grid
         self.gradients = gradients
         self.layout = table_layout(grid.resolution, planes.shape[0], lines.shape[0])
+        res = self.layout[0]
+        widths = [int(res[a]) for (a, _), _ in MODES]
+        self.plane_corners = np.array([[0, 1, w, w + 1] for w in widths], np.int64)
+        """Row offsets of a plane tap's four corners from its first row, per mode."""
+        self.line_corners = np.array([[0, 1]] * 3, np.int64)
         self.n_components = grid.n_components
         self.float_type = FLOAT_TYPES[planes.dtype]
 
-    def loops(self, n_q: int):  # noqa: ANN201 - two numba dispatchers
+    def loops(self, n_q: int):  # noqa: ANN201 - two numba dispatchers (forward, row gradients)
         return loops(self.n_components, n_q, self.float_type)
 
     def width(self, n_q: int, n_freqs: int, n_tail: int) -> int:
@@ -126,5 +191,26 @@ class GridRows:
         dtype = planes.dtype
         if tail is None:
             tail = torch.zeros(q.shape[0], 0, dtype=dtype)
+        save = torch.is_grad_enabled() and (q.requires_grad or planes.requires_grad or lines.requires_grad)
         return _Rows.apply(q.to(dtype), planes, lines, self, coords.to(dtype), ray.to(torch.int64), tail.to(dtype),
-                           int(n_freqs))
+                           int(n_freqs), save)
+
+    @torch.no_grad()
+    def take(
+        self, coords: Float[Tensor, "m 3"], ray: Int[Tensor, " m"], q: Float[Tensor, "n c"], n_freqs: int = -1,
+        tail: Float[Tensor, "n e"] | None = None,
+    ) -> TakenRows:
+        """``rows`` without a graph, kept with their taps for ``select``."""
+        planes, _ = self.grid.row_tables()
+        dtype = planes.dtype
+        if tail is None:
+            tail = torch.zeros(q.shape[0], 0, dtype=dtype)
+        ray = ray.to(torch.int64)
+        out, taps = _forward(self, q.detach().to(dtype), coords.to(dtype), ray, tail.to(dtype), int(n_freqs), True)
+        return TakenRows(self, out, ray, taps)
+
+    def select(self, taken: TakenRows, index: Int[Tensor, " k"], q: Float[Tensor, "n c"]) -> Float[Tensor, "k w"]:
+        """Rows ``index`` of ``taken`` (made with these ``q`` values), differentiable in ``q`` and
+        the tables as ``rows`` is."""
+        planes, lines = self.grid.row_tables()
+        return _Selected.apply(q.to(planes.dtype), planes, lines, taken, index.to(torch.int64))

@@ -6,13 +6,22 @@ feature ``q[i % n_q]`` (``field.modulate``), the parameter features themselves, 
 positional encoding of the sample (density) or its ray's own columns (the colour decoder's
 spherical harmonics). As torch operations that is a tap computation, two ``embedding_bag`` sums,
 a product, a ``repeat``, a gather of ``q`` per sample, a product and a ``cat``, and as many again
-backwards; here one loop over the samples writes the row, and one loop scatters a row's gradient
-into the rows of the tables it read and into its ray's ``q``.
+backwards. Here:
+
+- ``forward`` writes the rows of a range of samples (two threads take a half each) and, for a
+  backward, keeps each sample's taps (rows and weights) and plane values;
+- ``row_gradients`` (a range of samples) turns a row's gradient into the gradient of each mode's
+  plane value and line value (``[3, m, c]`` each, mode-major) and its ray's ``q`` gradient;
+- ``gather_gradients`` (a range of table rows) adds into each table row the sum of the gradients
+  of the taps that read it, found by a counting sort of the taps by row (``tap_index``), and marks
+  it. Each table row is then written once, in order, by one thread: no two threads write a row,
+  the sums run in sample order (deterministic), and the random reads go to the small per-sample
+  arrays instead of the tables.
 
 The interpolation is ``vm_taps``' (``align_corners=True``, the border read outside [-1, 1], the
 lower node at most ``n - 2``, NaN read as -1), the encoding ``vm_kernel``'s (double-angle sines).
-Both loops are compiled per channel count, parameter-feature count and float type (float32 for
-training, float64 for the tests against autograd); both release the GIL.
+The loops are compiled per channel count, parameter-feature count and float type (float32 for
+training, float64 for the tests against autograd); all release the GIL.
 """
 
 import functools
@@ -25,9 +34,9 @@ from visnerf import compiled
 from visnerf.representation.vm_kernel import plane_axes
 
 
-def _sources(c: int, n_q: int, float_type: type):  # noqa: ANN202 - the two loops numba compiles
-    """Forward and backward loops for tables of ``c`` channels and ``n_q`` parameter features in
-    ``float_type`` (constants of the compiled loops)."""
+def _sources(c: int, n_q: int, float_type: type):  # noqa: ANN202 - the loops numba compiles
+    """The loops for tables of ``c`` channels and ``n_q`` parameter features in ``float_type``
+    (constants of the compiled loops)."""
     ft = float_type
     nf = 3 * c
 
@@ -49,28 +58,55 @@ def _sources(c: int, n_q: int, float_type: type):  # noqa: ANN202 - the two loop
     interpolation = compiled.jit(_interpolation, inline=True)
 
     @no_type_check
-    def _forward(coords, ray, q, tail, plane, line, res, plane_off, line_off, n_freqs, out):  # noqa: ANN001, ANN202
-        """``out[s] = [F(coords[s]) * q_rep[ray[s]], q[ray[s]], encoding(coords[s]) or tail[ray[s]]]``."""
+    def _forward(coords, ray, q, tail, plane, line, res, plane_off, line_off, n_freqs, out,  # noqa: ANN001, ANN202
+                 save, plane_rows, plane_weights, line_rows, line_weights, plane_values, first, stop):
+        """``out[s] = [F(coords[s]) * q_rep[ray[s]], q[ray[s]], encoding(coords[s]) or tail[ray[s]]]``
+        for samples ``first <= s < stop``; with ``save``, each mode's first plane row and four
+        weights, first line row and two weights, and plane values ``[3, m, c]``."""
         one = ft(1.0)
         lower = np.empty(3, np.int64)
         frac = np.empty(3, ft)
+        q_rep = np.empty(c, ft)
         e = tail.shape[1]
-        for s in range(coords.shape[0]):
+        last_ray = -1
+        for s in range(first, stop):
             interpolation(coords, s, res, lower, frac)
             r = ray[s]
+            if r != last_ray:
+                for ch in range(c):
+                    q_rep[ch] = q[r, ch % n_q]
+                last_ray = r
             for i in range(3):
                 pa, pb, la = plane_axes(i)
                 w = res[pa]
                 r00 = plane_off[i] + lower[pb] * w + lower[pa]
+                r01 = r00 + w
                 fa, fb, fl = frac[pa], frac[pb], frac[la]
                 w00, w10 = (one - fa) * (one - fb), fa * (one - fb)
                 w01, w11 = (one - fa) * fb, fa * fb
                 l0 = line_off[i] + lower[la]
-                for ch in range(c):
-                    p = ((w00 * plane[r00, ch] + w10 * plane[r00 + 1, ch])
-                         + (w01 * plane[r00 + w, ch] + w11 * plane[r00 + w + 1, ch]))
-                    v = (one - fl) * line[l0, ch] + fl * line[l0 + 1, ch]
-                    out[s, i * c + ch] = p * v * q[r, (i * c + ch) % n_q]
+                base = i * c
+                if save:
+                    plane_rows[s, i] = r00
+                    plane_weights[s, i, 0] = w00
+                    plane_weights[s, i, 1] = w10
+                    plane_weights[s, i, 2] = w01
+                    plane_weights[s, i, 3] = w11
+                    line_rows[s, i] = l0
+                    line_weights[s, i, 0] = one - fl
+                    line_weights[s, i, 1] = fl
+                    for ch in range(c):
+                        p = ((w00 * plane[r00, ch] + w10 * plane[r00 + 1, ch])
+                             + (w01 * plane[r01, ch] + w11 * plane[r01 + 1, ch]))
+                        v = (one - fl) * line[l0, ch] + fl * line[l0 + 1, ch]
+                        plane_values[i, s, ch] = p
+                        out[s, base + ch] = p * v * q_rep[ch]
+                else:
+                    for ch in range(c):
+                        p = ((w00 * plane[r00, ch] + w10 * plane[r00 + 1, ch])
+                             + (w01 * plane[r01, ch] + w11 * plane[r01 + 1, ch]))
+                        v = (one - fl) * line[l0, ch] + fl * line[l0 + 1, ch]
+                        out[s, base + ch] = p * v * q_rep[ch]
             for j in range(n_q):
                 out[s, nf + j] = q[r, j]
             col = nf + n_q
@@ -89,57 +125,102 @@ def _sources(c: int, n_q: int, float_type: type):  # noqa: ANN202 - the two loop
                 out[s, col + j] = tail[r, j]
 
     @no_type_check
-    def _backward(coords, ray, q, grad_out, plane, line, res, plane_off, line_off,  # noqa: ANN001, ANN202
-                  grad_plane, grad_line, grad_q, plane_marks, line_marks):
-        """Add the gradient of ``_forward``'s rows, ``grad_out[s, :3c + n_q]``, into the tables'
-        gradients (``grad_plane``, ``grad_line``), marking every row it touches, and into
-        ``grad_q`` of each sample's ray. Samples in order: the sums are deterministic."""
-        one = ft(1.0)
-        lower = np.empty(3, np.int64)
-        frac = np.empty(3, ft)
-        for s in range(coords.shape[0]):
-            interpolation(coords, s, res, lower, frac)
+    def _row_gradients(ray, q, grad_out, line, line_rows, line_weights, plane_values,  # noqa: ANN001, ANN202
+                       grad_plane_value, grad_line_value, grad_q, first, stop):
+        """For samples ``first <= s < stop``: the gradient of each mode's plane value
+        (``g * q_rep * v``) and line value (``g * q_rep * p``), ``[3, m, c]`` each, and the rows'
+        gradient of their ray's ``q`` (features and the ``q`` columns) added into ``grad_q``."""
+        q_rep = np.empty(c, ft)
+        last_ray = -1
+        for s in range(first, stop):
             r = ray[s]
-            for i in range(3):
-                pa, pb, la = plane_axes(i)
-                w = res[pa]
-                r00 = plane_off[i] + lower[pb] * w + lower[pa]
-                fa, fb, fl = frac[pa], frac[pb], frac[la]
-                w00, w10 = (one - fa) * (one - fb), fa * (one - fb)
-                w01, w11 = (one - fa) * fb, fa * fb
-                l0 = line_off[i] + lower[la]
-                gl0, gl1 = one - fl, fl
+            if r != last_ray:
                 for ch in range(c):
-                    k = (i * c + ch) % n_q
-                    g = grad_out[s, i * c + ch]
-                    p = ((w00 * plane[r00, ch] + w10 * plane[r00 + 1, ch])
-                         + (w01 * plane[r00 + w, ch] + w11 * plane[r00 + w + 1, ch]))
+                    q_rep[ch] = q[r, ch % n_q]
+                last_ray = r
+            for i in range(3):
+                l0 = line_rows[s, i]
+                gl0, gl1 = line_weights[s, i, 0], line_weights[s, i, 1]
+                base = i * c
+                for ch in range(c):
+                    g = grad_out[s, base + ch]
+                    p = plane_values[i, s, ch]
                     v = gl0 * line[l0, ch] + gl1 * line[l0 + 1, ch]
-                    grad_q[r, k] += g * p * v
-                    gf = g * q[r, k]
-                    gp, gv = gf * v, gf * p
-                    grad_plane[r00, ch] += w00 * gp
-                    grad_plane[r00 + 1, ch] += w10 * gp
-                    grad_plane[r00 + w, ch] += w01 * gp
-                    grad_plane[r00 + w + 1, ch] += w11 * gp
-                    grad_line[l0, ch] += gl0 * gv
-                    grad_line[l0 + 1, ch] += gl1 * gv
-                plane_marks[r00] = 1
-                plane_marks[r00 + 1] = 1
-                plane_marks[r00 + w] = 1
-                plane_marks[r00 + w + 1] = 1
-                line_marks[l0] = 1
-                line_marks[l0 + 1] = 1
+                    grad_plane_value[i, s, ch] = g * q_rep[ch] * v
+                    grad_line_value[i, s, ch] = g * q_rep[ch] * p
+                    grad_q[r, ch % n_q] += g * p * v
             for j in range(n_q):
                 grad_q[r, j] += grad_out[s, nf + j]
 
-    return compiled.jit(_forward), compiled.jit(_backward)
+    return compiled.jit(_forward), compiled.jit(_row_gradients)
+
+
+def _gather_source(c: int, ft: type):  # noqa: ANN202 - the loop numba compiles
+    @no_type_check
+    def _gather_gradients(grad_table, marks, starts, taps, tap_weights, grad_values, first, stop):  # noqa: ANN001, ANN202
+        """``grad_table[row] += sum_t tap_weights[t] * grad_values[taps[t]]`` over the taps of each
+        row ``first <= row < stop`` (``taps[starts[row]:starts[row + 1]]``, flat ``mode * m + s``
+        indices into ``grad_values`` viewed ``[3 m, c]``), which are marked."""
+        acc = np.empty(c, ft)
+        for row in range(first, stop):
+            a, b = starts[row], starts[row + 1]
+            if a == b:
+                continue
+            for ch in range(c):
+                acc[ch] = 0
+            for t in range(a, b):
+                w = tap_weights[t]
+                k = taps[t]
+                for ch in range(c):
+                    acc[ch] += w * grad_values[k, ch]
+            for ch in range(c):
+                grad_table[row, ch] += acc[ch]
+            marks[row] = 1
+
+    return _gather_gradients
+
+
+@functools.cache
+def gather_loop(c: int, float_type: type):  # noqa: ANN201 - a numba dispatcher
+    """``_gather_gradients`` for tables of ``c`` channels in ``float_type``."""
+    return compiled.jit(_gather_source(c, float_type))
+
+
+@no_type_check  # compiled by numba
+def _tap_index(rows, weights, corner_offsets, n_rows, starts, taps, tap_weights):  # noqa: ANN001, ANN202
+    """Counting sort of the taps by table row: tap ``(s, i, k)`` reads row ``rows[s, i] +
+    corner_offsets[i, k]`` with weight ``weights[s, i, k]``. Writes each row's first tap into
+    ``starts`` (``n_rows + 1``) and the taps, row by row in sample order, into ``taps`` (the flat
+    index ``i * m + s``) and ``tap_weights``."""
+    m = rows.shape[0]
+    corners = weights.shape[2]
+    counts = np.zeros(n_rows + 1, np.int64)
+    for s in range(m):
+        for i in range(3):
+            for k in range(corners):
+                counts[rows[s, i] + corner_offsets[i, k] + 1] += 1
+    for row in range(n_rows):
+        counts[row + 1] += counts[row]
+    for row in range(n_rows + 1):
+        starts[row] = counts[row]
+    for s in range(m):
+        for i in range(3):
+            for k in range(corners):
+                row = rows[s, i] + corner_offsets[i, k]
+                at = counts[row]
+                taps[at] = i * m + s
+                tap_weights[at] = weights[s, i, k]
+                counts[row] = at + 1
+
+
+tap_index = compiled.jit(_tap_index)
 
 
 @functools.cache
 def loops(c: int, n_q: int, float_type: type):  # noqa: ANN201 - two numba dispatchers
-    """(forward, backward) for ``c`` channels, ``n_q`` parameter features, ``float_type``
-    (``np.float32`` or ``np.float64``), compiled once per process (and cached on disk by numba)."""
+    """(forward, row_gradients) for ``c`` channels, ``n_q`` parameter features,
+    ``float_type`` (``np.float32`` or ``np.float64``), compiled once per process (and cached on
+    disk by numba)."""
     if compiled.numba is None:  # pragma: no cover
         raise RuntimeError("numba is not installed: the compiled training lookups are unavailable")
     if float_type not in (np.float32, np.float64):

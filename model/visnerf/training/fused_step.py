@@ -11,8 +11,10 @@ at those rows (``row_priors``) and ``RowSparseAdam`` updates them alone. Same sa
 gradients as the torch path at the rows a step touches (tested in float64).
 """
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
+import numpy as np
 import torch
 from jaxtyping import Float, Int
 from torch import Tensor
@@ -22,10 +24,11 @@ from visnerf.rendering.compact_render import drop_occluded_compact, shade_compac
 from visnerf.rendering.compact_samples import CompactSamples, place_compact
 from visnerf.rendering.density_gradients import DensityGradientSampling
 from visnerf.representation.field import VisNerfField
+from visnerf.representation.table_gradients import TableGradient
 from visnerf.representation.training_field import TrainingField
 from visnerf.training.ray_batches import micro_batches
 from visnerf.training.regularizers import RegularizerWeights, regularization
-from visnerf.training.row_priors import add_l1_at_marks, add_total_variation_at_marks
+from visnerf.training.row_priors import add_l1_at_marks, add_total_variation_at_marks, l1_coefficients
 from visnerf.training.sparse_adam import RowSparseAdam
 
 
@@ -59,22 +62,21 @@ class Sampling:
 
 
 class FusedStep:
-    """The fused path of one field: its ``TrainingField`` and the optimizer's row marks."""
+    """The fused path of one field: its ``TrainingField``, whose VM table gradients the optimizer
+    takes (``RowSparseAdam.set_row_source``)."""
 
     def __init__(self, field: VisNerfField, optimizer: RowSparseAdam) -> None:
         self.field = field
         self.tfield = TrainingField(field)
-        for grid, grads in ((field.density_grid, self.tfield.density_grads),
-                            (field.appearance_grid, self.tfield.appearance_grads)):
-            planes, lines = grid.row_tables()
-            optimizer.set_row_marks(planes, grads.plane_marks)
-            optimizer.set_row_marks(lines, grads.line_marks)
+        for grads in self.tfield.row_gradients():
+            for table in grads.tables():
+                optimizer.set_row_source(table.table, table)
 
     def follows(self, field: VisNerfField) -> bool:
         return self.tfield.follows(field)
 
-    def row_marks(self) -> list:
-        return [m for g in self.tfield.row_gradients() for m in (g.plane_marks, g.line_marks)]
+    def tables(self) -> list[TableGradient]:
+        return [t for g in self.tfield.row_gradients() for t in g.tables()]
 
     def place(self, batch: StepBatch, sampling: Sampling, generator: torch.Generator) -> CompactSamples:
         samples = place_compact(self.field.aabb, batch.rays_o, batch.rays_d, sampling.step, sampling.max_samples,
@@ -100,13 +102,30 @@ class FusedStep:
             sq_error += float(part.detach())
         return sq_error, len(samples)
 
-    def priors(self, weights: RegularizerWeights) -> dict[str, float]:
-        """The priors' gradients: the grid terms at the rows this step touched (``row_priors``),
-        the parameter-vector terms (a few hundred values) through autograd; their values."""
+    def priors(self, weights: RegularizerWeights,
+               merge_marks: Callable[[list[np.ndarray]], None] | None = None) -> dict[str, float]:
+        """The priors' gradients and values. The grid priors act at the rows this step touched
+        (``row_priors``). With ``merge_marks`` (ranks: ``Ranks.merge_row_marks``, before their
+        gradients are averaged) or total variation (which reads a row's neighbours) the tables'
+        gradients are materialized, the rows any rank touched marked on every rank, and the
+        priors added at the marks; otherwise the optimizer adds the L1 prior as it updates each
+        row (its value comes after the step, ``after_step``). The parameter-vector terms (a few
+        hundred values) go through autograd."""
         values: dict[str, float] = {}
         density_grads, appearance_grads = self.tfield.row_gradients()
+        whole = merge_marks is not None or weights.tv_density > 0 or weights.tv_appearance > 0
+        for table in self.tables():
+            table.l1_coefficients = None
+            if whole:
+                table.materialize()
+        if merge_marks is not None:
+            merge_marks([t.marks for t in self.tables()])
         if weights.l1_density > 0:
-            values["l1"] = add_l1_at_marks(self.field.density_grid, density_grads, weights.l1_density)
+            if whole:
+                values["l1"] = add_l1_at_marks(self.field.density_grid, density_grads, weights.l1_density)
+            else:
+                for table in density_grads.tables():
+                    table.l1_coefficients = l1_coefficients(table, weights.l1_density)
         if weights.tv_density > 0:
             values["tv_density"] = add_total_variation_at_marks(self.field.density_grid, density_grads,
                                                                 weights.tv_density)
@@ -118,6 +137,13 @@ class FusedStep:
             sum(rest.values()).backward()
             values.update({k: float(v.detach()) for k, v in rest.items()})
         return values
+
+    def after_step(self) -> dict[str, float]:
+        """The L1 prior's value where the optimizer added it (``priors`` without whole gradients)."""
+        density_grads, _ = self.tfield.row_gradients()
+        if density_grads.plane.l1_coefficients is None:
+            return {}
+        return {"l1": sum(t.l1_value for t in density_grads.tables())}
 
     def raw_density(self, coords: Float[Tensor, "m 3"], q: Float[Tensor, "m c"]) -> Float[Tensor, " m"]:
         """The level field ``g`` at grid coordinates with per-point features (``regularizers.level_curvature``)."""

@@ -1,5 +1,8 @@
 """The grid priors of the fused step, applied at the rows a step touched (lazy, as its Adam is).
 
+(``l1_coefficients`` gives the optimizer the L1 prior to add as it updates rows from pending taps,
+``training.sparse_adam``; the functions below add a prior into a materialized gradient.)
+
 ``regularizers.add_grid_l1_`` and ``add_grid_total_variation_`` add their gradient into every row
 of a VM grid's tables: a pass over the whole table each step, and a gradient on every row, which
 would make the row-sparse optimizer (``sparse_adam``) update every row. Here the same gradient is
@@ -13,9 +16,9 @@ from typing import no_type_check
 import numpy as np
 
 from visnerf import compiled
+from visnerf.representation.table_gradients import RowGradients, TableGradient
 from visnerf.representation.vm import VMGrid
 from visnerf.representation.vm_kernel import table_layout
-from visnerf.representation.vm_rows import RowGradients
 from visnerf.representation.vm_taps import MODES
 
 
@@ -29,14 +32,12 @@ def _l1(table, grad, marks, starts, coefficients):  # noqa: ANN001, ANN202
         for row in range(starts[part], starts[part + 1]):
             if marks[row] == 0:
                 continue
+            part_sum = 0.0
             for ch in range(table.shape[1]):
                 v = table[row, ch]
-                if v > 0:
-                    grad[row, ch] += c
-                    total += c * v
-                elif v < 0:
-                    grad[row, ch] -= c
-                    total -= c * v
+                grad[row, ch] += c * ((v > 0) - (v < 0))
+                part_sum += abs(v)
+            total += c * part_sum
     return total
 
 
@@ -74,18 +75,21 @@ _l1_loop = compiled.jit(_l1)
 _tv_plane_loop = compiled.jit(_tv_plane)
 
 
+def l1_coefficients(table: TableGradient, weight: float) -> np.ndarray:
+    """Per mode, the (sub)gradient coefficient of ``regularizers.add_grid_l1_`` on ``table``'s rows:
+    ``weight / (6 * values in that mode's factor)``."""
+    starts = table.part_starts
+    c = table.table.shape[1]
+    return np.array([weight / (2 * len(MODES) * (starts[p + 1] - starts[p]) * c) for p in range(len(MODES))])
+
+
 def add_l1_at_marks(grid: VMGrid, grads: RowGradients, weight: float) -> float:
     """``regularizers.add_grid_l1_`` at the marked rows: ``weight * mean |v|`` of each of the six
     factors, averaged, its (sub)gradient added where a row is marked."""
-    planes, lines = grid.row_tables()
-    _, plane_off, line_off = table_layout(grid.resolution, planes.shape[0], lines.shape[0])
     total = 0.0
-    for table, grad, marks, starts in ((planes, grads.plane, grads.plane_marks, plane_off),
-                                       (lines, grads.line, grads.line_marks, line_off)):
-        bounds = np.append(starts, table.shape[0]).astype(np.int64)
-        coefficients = np.array([weight / (2 * len(MODES) * (bounds[p + 1] - bounds[p]) * table.shape[1])
-                                 for p in range(len(MODES))])
-        total += _l1_loop(table.detach().numpy(), grad.numpy(), marks, bounds, coefficients)
+    for table in grads.tables():
+        total += _l1_loop(table.table.detach().numpy(), table.buffer().numpy(), table.marks,
+                          table.part_starts.astype(np.int64), l1_coefficients(table, weight))
     return total
 
 
@@ -96,15 +100,15 @@ def add_total_variation_at_marks(grid: VMGrid, grads: RowGradients, weight: floa
     c = planes.shape[1]
     scale = weight / len(MODES)
     total = 0.0
-    table, grad = planes.detach().numpy(), grads.plane.numpy()
+    table, grad = planes.detach().numpy(), grads.plane.buffer().numpy()
     for i, ((a, b), _) in enumerate(MODES):
         w, h = int(res[a]), int(res[b])
         scale_y = scale / max(1, (h - 1) * w * c) if h > 1 else 0.0
         scale_x = scale / max(1, h * (w - 1) * c) if w > 1 else 0.0
-        total += _tv_plane_loop(table, grad, grads.plane_marks, int(plane_off[i]), h, w, scale_y, scale_x)
-    table, grad = lines.detach().numpy(), grads.line.numpy()
+        total += _tv_plane_loop(table, grad, grads.plane.marks, int(plane_off[i]), h, w, scale_y, scale_x)
+    table, grad = lines.detach().numpy(), grads.line.buffer().numpy()
     for i, (_, axis) in enumerate(MODES):
         n = int(res[axis])
         scale_y = scale / max(1, (n - 1) * c) if n > 1 else 0.0
-        total += _tv_plane_loop(table, grad, grads.line_marks, int(line_off[i]), n, 1, scale_y, 0.0)
+        total += _tv_plane_loop(table, grad, grads.line.marks, int(line_off[i]), n, 1, scale_y, 0.0)
     return total

@@ -1,13 +1,19 @@
 """Adam that pays only for the rows a step touched (the fused CPU step's optimizer).
 
-A step's rays read a small share of the VM tables' rows (a late Nyx step: a few per cent), yet
-torch's Adam passes over every row of every table: its parameters, gradients and both moments,
-about 30 bytes a factor, each step. ``RowSparseAdam`` updates a table registered with row marks
-(``vm_rows.RowGradients``) only at the marked rows, with the bias correction of each row's own
-count of updates, then zeroes those gradient rows and marks (the gradient buffer is kept from
-step to step). A row no step touches keeps its value and moments: lazy Adam. Every other
-parameter (the decoders, the parameter tables) is updated whole, as torch's Adam does (tested
-to float rounding), and keeps its ``.grad`` handling (``zero_grad`` sets it to None).
+A step's rays read a share of the VM tables' rows (a late Nyx step at 200^3: 40 %), yet torch's
+Adam passes over every row of every table: its parameters, gradients and both moments, each step,
+and the gradient is written, read and zeroed in full. ``RowSparseAdam`` takes a VM table's
+gradient from its ``TableGradient`` (``representation.table_gradients``):
+
+- pending taps (one process, no prior that reads a row's neighbours): one pass over the touched
+  rows sums each row's taps, adds the L1 prior where one is set, and updates the row, its moments
+  and its count; no table-sized gradient exists;
+- a materialized gradient (``.grad`` with row marks: ranks, total variation): the marked rows
+  are updated and their gradient rows and marks zeroed.
+
+Each row's bias correction follows its own count of updates, and a row no step touches keeps its
+value and moments: lazy Adam. Every other parameter (the decoders, the parameter tables) is
+updated whole, as torch's Adam does (tested to float rounding), from its ``.grad``.
 """
 
 import math
@@ -19,34 +25,87 @@ import torch
 from torch import Tensor, nn
 
 from visnerf import compiled
+from visnerf.representation.table_gradients import TableGradient, TapIndex, row_parts
+
+_FLOAT_TYPES = {torch.float32: np.float32, torch.float64: np.float64}
+_NO_MARKS = np.zeros(1, np.uint8)
+_NO_COEFFICIENTS = np.zeros(1, np.float64)
 
 
-@no_type_check  # compiled by numba
-def _adam_rows(param, grad, exp_avg, exp_avg_sq, steps, marks, use_marks, lr, beta1, beta2, eps):  # noqa: ANN001, ANN202
-    """Adam at the rows of ``param`` ``[rows, c]`` whose mark is set (every row without
-    ``use_marks``); their gradient rows and marks are zeroed."""
-    for row in range(param.shape[0]):
-        if use_marks and marks[row] == 0:
-            continue
-        t = steps[row] + 1.0
+def _sources(ft: type):  # noqa: ANN202 - the two loops numba compiles for float type ``ft``
+    @no_type_check  # compiled by numba
+    def _update(param, g, exp_avg, exp_avg_sq, row, steps, lr, b1, b2, b2c, e, inv_bias1, bias2_sqrts):  # noqa: ANN001, ANN202
+        """Adam on ``param[row]`` with gradient row ``g``."""
+        t = int(steps[row]) + 1
         steps[row] = t
-        step_size = lr / (1.0 - beta1 ** t)
-        bias2_sqrt = math.sqrt(1.0 - beta2 ** t)
+        step_size = ft(lr * inv_bias1[t])
+        inv_bias2 = ft(1.0 / bias2_sqrts[t])
         for ch in range(param.shape[1]):
-            g = grad[row, ch]
             m = exp_avg[row, ch]
-            m = m + (1.0 - beta1) * (g - m)
-            v = exp_avg_sq[row, ch] * beta2 + (1.0 - beta2) * g * g
+            m = m + b1 * (g[ch] - m)
+            v = exp_avg_sq[row, ch] * b2 + b2c * g[ch] * g[ch]
             exp_avg[row, ch] = m
             exp_avg_sq[row, ch] = v
-            param[row, ch] -= step_size * m / (math.sqrt(v) / bias2_sqrt + eps)
-            grad[row, ch] = 0.0
-        if use_marks:
-            marks[row] = 0
+            param[row, ch] -= step_size * m / (math.sqrt(v) * inv_bias2 + e)
+
+    update = compiled.jit(_update, inline=True)
+
+    @no_type_check
+    def _adam_marked(param, grad, exp_avg, exp_avg_sq, steps, marks, use_marks, lr, beta1, beta2, eps,  # noqa: ANN001, ANN202
+                     inv_bias1, bias2_sqrts, first, stop):
+        """Adam at the rows ``first <= row < stop`` whose mark is set (every row without
+        ``use_marks``), from ``grad``; their gradient rows and marks are zeroed.
+        ``inv_bias1[t] = 1 / (1 - beta1^t)`` and ``bias2_sqrts[t] = sqrt(1 - beta2^t)`` for a
+        row's ``t``-th update (float64)."""
+        b1, b2, b2c, e = ft(1.0 - beta1), ft(beta2), ft(1.0 - beta2), ft(eps)
+        for row in range(first, stop):
+            if use_marks and marks[row] == 0:
+                continue
+            update(param, grad[row], exp_avg, exp_avg_sq, row, steps, lr, b1, b2, b2c, e, inv_bias1, bias2_sqrts)
+            for ch in range(param.shape[1]):
+                grad[row, ch] = 0
+            if use_marks:
+                marks[row] = 0
+
+    @no_type_check
+    def _adam_taps(param, exp_avg, exp_avg_sq, steps, starts, taps, tap_weights, values, part_starts,  # noqa: ANN001, ANN202
+                   l1, use_l1, lr, beta1, beta2, eps, inv_bias1, bias2_sqrts, first, stop):
+        """Adam at the rows ``first <= row < stop`` that pending taps reach (``TapIndex``), their
+        gradient the sum of their taps' plus, with ``use_l1``, ``l1[mode] * sign(value)``;
+        returns the L1 prior's part at those rows, ``sum l1[mode] |value|``."""
+        b1, b2, b2c, e = ft(1.0 - beta1), ft(beta2), ft(1.0 - beta2), ft(eps)
+        c = param.shape[1]
+        g = np.empty(c, ft)
+        total = 0.0
+        part = 0
+        for row in range(first, stop):
+            a, b = starts[row], starts[row + 1]
+            if a == b:
+                continue
+            for ch in range(c):
+                g[ch] = 0
+            for t in range(a, b):
+                w = tap_weights[t]
+                k = taps[t]
+                for ch in range(c):
+                    g[ch] += w * values[k, ch]
+            if use_l1:
+                while row >= part_starts[part + 1]:
+                    part += 1
+                coefficient = ft(l1[part])
+                row_sum = 0.0
+                for ch in range(c):
+                    v = param[row, ch]
+                    g[ch] += coefficient * ((v > 0) - (v < 0))
+                    row_sum += abs(v)
+                total += l1[part] * row_sum
+            update(param, g, exp_avg, exp_avg_sq, row, steps, lr, b1, b2, b2c, e, inv_bias1, bias2_sqrts)
+        return total
+
+    return compiled.jit(_adam_marked), compiled.jit(_adam_taps)
 
 
-_adam_rows_loop = compiled.jit(_adam_rows)
-_NO_MARKS = np.zeros(1, np.uint8)
+_LOOPS = {ft: _sources(ft) for ft in (np.float32, np.float64)}
 
 
 def _rows(t: Tensor) -> Tensor:
@@ -55,27 +114,30 @@ def _rows(t: Tensor) -> Tensor:
 
 
 class RowSparseAdam(torch.optim.Optimizer):
-    """Adam (no weight decay, no AMSGrad) on CPU float tensors; the parameters given row marks
-    (``set_row_marks``) are updated only at their marked rows. State per parameter: ``exp_avg``,
-    ``exp_avg_sq`` and ``step`` (float32, one count per row)."""
+    """Adam (no weight decay, no AMSGrad) on contiguous CPU float tensors; a parameter given a
+    ``TableGradient`` (``set_row_source``) is updated only at the rows its gradient reaches.
+    State per parameter: ``exp_avg``, ``exp_avg_sq`` and ``step`` (float32, a count per row)."""
 
     def __init__(self, params: Iterable[Any], lr: float = 1e-3, betas: tuple[float, float] = (0.9, 0.999),
                  eps: float = 1e-8) -> None:
         super().__init__(params, {"lr": lr, "betas": tuple(betas), "eps": eps})
-        self.row_marks: dict[int, np.ndarray] = {}
-        """``id(parameter)``: the marks of its rows that hold a gradient."""
+        self.sources: dict[int, TableGradient] = {}
+        """``id(parameter)``: where its gradient comes from."""
+        self._bias: dict[tuple[float, float], tuple[np.ndarray, np.ndarray]] = {}
+        self._most_updates: int | None = None
+        """A bound on any row's count of updates (from the state at the first step, plus one a step)."""
 
-    def set_row_marks(self, param: nn.Parameter, marks: np.ndarray) -> None:
-        """Update ``param`` only at the rows whose mark is set, then clear them; its ``.grad`` is
-        a buffer kept from step to step (``zero_grad`` leaves it)."""
-        if marks.shape != (_rows(param).shape[0],):
-            raise ValueError(f"{marks.shape[0]} row marks for a parameter of {_rows(param).shape[0]} rows")
-        self.row_marks[id(param)] = marks
+    def set_row_source(self, param: nn.Parameter, source: TableGradient) -> None:
+        """Take ``param``'s gradient from ``source`` (its ``.grad`` is ``source``'s buffer, kept
+        from step to step: ``zero_grad`` leaves it)."""
+        if not source.follows(param):
+            raise ValueError("the row source's table is not this parameter")
+        self.sources[id(param)] = source
 
     def zero_grad(self, set_to_none: bool = True) -> None:
         for group in self.param_groups:
             for p in group["params"]:
-                if id(p) not in self.row_marks and p.grad is not None:
+                if id(p) not in self.sources and p.grad is not None:
                     if set_to_none:
                         p.grad = None
                     else:
@@ -91,20 +153,81 @@ class RowSparseAdam(torch.optim.Optimizer):
             state["step"] = torch.full((_rows(p).shape[0],), float(state["step"]), dtype=torch.float32)
         return state
 
+    def _bias_tables(self, beta1: float, beta2: float) -> tuple[np.ndarray, np.ndarray]:
+        """``1 / (1 - beta1^t)`` and ``sqrt(1 - beta2^t)`` for every count ``t`` a row can reach at
+        this step (float64; kept, and grown by doubling)."""
+        if self._most_updates is None:
+            counts = [int(s["step"].max()) for s in self.state.values() if "step" in s and s["step"].numel()]
+            self._most_updates = max(counts, default=0)
+        self._most_updates += 1
+        key = (beta1, beta2)
+        tables = self._bias.get(key)
+        if tables is None or tables[0].shape[0] <= self._most_updates:
+            t = np.arange(max(1024, 2 * self._most_updates + 1), dtype=np.float64)
+            with np.errstate(divide="ignore"):
+                tables = (1.0 / (1.0 - beta1**t), np.sqrt(1.0 - beta2**t))
+            self._bias[key] = tables
+        return tables
+
+    def load_state_dict(self, state_dict: dict[str, Any]) -> None:
+        super().load_state_dict(state_dict)
+        self._most_updates = None
+
     @torch.no_grad()
     def step(self, closure: None = None) -> None:  # type: ignore[override]
         if closure is not None:
             raise ValueError("RowSparseAdam takes no closure")
+        tables = None
         for group in self.param_groups:
             beta1, beta2 = group["betas"]
+            if tables is None or tables[0] != (beta1, beta2):
+                tables = ((beta1, beta2), self._bias_tables(beta1, beta2))
+            inv_bias1, bias2_sqrts = tables[1]
+            hyper = (float(group["lr"]), float(beta1), float(beta2), float(group["eps"]), inv_bias1, bias2_sqrts)
             for p in group["params"]:
-                if p.grad is None:
-                    continue
-                if p.device.type != "cpu" or not p.is_contiguous() or not p.grad.is_contiguous():
-                    raise ValueError("RowSparseAdam updates contiguous CPU tensors")
-                state = self._state_of(p)
-                marks = self.row_marks.get(id(p))
-                _adam_rows_loop(_rows(p).numpy(), _rows(p.grad).numpy(), _rows(state["exp_avg"]).numpy(),
-                                _rows(state["exp_avg_sq"]).numpy(), state["step"].numpy(),
-                                _NO_MARKS if marks is None else marks, marks is not None, float(group["lr"]),
-                                float(beta1), float(beta2), float(group["eps"]))
+                source = self.sources.get(id(p))
+                if source is not None and source.pending and source.marks.any():
+                    source.materialize()  # some of its gradient is in the buffer already: all of it there
+                if source is not None and source.pending:
+                    self._update_from_taps(p, source, hyper)
+                elif p.grad is not None:
+                    self._update_from_grad(p, None if source is None else source.marks, hyper)
+
+    def _check(self, p: Tensor) -> None:
+        if p.device.type != "cpu" or not p.is_contiguous() or p.dtype not in _FLOAT_TYPES:
+            raise ValueError("RowSparseAdam updates contiguous CPU float32 or float64 tensors")
+
+    def _update_from_grad(self, p: Tensor, marks: np.ndarray | None, hyper: tuple) -> None:
+        self._check(p)
+        state = self._state_of(p)
+        arrays = (_rows(p).numpy(), _rows(p.grad.contiguous()).numpy(), _rows(state["exp_avg"]).numpy(),
+                  _rows(state["exp_avg_sq"]).numpy(), state["step"].numpy(), _NO_MARKS if marks is None else marks,
+                  marks is not None, *hyper)
+        loop = _LOOPS[_FLOAT_TYPES[p.dtype]][0]
+        rows = _rows(p).shape[0]
+        parts = row_parts(rows)
+
+        def part(i: int) -> None:
+            loop(*arrays, rows * i // parts, rows * (i + 1) // parts)
+
+        compiled.run_parts(part, parts)
+
+    def _update_from_taps(self, p: Tensor, source: TableGradient, hyper: tuple) -> None:
+        self._check(p)
+        state = self._state_of(p)
+        index: TapIndex = source.index()  # type: ignore[assignment]
+        use_l1 = source.l1_coefficients is not None
+        arrays = (_rows(p).numpy(), _rows(state["exp_avg"]).numpy(), _rows(state["exp_avg_sq"]).numpy(),
+                  state["step"].numpy(), index.starts, index.taps, index.weights, index.values,
+                  source.part_starts.astype(np.int64), source.l1_coefficients if use_l1 else _NO_COEFFICIENTS,
+                  use_l1, *hyper)
+        loop = _LOOPS[_FLOAT_TYPES[p.dtype]][1]
+        rows = _rows(p).shape[0]
+        parts = row_parts(rows)
+        totals = [0.0] * parts
+
+        def part(i: int) -> None:
+            totals[i] = loop(*arrays, rows * i // parts, rows * (i + 1) // parts)
+
+        compiled.run_parts(part, parts)
+        source.l1_value = float(sum(totals))

@@ -402,18 +402,21 @@ class Trainer:
         sampling = self._sampling(batch)
         if self.fused is not None:
             sq_error, n_samples = self.fused.render_backward(batch, sampling, self.generator, self.state.iteration)
-            terms = self.fused.priors(self._weights())
+            terms = self._level_priors(batch.params)  # first: the grid priors then see every touched row
+            merge = self.ranks.merge_row_marks if self.ranks.world_size > 1 else None
+            terms.update(self.fused.priors(self._weights(), merge))
         else:
             sq_error, n_samples = self._render_backward(batch, sampling)
             terms = backward_regularization(self.field, self._weights())
-        terms.update(self._level_priors(batch.params))
+            terms.update(self._level_priors(batch.params))
         reg_value = sum(terms.values())
         if not math.isfinite(reg_value):  # before the step: the factors stay as they were
             raise FloatingPointError(f"non-finite regularization at iteration {self.state.iteration}")
-        if self.fused is not None:
-            self.ranks.merge_row_marks(self.fused.row_marks())
         (sq_error,) = self.ranks.average_gradients(self.field.parameters(), sq_error)
         self.optimizer.step()
+        if self.fused is not None:
+            terms.update(self.fused.after_step())
+            reg_value = sum(terms.values())
         stats = {"mse": sq_error, "loss": sq_error + reg_value, "samples": float(n_samples)}
         for name in ("level_curvature", "level_spacing"):
             if name in terms:

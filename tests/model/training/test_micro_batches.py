@@ -5,12 +5,14 @@ import math
 import pytest
 import torch
 
+import visnerf.training.fused_step as fused_step_module
 import visnerf.training.trainer as trainer_module
 from visnerf.config import TrainConfig
 from visnerf.rendering.empty_space import EmptySpace
 from visnerf.rendering.renderer import place_samples, render_rays
 from visnerf.testing import make_noise_scene
-from visnerf.training.trainer import Trainer, micro_batches, occupied_windows
+from visnerf.training.ray_batches import micro_batches
+from visnerf.training.trainer import Trainer, occupied_windows
 
 
 def _occupied_ball() -> torch.Tensor:
@@ -21,7 +23,8 @@ def _occupied_ball() -> torch.Tensor:
 
 
 def _gradients(
-    micro_rays: int, micro_samples: int, monkeypatch: pytest.MonkeyPatch, occupancy: torch.Tensor | None = None
+    micro_rays: int, micro_samples: int, monkeypatch: pytest.MonkeyPatch, occupancy: torch.Tensor | None = None,
+    fused: bool = False,
 ) -> dict[str, torch.Tensor]:
     """One step's gradients (the optimizer step skipped), and how many micro-batches it took. The
     batch's stratified positions are placed once for the whole batch, so any split shades the
@@ -29,12 +32,16 @@ def _gradients(
     cfg = TrainConfig(iterations=1, batch_rays=256, resolution_init=12, resolution_final=12, carve=False,
                       mixed_precision=False, micro_batch_rays=micro_rays, micro_batch_samples=micro_samples,
                       density_grad_keep=1.0)
-    trainer = Trainer(make_noise_scene(), None, cfg, torch.device("cpu"))
+    trainer = Trainer(make_noise_scene(), None, cfg, torch.device("cpu"), fused=fused)
     trainer.field.set_occupancy(occupancy)
     trainer.optimizer.step = lambda: None  # keep the gradients, change nothing
     chunks: list[list[slice]] = []
-    monkeypatch.setattr(trainer_module, "micro_batches", lambda *args: chunks.append(micro_batches(*args)) or chunks[-1])
+    module = fused_step_module if fused else trainer_module
+    monkeypatch.setattr(module, "micro_batches", lambda *args: chunks.append(micro_batches(*args)) or chunks[-1])
     trainer.train_step()
+    if trainer.fused is not None:  # the tables' gradients as pending taps: into .grad
+        for table in trainer.fused.tables():
+            table.materialize()
     grads = {name: p.grad.clone() for name, p in trainer.field.named_parameters() if p.grad is not None}
     grads["micro-batches"] = torch.tensor(len(chunks[0]))
     return grads
@@ -47,15 +54,18 @@ def _assert_same_step(whole: dict[str, torch.Tensor], split: dict[str, torch.Ten
         assert torch.allclose(whole[name], split[name], rtol=1e-4, atol=1e-7), name
 
 
-def test_micro_batched_gradients_equal_the_whole_batch(monkeypatch: pytest.MonkeyPatch) -> None:
-    _assert_same_step(_gradients(10_000, 10**9, monkeypatch), _gradients(37, 2_000, monkeypatch))
+@pytest.mark.parametrize("fused", [False, True], ids=["torch", "fused"])
+def test_micro_batched_gradients_equal_the_whole_batch(monkeypatch: pytest.MonkeyPatch, fused: bool) -> None:
+    _assert_same_step(_gradients(10_000, 10**9, monkeypatch, fused=fused),
+                      _gradients(37, 2_000, monkeypatch, fused=fused))
 
 
+@pytest.mark.parametrize("fused", [False, True], ids=["torch", "fused"])
 def test_micro_batched_gradients_equal_the_whole_batch_when_chunks_count_occupied_samples(
-    monkeypatch: pytest.MonkeyPatch,
+    monkeypatch: pytest.MonkeyPatch, fused: bool
 ) -> None:
-    _assert_same_step(_gradients(10_000, 10**9, monkeypatch, _occupied_ball()),
-                      _gradients(10_000, 40, monkeypatch, _occupied_ball()))
+    _assert_same_step(_gradients(10_000, 10**9, monkeypatch, _occupied_ball(), fused),
+                      _gradients(10_000, 40, monkeypatch, _occupied_ball(), fused))
 
 
 def test_micro_batches_hold_the_samples_each_ray_evaluates_within_both_budgets() -> None:

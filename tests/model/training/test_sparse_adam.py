@@ -5,10 +5,11 @@ import numpy as np
 import pytest
 import torch
 
+from visnerf.representation.table_gradients import RowGradients, TableGradient
 from visnerf.representation.vm import VMGrid
-from visnerf.representation.vm_rows import RowGradients
+from visnerf.representation.vm_rows import GridRows
 from visnerf.training.regularizers import add_grid_l1_, add_grid_total_variation_
-from visnerf.training.row_priors import add_l1_at_marks, add_total_variation_at_marks
+from visnerf.training.row_priors import add_l1_at_marks, add_total_variation_at_marks, l1_coefficients
 from visnerf.training.sparse_adam import RowSparseAdam
 
 
@@ -33,25 +34,57 @@ def test_without_marks_it_is_torch_adam() -> None:
 
 def test_marked_rows_alone_move_each_with_its_own_count() -> None:
     table = torch.nn.Parameter(torch.zeros(6, 2))
-    table.grad = torch.zeros(6, 2)
-    marks = np.zeros(6, np.uint8)
+    source = TableGradient(table, np.array([0, 6]))
     opt = RowSparseAdam([table], lr=0.1, betas=(0.9, 0.99))
-    opt.set_row_marks(table, marks)
+    opt.set_row_source(table, source)
     for step in range(3):
         rows = [0] if step < 2 else [0, 4]
-        table.grad[rows] = 1.0
-        marks[rows] = 1
+        source.buffer()[rows] = 1.0
+        source.marks[rows] = 1
         opt.step()
         opt.zero_grad()  # leaves the buffer: it is the step's own to clear
-        assert table.grad is not None and float(table.grad.abs().sum()) == 0.0 and int(marks.sum()) == 0
+        assert table.grad is not None and float(table.grad.abs().sum()) == 0.0 and int(source.marks.sum()) == 0
     state = opt.state[table]
     assert state["step"].tolist() == [3.0, 0.0, 0.0, 0.0, 1.0, 0.0]
     # Adam's first step moves a row by lr whatever its gradient (bias-corrected): row 4 took one
     # step of its own, not the third step of the optimizer.
     assert torch.allclose(table[4], torch.full((2,), -0.1), atol=1e-6)
     assert torch.equal(table[1], torch.zeros(2)) and torch.equal(table[5], torch.zeros(2))
-    with pytest.raises(ValueError, match="row marks"):
-        opt.set_row_marks(table, np.zeros(5, np.uint8))
+    with pytest.raises(ValueError, match="not this parameter"):
+        opt.set_row_source(torch.nn.Parameter(torch.zeros(6, 2)), source)
+
+
+@pytest.mark.parametrize("l1", [0.0, 0.3])
+def test_updates_from_pending_taps_equal_updates_from_the_materialized_gradient(l1: float) -> None:
+    """One pass over the taps (gradient summed per row, the L1 prior added, the row updated) against
+    the taps added into ``.grad``, the prior at the marked rows, then the update of the marked rows."""
+    g = torch.Generator().manual_seed(0)
+    coords = torch.rand(400, 3, generator=g, dtype=torch.float64) * 1.2 - 0.6
+    ray = torch.randint(0, 8, (400,), generator=g)
+    q = torch.rand(8, 4, generator=g, dtype=torch.float64)
+    weights = torch.randn(400, 3 * 8 + 4 + 9, generator=g, dtype=torch.float64)
+    grids = []
+    for direct in (True, False):
+        torch.manual_seed(3)
+        grid = VMGrid(8, (6, 7, 8), 0.5).double()
+        grads = RowGradients.of(grid)
+        opt = RowSparseAdam(grid.parameters(), lr=0.05, betas=(0.9, 0.99))
+        for table in grads.tables():
+            opt.set_row_source(table.table, table)
+        for _ in range(3):
+            (GridRows(grid, grads).rows(coords, ray, q, n_freqs=1) * weights).sum().backward()
+            for table in grads.tables():
+                table.l1_coefficients = None
+            if direct and l1 > 0:
+                for table in grads.tables():
+                    table.l1_coefficients = l1_coefficients(table, l1)
+            elif l1 > 0:
+                grads.materialize()
+                add_l1_at_marks(grid, grads, l1)
+            opt.step()
+        grids.append(grid)
+    assert torch.allclose(grids[0].plane_table, grids[1].plane_table, rtol=0, atol=1e-13)
+    assert torch.allclose(grids[0].line_table, grids[1].line_table, rtol=0, atol=1e-13)
 
 
 def test_a_dense_adams_state_goes_on_as_a_count_per_row() -> None:
@@ -73,16 +106,16 @@ def test_grid_priors_at_marked_rows_are_the_dense_priors_there(prior: str) -> No
     dense = VMGrid(3, (4, 5, 6), 0.5).double()
     dense.load_state_dict(grid.state_dict())
     grads = RowGradients.of(grid)
-    grads.plane_marks[::3] = 1
-    grads.line_marks[1::2] = 1
+    grads.plane.marks[::3] = 1
+    grads.line.marks[1::2] = 1
     if prior == "l1":
         add_l1_at_marks(grid, grads, 0.7)
         add_grid_l1_(dense, 0.7)
     else:
         add_total_variation_at_marks(grid, grads, 0.7)
         add_grid_total_variation_(dense, 0.7)
-    for ours, theirs, marks in ((grads.plane, dense.plane_table.grad, grads.plane_marks),
-                                (grads.line, dense.line_table.grad, grads.line_marks)):
+    for ours, theirs, marks in ((grads.plane.buffer(), dense.plane_table.grad, grads.plane.marks),
+                                (grads.line.buffer(), dense.line_table.grad, grads.line.marks)):
         marked = torch.from_numpy(marks).bool()
         assert torch.allclose(ours[marked], theirs[marked], rtol=1e-12, atol=1e-15)
         assert float(ours[~marked].abs().sum()) == 0.0
@@ -93,7 +126,8 @@ def test_every_mark_set_gives_the_dense_priors_value() -> None:
     torch.manual_seed(1)
     grid = VMGrid(2, (3, 4, 5), 0.5).double()
     grads = RowGradients.of(grid)
-    grads.mark_all()
+    for table in grads.tables():
+        table.mark_all()
     assert add_l1_at_marks(grid, grads, 0.3) == pytest.approx(0.3 * float(grid.l1().detach()), rel=1e-12)
     assert add_total_variation_at_marks(grid, grads, 0.3) == pytest.approx(0.3 * float(grid.total_variation().detach()),
                                                                            rel=1e-12)
