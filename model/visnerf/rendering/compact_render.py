@@ -82,7 +82,7 @@ def drop_occluded_compact(
     kept samples are the torch path's. ``stop_eps`` 0 returns ``samples`` as they are."""
     if stop_eps <= 0.0 or len(samples) == 0:
         return samples
-    q_d, _ = tfield.field.param_features(params)
+    q_d, _ = tfield.param_features(params)
     offsets = samples.offsets.numpy()
     counts = samples.per_ray()
     active = (counts > 0).nonzero()[:, 0].numpy().astype(np.int64)
@@ -116,7 +116,7 @@ def shade_compact(
 ) -> dict[str, Tensor]:
     """``renderer.shade_rays`` on compact samples: ``rgb`` [n, 3], ``opacity`` [n], ``n_samples``."""
     field = tfield.field
-    q_d, q_a = field.param_features(params)
+    q_d, q_a = tfield.param_features(params)
     points, ray = samples.points, samples.ray
     trace_all = density_grads is None or density_grads.keep == 1.0 or not torch.is_grad_enabled()
     if trace_all:

@@ -38,6 +38,16 @@ class TrainingField:
     def row_gradients(self) -> tuple[RowGradients, RowGradients]:
         return self.density_grads, self.appearance_grads
 
+    def param_features(self, params: Float[Tensor, "n k"]) -> tuple[Float[Tensor, "n d"], Float[Tensor, "n c"]]:
+        """``VisNerfField.param_features``, computed once per distinct parameter row (a batch's
+        rays hold a few dozen training settings) and gathered per ray: the same values, a few
+        thousand times less arithmetic, and its backward a sum per setting."""
+        if params.shape[1] == 0:
+            return self.field.param_features(params)
+        settings, which = torch.unique(params, dim=0, return_inverse=True)
+        q_d, q_a = self.field.param_features(settings)
+        return q_d.index_select(0, which), q_a.index_select(0, which)
+
     def raw_density(
         self, coords: Float[Tensor, "m 3"], ray: Int[Tensor, " m"], q_factors: Float[Tensor, "n c"]
     ) -> Float[Tensor, " m"]:
