@@ -115,7 +115,6 @@ def shade_compact(
     colour_sampling: ColourSampling | None = None,
 ) -> dict[str, Tensor]:
     """``renderer.shade_rays`` on compact samples: ``rgb`` [n, 3], ``opacity`` [n], ``n_samples``."""
-    field = tfield.field
     q_d, q_a = tfield.param_features(params)
     points, ray = samples.points, samples.ray
     trace_all = density_grads is None or density_grads.keep == 1.0 or not torch.is_grad_enabled()

@@ -8,8 +8,8 @@ import torch
 
 from visnerf.representation.decoders import encode_position
 from visnerf.representation.field import modulate
-from visnerf.representation.vm import VMGrid
 from visnerf.representation.table_gradients import RowGradients
+from visnerf.representation.vm import VMGrid
 from visnerf.representation.vm_rows import GridRows
 
 
