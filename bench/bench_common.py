@@ -5,6 +5,7 @@ frames of a dataset, the machine record, JSON without NaN/inf, and a figure writ
 """
 
 import argparse
+import dataclasses
 import json
 import math
 import os
@@ -23,10 +24,12 @@ import torch
 from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 
-from visnerf.config import HoldoutConfig
+from visnerf.checkpoint import load_checkpoint
+from visnerf.config import HoldoutConfig, TrainConfig
 from visnerf.data.datasets import load_dataset
 from visnerf.data.holdout import split_holdout
 from visnerf.data.scene import SceneData
+from visnerf.training.trainer import Trainer
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "bench" / "results"
@@ -292,3 +295,20 @@ def markdown_header(title: str, record: dict[str, Any]) -> list[str]:
         f"Machine: {record['machine']}, torch {record['torch']}, {record['torch_threads']} torch thread(s), "
         f"{record['date']}; 1-min load average {load['before']} before, {between}{load['after']} after.",
     ]
+
+
+def late_trainer(ckpt: Path, scene: SceneData, batch_rays: int, fused: bool | None = None,
+                 device: torch.device | None = None) -> Trainer:
+    """A trainer that steps the trained field of ``ckpt`` on ``scene`` as the late phase of its run:
+    the recipe the checkpoint records (its priors and step), no milestones left. ``fused``: the
+    trainer's step (None: the device's own)."""
+    device = device or torch.device("cpu")
+    field, meta = load_checkpoint(ckpt, device)
+    res = max(field.resolution)
+    recipe = dict(meta.provenance.get("recipe", {}))
+    late = dict(iterations=10**9, time_budget_s=None, resolution_init=res, resolution_final=res, upsample_at=(),
+                occupancy_at=(), occupancy_refine_at=(), trim_every=10**9, batch_rays=batch_rays,
+                l1_switch_iteration=0, weight_average_span=0.0)
+    cfg = TrainConfig.from_dict({**recipe, **late})
+    return Trainer(scene, None, cfg, device, render_cfg=dataclasses.replace(meta.render), init_field=field,
+                   fused=fused)

@@ -18,38 +18,28 @@ Writes train_step.json and train_step.md to --results (bench/results).
 """
 
 import argparse
-import dataclasses
 import statistics
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
-import torch
-from bench_common import RESULTS, alternate_steps, load_average, machine_record, markdown_header, write_results
+from bench_common import (
+    RESULTS,
+    alternate_steps,
+    late_trainer,
+    load_average,
+    machine_record,
+    markdown_header,
+    write_results,
+)
 
-from visnerf.checkpoint import load_checkpoint
 from visnerf.config import TrainConfig
 from visnerf.data.datasets import load_dataset
-from visnerf.data.scene import SceneData
 from visnerf.runtime import configure
 from visnerf.training.trainer import Trainer
 
 PATHS = ("fused", "torch")
-
-
-def late_trainer(ckpt: Path, scene: SceneData, batch_rays: int, fused: bool) -> Trainer:
-    """A trainer that steps the trained field of ``ckpt`` on ``scene`` as the late phase of its run:
-    the recipe the checkpoint records (its priors and step), no milestones left."""
-    field, meta = load_checkpoint(ckpt, torch.device("cpu"))
-    res = max(field.resolution)
-    recipe = dict(meta.provenance.get("recipe", {}))
-    late = dict(iterations=10**9, time_budget_s=None, resolution_init=res, resolution_final=res, upsample_at=(),
-                occupancy_at=(), occupancy_refine_at=(), trim_every=10**9, batch_rays=batch_rays,
-                l1_switch_iteration=0, weight_average_span=0.0)
-    cfg = TrainConfig.from_dict({**recipe, **late})
-    return Trainer(scene, None, cfg, torch.device("cpu"), render_cfg=dataclasses.replace(meta.render),
-                   init_field=field, fused=fused)
 
 
 def loss_windows(trainer: Trainer, steps: int, window: int) -> tuple[list[float], float]:
