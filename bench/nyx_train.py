@@ -83,8 +83,8 @@ from visnerf.evaluation.plots import plot_difference
 from visnerf.inference import load_scene
 from visnerf.runtime import pick_device
 from visnerf.training.recipe import recipe_trainer
+from visnerf.training.record import validate
 from visnerf.training.run_state import run_state_path
-from visnerf.training.trainer import validate
 
 NYX_VALIDATION_FRAMES_PER_KIND = 3
 """Held-out frames of each kind that each periodic validation renders, evenly chosen among that

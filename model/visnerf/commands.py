@@ -61,9 +61,10 @@ def _train_as_rank(args: argparse.Namespace) -> int:
     from visnerf.data.datasets import DatasetError, has_split, load_dataset, read_split
     from visnerf.data.holdout import split_holdout
     from visnerf.training.distributed import Launch, Ranks
+    from visnerf.training.record import write_log
     from visnerf.training.run_state import RUN_STATE_SUFFIX, RunStateError, run_state_path
     from visnerf.training.stop_signals import StopRequested, StopSignals
-    from visnerf.training.trainer import Trainer, write_log
+    from visnerf.training.trainer import Trainer
 
     out = Path(args.out)
     if out.suffix != ".safetensors":
@@ -186,7 +187,8 @@ def _trainer_from_checkpoint(path: Path, train: "SceneData", val: "SceneData | N
     with the given options on top, its schedule position; the optimizer's moments and the weight
     average start afresh (a run state keeps them: ``--resume`` without a value)."""
     from visnerf.checkpoint import load_checkpoint
-    from visnerf.training.trainer import Trainer, TrainState
+    from visnerf.training.schedule import TrainState
+    from visnerf.training.trainer import Trainer
 
     init_field, meta = load_checkpoint(path, device)
     prov = meta.provenance

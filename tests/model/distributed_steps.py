@@ -24,7 +24,7 @@ import torch
 from safetensors.torch import save_file
 
 import visnerf.training.fused_step as fused_step_module
-import visnerf.training.trainer as trainer_module
+import visnerf.training.step as step_module
 from visnerf.config import FieldConfig, TrainConfig
 from visnerf.testing import make_noise_scene
 from visnerf.training.distributed import Launch, Ranks, leave_process_group
@@ -49,8 +49,8 @@ def midpoint_compact(aabb, rays_o, rays_d, step, max_samples, occupancy, generat
     return place_compact(aabb, rays_o, rays_d, step, max_samples, occupancy, None, windows)
 
 
-place_samples = trainer_module.place_samples
-trainer_module.place_samples = midpoint_samples
+place_samples = step_module.place_samples
+step_module.place_samples = midpoint_samples
 place_compact = fused_step_module.place_compact
 fused_step_module.place_compact = midpoint_compact
 FUSED = len(sys.argv) > 2 and sys.argv[2] == "fused"

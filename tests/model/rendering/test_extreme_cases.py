@@ -47,7 +47,8 @@ from visnerf.representation.field import VisNerfField
 from visnerf.representation.frame_field import FrameField, SampleTaps
 from visnerf.representation.vm_taps import VMTaps
 from visnerf.testing import make_tiny_field
-from visnerf.training.trainer import Trainer, occupied_windows
+from visnerf.training.step import occupied_windows
+from visnerf.training.trainer import Trainer
 
 # ---------------------------------------------------------------------------------------------
 # Bounds. s: samples on the ray; S_i: the optical depth before sample i; "observed": the largest

@@ -12,7 +12,7 @@ from visnerf.config import FieldConfig, TrainConfig
 from visnerf.representation.field import facing_cosines
 from visnerf.representation.frame_field import FrameField
 from visnerf.testing import make_tiny_checkpoint, make_tiny_field
-from visnerf.training.trainer import make_optimizer
+from visnerf.training.step import make_optimizer
 
 
 def test_facing_cosines_are_the_cosines_of_each_vector_with_the_direction() -> None:

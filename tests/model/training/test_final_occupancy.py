@@ -38,7 +38,7 @@ def test_cells_training_stopped_sampling_stay_out_of_the_inference_grid() -> Non
 def test_refining_evaluates_only_the_trained_cells(monkeypatch) -> None:  # noqa: ANN001
     """The rebuild evaluates the density in the trained grid's cells only: cells outside it cannot
     join, and a dense cell outside it does not keep its trained neighbour through the dilation."""
-    import visnerf.training.trainer as trainer_module
+    import visnerf.training.occupancy_policy as trainer_module
 
     seen = []
     real = trainer_module.build_occupancy

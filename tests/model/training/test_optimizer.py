@@ -11,7 +11,7 @@ import torch
 
 from visnerf.config import TrainConfig
 from visnerf.testing import make_tiny_field
-from visnerf.training.trainer import FUSED_ADAM_DEVICES, make_optimizer
+from visnerf.training.step import FUSED_ADAM_DEVICES, make_optimizer
 
 
 def _adam_closed_form(p0: torch.Tensor, grads: list[torch.Tensor], lr: float, betas: tuple[float, float],

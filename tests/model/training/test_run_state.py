@@ -15,8 +15,9 @@ from visnerf.checkpoint import read_checkpoint
 from visnerf.config import HoldoutConfig, TrainConfig
 from visnerf.data.datasets import load_dataset
 from visnerf.data.holdout import split_holdout
+from visnerf.training.record import validate
 from visnerf.training.run_state import RunStateError, read_run_state, run_state_path, write_run_state
-from visnerf.training.trainer import Trainer, validate
+from visnerf.training.trainer import Trainer
 
 
 class StopAt:

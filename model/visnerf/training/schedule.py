@@ -1,0 +1,94 @@
+"""The schedule of a training run: progress, the learning rates and the milestones it reaches.
+
+Progress is ``max(iteration / step_limit, train_seconds / time_budget)`` (``TrainConfig.step_limit``:
+under a time budget with no ``iterations`` given, the budget alone). Learning rates decay
+exponentially with progress; grid upsampling, occupancy updates (the first also shrinks the box to
+the content) and occupancy refinements switch on at progress fractions of the config.
+"""
+
+import math
+from dataclasses import dataclass, field
+
+import torch
+
+from visnerf.config import TrainConfig
+
+
+def resolution_for_box(extent: torch.Tensor, voxels_per_axis: int | float) -> tuple[int, int, int]:
+    """Per-axis grid sizes with ``voxels_per_axis^3`` cells in all, cells as cubic as the box allows."""
+    volume = float(torch.prod(extent))
+    size = (volume / voxels_per_axis**3) ** (1.0 / 3.0)
+    return tuple(max(2, int(round(float(e) / size))) for e in extent)  # type: ignore[return-value]
+
+
+def upsample_resolutions(cfg: TrainConfig) -> list[float]:
+    """Voxels per axis after each upsampling milestone, log-spaced from initial to final."""
+    n = len(cfg.upsample_at)
+    lo, hi = math.log(cfg.resolution_init), math.log(cfg.resolution_final)
+    return [math.exp(lo + (hi - lo) * (i + 1) / n) for i in range(n)]
+
+
+@dataclass
+class TrainState:
+    """Where a run stands in its schedule (saved in the run state, partly in the checkpoint)."""
+
+    iteration: int = 0
+    train_seconds: float = 0.0
+    upsamples_done: int = 0
+    occupancy_done: int = 0
+    refines_done: int = 0
+    log: list[dict] = field(default_factory=list)
+    states_written: int = 0
+    """Run states written (``run_state.py``), periodic and on stop."""
+    state_seconds: float = 0.0
+    """Seconds spent writing them (part of ``train_seconds``)."""
+
+
+class Schedule:
+    """The trainer's schedule (a part of ``Trainer``)."""
+
+    def progress(self) -> float:
+        limit = self.cfg.step_limit
+        p = 0.0 if limit is None else self.state.iteration / limit
+        if self.cfg.time_budget_s:
+            p = max(p, self.state.train_seconds / self.cfg.time_budget_s)
+        return p
+
+    def lr_scale(self) -> float:
+        """Factor on the base learning rates now: ``lr_decay_ratio`` to the progress made."""
+        return self.cfg.lr_decay_ratio ** min(1.0, self.progress())
+
+    def step_size(self) -> float:
+        return self.field.voxel_size() * self.render_cfg.step_ratio
+
+    def _milestones(self) -> None:
+        done = (self.state.upsamples_done, self.state.occupancy_done, self.state.refines_done)
+        self._schedule_milestones()
+        if (self.state.upsamples_done, self.state.occupancy_done, self.state.refines_done) != done:
+            self.ranks.broadcast_field(self.field)  # the ranks' grids stay identical
+            self.sampler.set_aabb(self.field.aabb)
+
+    def _schedule_milestones(self) -> None:
+        p = self.progress()
+        targets = upsample_resolutions(self.cfg)
+        while self.state.upsamples_done < len(self.cfg.upsample_at) and p >= self.cfg.upsample_at[self.state.upsamples_done]:
+            voxels = targets[self.state.upsamples_done]
+            self.field.resample(resolution_for_box(self.field.aabb[1] - self.field.aabb[0], voxels))
+            self.state.upsamples_done += 1
+            self._rebuild_optimizer()
+            if self.field.occupancy is None and self.carved is not None:
+                self.field.set_occupancy(self._carved_on(self._occupancy_resolution()))
+        while (self.state.occupancy_done < len(self.cfg.occupancy_at)
+               and p >= self.cfg.occupancy_at[self.state.occupancy_done]
+               and self.state.iteration >= self.cfg.occupancy_min_iterations):
+            # The carve bounds the box from the images, which cannot lose content; bounds from a
+            # young density field can (seen: a time-budgeted run slowed by other jobs shrank the box
+            # to a slab before the surfaces had formed and never recovered), so with a carve the
+            # box is not shrunk again.
+            self.update_occupancy(shrink=self.state.occupancy_done == 0 and self.carved is None)
+            self.state.occupancy_done += 1
+        while (self.state.occupancy_done == len(self.cfg.occupancy_at)
+               and self.state.refines_done < len(self.cfg.occupancy_refine_at)
+               and p >= self.cfg.occupancy_refine_at[self.state.refines_done]):
+            self.refine_occupancy()
+            self.state.refines_done += 1
