@@ -61,7 +61,8 @@ from visnerf.data.cameras import Intrinsics
 from visnerf.evaluation.metrics import mse_to_psnr, psnr
 from visnerf.inference import SceneRenderer, load_scene
 from visnerf.rendering.empty_space import EmptySpace
-from visnerf.rendering.renderer import RenderSettings, render_image_scaled
+from visnerf.rendering.render_settings import RenderSettings
+from visnerf.rendering.renderer import render_image_scaled
 from visnerf.runtime import configure
 
 MODES = ("fast", "fast_own", "fast_intraop", "plain", "preview")

@@ -22,7 +22,8 @@ from visnerf.checkpoint import CheckpointError, CheckpointMeta, ParamAxis, load_
 from visnerf.data.cameras import Intrinsics, check_rigid_c2w
 from visnerf.lens import Projection, choose_lens
 from visnerf.rendering.cancel import CancelCheck, RenderCancelled
-from visnerf.rendering.renderer import RenderSettings, render_image_scaled
+from visnerf.rendering.render_settings import RenderSettings
+from visnerf.rendering.renderer import render_image_scaled
 from visnerf.rendering.setting_occupancy import BackgroundRunner, SettingOccupancy, SettingOccupancyConfig
 from visnerf.representation import output_kernel, vm_kernel
 from visnerf.representation.field import VisNerfField

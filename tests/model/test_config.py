@@ -65,7 +65,7 @@ def test_an_older_checkpoints_colour_threshold_per_sample_is_not_read_as_one_per
     spacing: read as a weight per voxel it would mean another threshold at every spacing, so it is
     dropped and the per-voxel default applies."""
     from visnerf.config import RenderConfig
-    from visnerf.rendering.renderer import RenderSettings
+    from visnerf.rendering.render_settings import RenderSettings
 
     old = {**RenderConfig().to_dict(), "full_weight_threshold": 3e-3, "full_step_ratio": 0.5}
     del old["full_weight_threshold_per_voxel"]

@@ -14,7 +14,7 @@ from visnerf.data.cameras import orbit_c2w
 from visnerf.evaluation.metrics import psnr
 from visnerf.factor_codec import CODE_MAX
 from visnerf.inference import load_scene
-from visnerf.rendering.renderer import render_rays
+from visnerf.rendering.training_render import render_rays
 from visnerf.testing import make_tiny_checkpoint, make_tiny_field
 from visnerf.training.trainer import Trainer
 

@@ -25,7 +25,7 @@ from visnerf.evaluation.placement import Placement, classify
 from visnerf.evaluation.sweeps import SweepConfig, SweepPoint, run_sweep, sweep_frame_indices, sweep_variants
 from visnerf.evaluation.training_curves import TrainingRun, logs_beside, read_training_log
 from visnerf.inference import Quality, load_scene
-from visnerf.rendering.renderer import RenderSettings
+from visnerf.rendering.render_settings import RenderSettings
 
 
 @dataclass(frozen=True)

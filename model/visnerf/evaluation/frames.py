@@ -15,7 +15,8 @@ from torch import Tensor
 
 from visnerf.checkpoint import ParamAxis
 from visnerf.data.cameras import Intrinsics
-from visnerf.rendering.renderer import RenderSettings, render_image_scaled
+from visnerf.rendering.render_settings import RenderSettings
+from visnerf.rendering.renderer import render_image_scaled
 from visnerf.representation.field import VisNerfField
 
 

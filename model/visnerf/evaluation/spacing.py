@@ -33,7 +33,8 @@ import torch
 from visnerf.config import RenderConfig
 from visnerf.data.scene import SceneData
 from visnerf.evaluation.metrics import psnr
-from visnerf.rendering.renderer import RenderSettings, exhaustive_step_ratio, render_image
+from visnerf.rendering.render_settings import RenderSettings, exhaustive_step_ratio
+from visnerf.rendering.renderer import render_image
 from visnerf.representation.field import VisNerfField
 
 MIN_AGREEMENT_DB = 38.0

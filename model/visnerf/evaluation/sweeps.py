@@ -16,7 +16,7 @@ from torch import Tensor
 from visnerf.data.cameras import Intrinsics
 from visnerf.evaluation.frames import render_frame
 from visnerf.evaluation.metrics import psnr, ssim
-from visnerf.rendering.renderer import RenderSettings
+from visnerf.rendering.render_settings import RenderSettings
 from visnerf.representation.field import VisNerfField
 
 

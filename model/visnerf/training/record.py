@@ -14,10 +14,8 @@ from visnerf.checkpoint import CheckpointMeta, save_checkpoint
 from visnerf.config import RenderConfig
 from visnerf.data.scene import SceneData
 from visnerf.evaluation.metrics import psnr, ssim
-from visnerf.rendering.renderer import (
-    RenderSettings,
-    render_image,
-)
+from visnerf.rendering.render_settings import RenderSettings
+from visnerf.rendering.renderer import render_image
 from visnerf.representation.field import VisNerfField
 from visnerf.training.weight_average import WeightAverage
 

@@ -97,7 +97,8 @@ def test_the_reference_renders_only_within_the_models_grid() -> None:
     import numpy as np
 
     from visnerf.evaluation.metrics import psnr
-    from visnerf.rendering.renderer import RenderSettings, render_image
+    from visnerf.rendering.render_settings import RenderSettings
+    from visnerf.rendering.renderer import render_image
 
     field, _ = make_tiny_field([("a", [0.0, 1.0])], seed=2, resolution=12)  # density fills the box
     c = (torch.arange(8) + 0.5) / 8 - 0.5

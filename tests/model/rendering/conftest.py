@@ -30,7 +30,7 @@ class RayBatch:
                               **options) -> tuple[Tensor, dict[str, Tensor]]:
         """``render_rays`` of these rays (``options``: its sampling of gradients or colours), and the
         gradient of the sum of the squared colours for each of ``field``'s parameters that gets one."""
-        from visnerf.rendering.renderer import render_rays
+        from visnerf.rendering.training_render import render_rays
 
         field.zero_grad(set_to_none=True)
         out = render_rays(field, self.rays_o, self.rays_d, self.params, self.background, step, 512, None,

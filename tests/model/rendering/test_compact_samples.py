@@ -6,7 +6,7 @@ import torch
 
 from visnerf.config import FieldConfig
 from visnerf.rendering.compact_samples import place_compact
-from visnerf.rendering.renderer import place_samples
+from visnerf.rendering.training_render import place_samples
 from visnerf.representation.field import VisNerfField
 
 

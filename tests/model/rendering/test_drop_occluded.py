@@ -5,7 +5,7 @@ import math
 
 import torch
 
-from visnerf.rendering.renderer import RaySamples, drop_occluded, place_samples, shade_rays
+from visnerf.rendering.training_render import RaySamples, drop_occluded, place_samples, shade_rays
 from visnerf.rendering.volume import exclusive_optical_depth
 from visnerf.testing import make_tiny_field
 

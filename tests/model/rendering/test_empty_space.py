@@ -11,7 +11,8 @@ from visnerf.data.cameras import Intrinsics, image_rays, orbit_c2w
 from visnerf.rendering import empty_space_kernel
 from visnerf.rendering.aabb import intersect_aabb
 from visnerf.rendering.empty_space import EmptySpace, distance_to_content
-from visnerf.rendering.renderer import RenderSettings, march_rays, ray_windows
+from visnerf.rendering.render_settings import RenderSettings
+from visnerf.rendering.renderer import march_rays, ray_windows
 from visnerf.representation.frame_field import FrameField
 from visnerf.testing import make_tiny_field
 

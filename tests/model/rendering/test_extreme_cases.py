@@ -25,17 +25,9 @@ from visnerf.data.cameras import Intrinsics, image_rays, orbit_c2w
 from visnerf.data.scene import SceneData, axes_from_values
 from visnerf.rendering.density_gradients import DensityGradientSampling
 from visnerf.rendering.empty_space import EmptySpace
-from visnerf.rendering.renderer import (
-    RaySamples,
-    RenderSettings,
-    drop_occluded,
-    empty_space_of,
-    march_rays,
-    place_samples,
-    render_image,
-    render_rays,
-    shade_rays,
-)
+from visnerf.rendering.render_settings import RenderSettings
+from visnerf.rendering.renderer import empty_space_of, march_rays, render_image
+from visnerf.rendering.training_render import RaySamples, drop_occluded, place_samples, render_rays, shade_rays
 from visnerf.rendering.volume import (
     accumulate_along_rays,
     composite_background,

@@ -10,7 +10,8 @@ import torch
 
 from visnerf.data.cameras import Intrinsics, image_rays, orbit_c2w
 from visnerf.rendering import renderer
-from visnerf.rendering.renderer import RenderSettings, render_image
+from visnerf.rendering.render_settings import RenderSettings
+from visnerf.rendering.renderer import render_image
 from visnerf.testing import make_tiny_field
 
 

@@ -10,7 +10,8 @@ from visnerf.data.cameras import Intrinsics, orbit_c2w
 from visnerf.rendering import march_kernel
 from visnerf.rendering.aabb import intersect_aabb
 from visnerf.rendering.empty_space import EmptySpace
-from visnerf.rendering.renderer import RenderSettings, render_image
+from visnerf.rendering.render_settings import RenderSettings
+from visnerf.rendering.renderer import render_image
 from visnerf.rendering.volume import weights_from_optical_depth
 from visnerf.testing import make_tiny_field
 

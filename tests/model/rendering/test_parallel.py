@@ -12,7 +12,8 @@ import torch
 
 from visnerf.data.cameras import Intrinsics, orbit_c2w
 from visnerf.rendering.parallel import busy_threads, map_chunks
-from visnerf.rendering.renderer import RenderSettings, render_image
+from visnerf.rendering.render_settings import RenderSettings
+from visnerf.rendering.renderer import render_image
 from visnerf.testing import make_tiny_field
 
 

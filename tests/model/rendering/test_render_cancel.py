@@ -17,7 +17,8 @@ from visnerf.data.cameras import Intrinsics, image_rays, orbit_c2w
 from visnerf.inference import RenderCancelled, load_scene
 from visnerf.rendering import renderer
 from visnerf.rendering.parallel import map_chunks
-from visnerf.rendering.renderer import RenderSettings, empty_space_of, ray_windows, render_image
+from visnerf.rendering.render_settings import RenderSettings
+from visnerf.rendering.renderer import empty_space_of, ray_windows, render_image
 from visnerf.rendering.setting_occupancy import SettingOccupancy, SettingOccupancyConfig
 from visnerf.testing import make_tiny_checkpoint, make_tiny_field
 

@@ -13,7 +13,8 @@ import torch
 from visnerf.data.cameras import Intrinsics, orbit_c2w
 from visnerf.rendering.empty_space import EmptySpace
 from visnerf.rendering.occupancy import build_occupancy
-from visnerf.rendering.renderer import RenderSettings, march_rays, render_image
+from visnerf.rendering.render_settings import RenderSettings
+from visnerf.rendering.renderer import march_rays, render_image
 from visnerf.representation.field import VisNerfField
 from visnerf.representation.frame_field import FrameField
 from visnerf.testing import make_tiny_field

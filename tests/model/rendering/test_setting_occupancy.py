@@ -14,7 +14,8 @@ from visnerf.data.cameras import Intrinsics, orbit_c2w
 from visnerf.inference import load_scene
 from visnerf.rendering.empty_space import EmptySpace
 from visnerf.rendering.occupancy import build_occupancy, parameter_settings
-from visnerf.rendering.renderer import RenderSettings, render_image
+from visnerf.rendering.render_settings import RenderSettings
+from visnerf.rendering.renderer import render_image
 from visnerf.rendering.setting_occupancy import (
     SettingOccupancy,
     SettingOccupancyConfig,

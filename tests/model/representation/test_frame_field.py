@@ -9,7 +9,9 @@ import torch
 
 from visnerf.config import RenderConfig
 from visnerf.data.cameras import Intrinsics, image_rays, orbit_c2w
-from visnerf.rendering.renderer import RenderSettings, render_image, render_rays
+from visnerf.rendering.render_settings import RenderSettings
+from visnerf.rendering.renderer import render_image
+from visnerf.rendering.training_render import render_rays
 from visnerf.representation import vm_kernel
 from visnerf.representation.frame_field import FrameField, ModeTables
 from visnerf.testing import make_tiny_field

@@ -12,7 +12,7 @@ from visnerf.rendering.colour_sampling import ColourSampling
 from visnerf.rendering.compact_render import drop_occluded_compact, shade_compact
 from visnerf.rendering.compact_samples import place_compact
 from visnerf.rendering.density_gradients import DensityGradientSampling
-from visnerf.rendering.renderer import drop_occluded, place_samples, shade_rays
+from visnerf.rendering.training_render import drop_occluded, place_samples, shade_rays
 from visnerf.representation.training_field import TrainingField
 from visnerf.testing import make_tiny_field
 

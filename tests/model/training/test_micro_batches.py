@@ -9,7 +9,7 @@ import visnerf.training.fused_step as fused_step_module
 import visnerf.training.step as trainer_module
 from visnerf.config import TrainConfig
 from visnerf.rendering.empty_space import EmptySpace
-from visnerf.rendering.renderer import place_samples, render_rays
+from visnerf.rendering.training_render import place_samples, render_rays
 from visnerf.testing import make_noise_scene
 from visnerf.training.ray_batches import micro_batches
 from visnerf.training.step import occupied_windows
