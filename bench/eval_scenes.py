@@ -25,6 +25,7 @@ README; any other run writes eval_scenes.partial.{json,md} and leaves the README
 """
 
 import argparse
+import dataclasses
 import json
 import os
 import platform
@@ -320,7 +321,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         for name in args.scenes:
             spec = catalog[name]
-            data, gen_seconds = dataset_for(spec, data_root, options, args.workers)
+            data, gen_seconds = dataset_for(spec, data_root, dataclasses.replace(options, n_views=spec.n_views),
+                                            args.workers)
             ckpt = work / f"{name}.safetensors"
             if args.rescore:
                 row = next((r for r in kept["scenes"] if r["scene"] == name), None)
