@@ -6,17 +6,27 @@ A handler takes the parsed arguments and returns the process exit code.
 
 import argparse
 import importlib
+import importlib.metadata
 import importlib.util
 import sys
 
-# Modules that contribute sub-commands, in the order they appear in ``visnerf --help``.
+# The model's modules that contribute sub-commands, in the order they appear in ``visnerf --help``.
 _COMMAND_MODULES = (
     "visnerf.commands",  # train, render, info
     "visnerf.scenes.commands",  # make-scene, scenes
     "visnerf.evaluation.commands",  # eval
     "visnerf.animation.commands",  # animate
-    "visnerf_server.commands",  # serve, submit
 )
+COMMAND_GROUP = "visnerf.commands"
+"""Entry-point group through which other packages of the distribution add sub-commands (the server's
+``serve`` and ``submit``, pyproject.toml): the model names no package above it."""
+
+
+def command_modules() -> list[str]:
+    """The model's command modules, then those the installed distributions register under
+    ``COMMAND_GROUP`` (by entry-point name)."""
+    plugins = sorted(importlib.metadata.entry_points(group=COMMAND_GROUP), key=lambda e: e.name)
+    return [*_COMMAND_MODULES, *(e.value for e in plugins)]
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -25,7 +35,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Learn ViSNeRF models from images of scientific visualizations and explore them.",
     )
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name in _COMMAND_MODULES:
+    for name in command_modules():
         try:
             module = importlib.import_module(name)
         except ModuleNotFoundError as exc:

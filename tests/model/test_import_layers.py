@@ -3,6 +3,7 @@ commands, with no cycle between any two of them (lazy imports inside functions c
 the model never imports the server."""
 
 import ast
+import re
 from pathlib import Path
 
 PACKAGE = Path(__file__).resolve().parents[2] / "model" / "visnerf"
@@ -59,6 +60,36 @@ def test_the_layers_point_one_way():
 
 def test_the_model_never_imports_the_server():
     assert not [part for part, targets in imports_between_parts().items() if "visnerf_server" in targets]
+
+
+def test_the_model_names_no_server_module_in_a_string():
+    """``importlib.import_module("visnerf_server...")`` would bypass the import checks above: the
+    server's sub-commands reach the CLI through an entry point (``cli.COMMAND_GROUP``)."""
+    named = [f"{path.relative_to(PACKAGE)}: {node.value!r}" for path in PACKAGE.rglob("*.py")
+             for node in ast.walk(ast.parse(path.read_text(), str(path)))
+             if isinstance(node, ast.Constant) and isinstance(node.value, str)
+             and re.match(r"^visnerf_server(\.|$)", node.value)]
+    assert not named, named
+
+
+def test_modules_named_in_docstrings_exist():
+    """A docstring's pointer to a module (``visnerf.x.y``, ``rendering.x``) or a committed file
+    (``bench/results/...``, ``docs/...``) names something that is in the tree."""
+    root = PACKAGE.parents[1]
+    missing = []
+    for path in [*PACKAGE.rglob("*.py"), *(root / "server" / "visnerf_server").rglob("*.py")]:
+        text = path.read_text()
+        for name in re.findall(r"``(visnerf(?:_server)?(?:\.[a-z_0-9]+)+)``", text):
+            parts = name.split(".")
+            base = root / ("server" if parts[0] == "visnerf_server" else "model")
+            # a module, a package, or a name inside one of them
+            if not any((base.joinpath(*parts[:k]).with_suffix(".py")).exists() or (base.joinpath(*parts[:k]) / "__init__.py").exists()
+                       for k in range(len(parts), 0, -1) if k >= 2):
+                missing.append(f"{path.relative_to(root)}: {name}")
+        for file in re.findall(r"(?<![\w/])((?:bench/results|docs)/[\w./-]+\.(?:md|json|png))", text):
+            if not (root / file).exists():
+                missing.append(f"{path.relative_to(root)}: {file}")
+    assert not missing, missing
 
 
 def test_the_cycle_finder_finds_a_cycle():

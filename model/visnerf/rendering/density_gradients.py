@@ -1,8 +1,8 @@
 """Densities for training whose backward pass skips most near-empty samples, without bias.
 
-Most samples a training step evaluates lie in occupied cells yet hold almost nothing: on Nyx, in a
-trained step, 90 % of the density samples had alpha below 1e-4 (the occupancy grid is the union
-over all parameter settings, dilated by a cell; bench/results/density_grad_speed.md). Their gradient is small as well: the density is
+Most samples a training step evaluates lie in occupied cells yet hold almost nothing (the occupancy
+grid is the union over all parameter settings, dilated by a cell; docs/decisions.md, "Training
+step"). Their gradient is small as well: the density is
 ``softplus(raw)``, whose slope ``1 - exp(-sigma)`` is about ``sigma`` near zero, and the loss sees
 a sample through ``sigma * delta``. Back-propagating them still costs as much per sample as any
 other, and the density backward was the largest part of a step.

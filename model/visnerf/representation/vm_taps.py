@@ -182,13 +182,9 @@ class _WeightedRowSum(torch.autograd.Function):
     The table's gradient is ``T^T @ grad`` for the tap matrix ``T [m, n_rows]``; ``T^T`` is built
     in compressed-row form from a stable sort of the taps (``transposed_taps``), and within
     ``table_gradients_in_place`` the product is added into ``.grad`` in place (``addmm_``).
-    ``embedding_bag``'s own CPU backward sorts the taps and adds one row per tap; transposing the
-    compressed-row ``T`` (the previous way) converts it at every call and hands autograd a fresh
-    table-sized gradient to add. Forward and backward of the appearance plane table's lookup
-    (170^3, 74000 bags, into an existing ``.grad``): 17.6 ms ``embedding_bag``, 15.1 ms the
-    transposed product, 7.8 ms in place; a trained Nyx step 0.226 s the transposed way, 0.182 s in
-    place (bench/results/train_step_speed.md). The product is deterministic and independent of
-    the thread count (tested)."""
+    ``embedding_bag``'s own CPU backward sorts the taps and adds one row per tap, and hands
+    autograd a table-sized gradient to add (docs/decisions.md, "Training step"). The product is
+    deterministic and independent of the thread count (tested)."""
 
     @staticmethod
     def forward(ctx, table: Tensor, rows: Tensor, weights: Tensor) -> Tensor:  # noqa: ANN001
