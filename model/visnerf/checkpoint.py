@@ -12,7 +12,7 @@ import struct
 import tempfile
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import torch
 from safetensors.torch import load as load_safetensors_bytes
@@ -23,7 +23,9 @@ from visnerf.factor_codec import ROW_SCALE_SUFFIX, decode_rows, encode_rows
 from visnerf.meta_checks import MetadataError, check_metadata, parse_metadata_json
 from visnerf.representation.field import VisNerfField
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+"""Version 2 (2026-12-04): every configuration field is written, and reading refuses a key it does
+not know. Version 1 documents are migrated on reading (``migrate``)."""
 METADATA_KEY = "visnerf"
 _MAX_HEADER_BYTES = 16 * 1024 * 1024
 
@@ -67,7 +69,7 @@ class CheckpointMeta:
     image_width: int = 0
     image_height: int = 0
     title: str = ""
-    kind: str = "dvr"
+    kind: Literal["dvr", "ir"] = "dvr"
     occupancy_resolution: tuple[int, int, int] | None = None
     provenance: dict[str, Any] = field(default_factory=dict)
     format_version: int = FORMAT_VERSION
@@ -88,6 +90,7 @@ class CheckpointMeta:
             raise CheckpointError(f"checkpoint metadata: {exc}") from None
         if not isinstance(data, dict):
             raise CheckpointError("checkpoint metadata is not a JSON object")
+        data = migrate(data)
         version = data.get("format_version")
         if version != FORMAT_VERSION:
             raise CheckpointError(
@@ -130,6 +133,29 @@ class CheckpointMeta:
             if len(axis.values) != length:
                 raise CheckpointError(f"axis {axis.name!r} lists {len(axis.values)} values, the field {length}")
         return meta
+
+
+V1_FIELD_DEFAULTS = {"factor_storage": "float32", "level_cosine_powers": []}
+"""What a version 1 checkpoint meant by leaving out a field option added later: float32 factors, the
+level field's cosine alone (not the defaults of a new field)."""
+V1_RENDER_DROPPED = ("full_weight_threshold", "chunk_rays")
+"""Version 1 render keys that are not read: ``full_weight_threshold`` was a weight per sample at
+whatever spacing (read as one per voxel it would be another threshold at every spacing; the per-voxel
+default applies), ``chunk_rays`` belongs to the machine, not the model."""
+
+
+def migrate(data: dict[str, Any]) -> dict[str, Any]:
+    """A metadata document of an older format as the current format writes it (a copy); the current
+    format and anything else are returned as they are (``from_json`` refuses an unknown version)."""
+    if data.get("format_version") != 1:
+        return data
+    out = dict(data)
+    if isinstance(data.get("field"), dict):
+        out["field"] = {**V1_FIELD_DEFAULTS, **data["field"]}
+    if isinstance(data.get("render"), dict):
+        out["render"] = {k: v for k, v in data["render"].items() if k not in V1_RENDER_DROPPED}
+    out["format_version"] = FORMAT_VERSION
+    return out
 
 
 def _config_from(cls: type[FieldConfig] | type[RenderConfig], data: Any, key: str) -> Any:

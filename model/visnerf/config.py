@@ -3,12 +3,14 @@
 import dataclasses
 import math
 import numbers
+import types
 import typing
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal
 
 import torch
 
+FactorStorage = Literal["float32", "float16", "int8"]
 FACTOR_STORAGE_DTYPES = {"float32": torch.float32, "float16": torch.float16, "int8": torch.int8}
 """Dtypes the VM planes may be stored in (``FieldConfig.factor_storage``). ``int8`` planes are
 row-wise codes with float32 scales (``factor_codec``), and their lines are stored as float16."""
@@ -60,8 +62,19 @@ def _is_whole(value: object) -> bool:
 def _has_type(value: object, annotation: object) -> bool:
     """Whether ``value`` is of a field's annotated type: int, float (an int too), bool, str, or a
     tuple of ints."""
+    if typing.get_origin(annotation) is typing.Literal:
+        return value in typing.get_args(annotation)
     if typing.get_origin(annotation) is tuple:
-        return isinstance(value, tuple) and all(_is_whole(v) for v in value)
+        args = typing.get_args(annotation)
+        if not isinstance(value, tuple):
+            return False
+        if len(args) == 2 and args[1] is Ellipsis:
+            return all(_has_type(v, args[0]) for v in value)
+        return len(args) == len(value) and all(_has_type(v, a) for v, a in zip(value, args, strict=True))
+    if typing.get_origin(annotation) in (typing.Union, types.UnionType):
+        return any(_has_type(value, a) for a in typing.get_args(annotation))
+    if annotation is type(None):
+        return value is None
     if annotation is int:
         return _is_whole(value)
     if annotation is float:
@@ -77,8 +90,30 @@ def _check_types(cls: type, values: dict[str, Any]) -> None:
     configuration read from JSON may hold anything), so that the refusal names the field."""
     for f in dataclasses.fields(cls):
         if f.name in values:
-            word = "whole numbers" if typing.get_origin(f.type) is tuple else _TYPE_WORDS.get(f.type, str(f.type))  # type: ignore[arg-type]
+            if typing.get_origin(f.type) is typing.Literal:
+                word = "one of " + ", ".join(repr(v) for v in typing.get_args(f.type))
+            elif typing.get_origin(f.type) is tuple:
+                first = typing.get_args(f.type)[0]
+                word = {int: "whole numbers", float: "numbers"}.get(first, "a list")
+            else:
+                word = _TYPE_WORDS.get(f.type, str(f.type))  # type: ignore[arg-type]
             _require(_has_type(values[f.name], f.type), f"{f.name} must be {word}, got {values[f.name]!r}")
+
+
+def config_from_dict(cls: type, data: dict[str, Any], what: str) -> Any:
+    """``cls`` from a JSON document (a checkpoint's, a run state's, the command line's): every key
+    must name a field (``ValueError`` naming the others), JSON lists become tuples, each value is
+    checked against its field's type before the configuration's own checks; a field the document
+    does not name takes its default. Documents of older formats are migrated before they get here
+    (``checkpoint.migrate``)."""
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = set(data) - names
+    if unknown:
+        raise ValueError(f"unknown {what} keys {sorted(unknown)}")
+    values = {k: tuple(tuple(x) if isinstance(x, list) else x for x in v) if isinstance(v, list) else v
+              for k, v in data.items()}
+    _check_types(cls, values)
+    return cls(**values)
 
 
 def _check_whole_in(config: object, least: int, most: int, *names: str) -> None:
@@ -173,7 +208,7 @@ class FieldConfig:
     surface scenes (``training.recipe``), with ``density_shift`` lowered to keep the same fog."""
     init_scale: float = 0.1
     """Standard deviation of the initial VM factors."""
-    factor_storage: str = "int8"
+    factor_storage: FactorStorage = "int8"
     """How the checkpoint file stores the VM planes and lines: ``float32``, ``float16`` or ``int8``
     (planes as int8 codes with a float32 scale per row, ``factor_codec``, lines as float16: about
     a quarter of the float32 bytes, frames indistinguishable from float16's: docs/decisions.md,
@@ -224,15 +259,7 @@ class FieldConfig:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> "FieldConfig":
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = set(data) - names
-        if unknown:
-            raise ValueError(f"unknown field configuration keys {sorted(unknown)}")
-        values = {k: tuple(v) if isinstance(v, list) else v for k, v in data.items()}  # JSON lists
-        values.setdefault("factor_storage", "float32")  # checkpoints from before the option
-        values.setdefault("level_cosine_powers", ())  # checkpoints from before the option: the cosine alone
-        _check_types(cls, values)
-        return cls(**values)
+        return config_from_dict(cls, data, "field configuration")
 
 
 @dataclass(frozen=True)
@@ -290,10 +317,7 @@ class RenderConfig:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> "RenderConfig":
-        names = {f.name for f in dataclasses.fields(cls)}
-        values = {k: v for k, v in data.items() if k in names}
-        _check_types(cls, values)
-        return cls(**values)
+        return config_from_dict(cls, data, "render configuration")
 
 
 DEFAULT_ITERATIONS = 30_000
@@ -521,14 +545,9 @@ class TrainConfig:
 
     @classmethod
     def from_dict(cls, data: dict[str, Any]) -> "TrainConfig":
-        """The configuration a checkpoint's ``provenance.recipe`` records (JSON lists back to
-        tuples); fields it does not name (older checkpoints recorded a subset) take their defaults."""
-        fields = {f.name: f for f in dataclasses.fields(cls)}
-        unknown = set(data) - set(fields)
-        if unknown:
-            raise ValueError(f"unknown training configuration keys {sorted(unknown)}")
-        values = {k: tuple(v) if isinstance(v, list) else v for k, v in data.items()}
-        return cls(**values)
+        """The configuration a checkpoint's ``provenance.recipe`` or a run state records
+        (``config_from_dict``: older checkpoints recorded a subset, the rest take their defaults)."""
+        return config_from_dict(cls, data, "training configuration")
 
 
 @dataclass(frozen=True)

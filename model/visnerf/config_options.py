@@ -83,6 +83,13 @@ def _parser_for(annotation: Any) -> tuple[Any, str]:
     if annotation is str:
         return str, "TEXT"
     origin, args = typing.get_origin(annotation), typing.get_args(annotation)
+    if origin is typing.Literal:
+        def choose(text: str) -> Any:
+            if text not in args:
+                raise argparse.ArgumentTypeError(f"expected one of {', '.join(map(str, args))}, got {text!r}")
+            return text
+
+        return choose, "{" + ",".join(map(str, args)) + "}"
     if origin in (types.UnionType, typing.Union) and type(None) in args:
         inner, metavar = _parser_for(next(a for a in args if a is not type(None)))
         return (lambda text: None if text.lower() == "none" else inner(text)), f"{metavar}|none"

@@ -13,7 +13,6 @@ import threading
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
 
 import numpy as np
 import torch
@@ -22,14 +21,12 @@ from visnerf.checkpoint import CheckpointError, CheckpointMeta, ParamAxis, load_
 from visnerf.data.cameras import Intrinsics, check_rigid_c2w
 from visnerf.lens import Projection, choose_lens
 from visnerf.rendering.cancel import CancelCheck, RenderCancelled
-from visnerf.rendering.render_settings import RenderSettings
+from visnerf.rendering.render_settings import Quality, RenderSettings
 from visnerf.rendering.renderer import render_image_scaled
 from visnerf.rendering.setting_occupancy import BackgroundRunner, SettingOccupancy, SettingOccupancyConfig
 from visnerf.representation import output_kernel, vm_kernel
 from visnerf.representation.field import VisNerfField
 from visnerf.runtime import release_free_memory
-
-Quality = Literal["preview", "full"]
 
 __all__ = [
     "BackgroundRunner",

@@ -1,5 +1,7 @@
 """Checkpoints: exact round trips, factor storage, and every kind of tampered or foreign file refused."""
 
+from pathlib import Path
+
 import pytest
 import torch
 
@@ -49,13 +51,13 @@ def test_half_precision_factors_round_trip_and_halve_the_file(tmp_path):
     assert abs(saved - factor_bytes) <= 64  # the header's offsets are shorter too
 
 
-def test_checkpoints_from_before_factor_storage_read_as_float32(tmp_path):
+def test_version_1_checkpoints_without_factor_storage_read_as_float32(tmp_path):
     from visnerf.testing import make_tiny_field
 
     field, _ = make_tiny_field([("a", [0.0, 1.0])])
     path = _save_with_storage(field, tmp_path / "old.safetensors", "float32")
     old = _tamper(path, tmp_path, lambda t, m: m.__setitem__("visnerf", m["visnerf"].replace(
-        ', "factor_storage": "float32"', "")))
+        ', "factor_storage": "float32"', "").replace('"format_version": 2', '"format_version": 1')))
     from safetensors.torch import safe_open
 
     with safe_open(str(old), "pt") as fh:
@@ -107,7 +109,7 @@ def _tamper(path, tmp_path, edit):
         (lambda t, m: m.__setitem__("visnerf", _swap_factor_storage(m["visnerf"])), "dtype"),
         (lambda t, m: m.__setitem__("visnerf", m["visnerf"].replace('"factor_storage": "float', '"factor_storage": "int')),
          "factor_storage"),
-        (lambda t, m: m.__setitem__("visnerf", m["visnerf"].replace('"format_version": 1', '"format_version": 9')), "version"),
+        (lambda t, m: m.__setitem__("visnerf", m["visnerf"].replace('"format_version": 2', '"format_version": 9')), "version"),
     ],
 )
 def test_tampered_checkpoints_are_rejected(tmp_path, edit, message):
@@ -243,3 +245,19 @@ def test_the_bundled_checkpoints_pass_the_metadata_checks():
             header = json.loads(f.read(n))
         meta = CheckpointMeta.from_json(header["__metadata__"]["visnerf"])
         assert meta.kind in ("dvr", "ir") and meta.param_axes, path.name
+
+
+def test_a_current_checkpoint_naming_an_unknown_key_is_refused(tmp_path):
+    """One rule for every configuration: a key it does not know is an error that names it (version
+    1 documents are migrated first; the bundled checkpoints are version 1 and load)."""
+    from visnerf.testing import make_tiny_field
+
+    field, _ = make_tiny_field([("a", [0.0, 1.0])])
+    path = _save_with_storage(field, tmp_path / "new.safetensors", "float32")
+    bad = _tamper(path, tmp_path, lambda t, m: m.__setitem__("visnerf", m["visnerf"].replace(
+        '"render": {', '"render": {"chunk_rays": 4096, ')))
+    with pytest.raises(CheckpointError, match="render: unknown render configuration keys.*chunk_rays"):
+        read_checkpoint(bad)
+    for bundled in sorted((Path(__file__).resolve().parents[2] / "checkpoints").glob("*.safetensors")):
+        meta, _ = read_checkpoint(bundled)
+        assert meta.format_version == 2

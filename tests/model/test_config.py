@@ -61,15 +61,20 @@ def test_an_older_checkpoints_partial_recipe_reads_with_defaults() -> None:
 
 
 def test_an_older_checkpoints_colour_threshold_per_sample_is_not_read_as_one_per_voxel() -> None:
-    """Checkpoints from before stored ``full_weight_threshold``, a weight per sample at whatever
-    spacing: read as a weight per voxel it would mean another threshold at every spacing, so it is
-    dropped and the per-voxel default applies."""
+    """Version 1 checkpoints stored ``full_weight_threshold``, a weight per sample at whatever
+    spacing: read as a weight per voxel it would mean another threshold at every spacing, so the
+    migration drops it and the per-voxel default applies; a current document naming it is refused."""
+    import pytest
+
+    from visnerf.checkpoint import migrate
     from visnerf.config import RenderConfig
     from visnerf.rendering.render_settings import RenderSettings
 
     old = {**RenderConfig().to_dict(), "full_weight_threshold": 3e-3, "full_step_ratio": 0.5}
     del old["full_weight_threshold_per_voxel"]
-    cfg = RenderConfig.from_dict(old)
+    cfg = RenderConfig.from_dict(migrate({"format_version": 1, "render": old})["render"])
     assert cfg.full_weight_threshold_per_voxel == RenderConfig.full_weight_threshold_per_voxel == 2e-3
     full = RenderSettings.from_config(cfg, (1.0, 1.0, 1.0), "full")
     assert (full.step_ratio, full.weight_threshold_per_voxel) == (0.5, 2e-3)  # 1e-3 a sample at half a voxel
+    with pytest.raises(ValueError, match="unknown render configuration keys.*full_weight_threshold"):
+        RenderConfig.from_dict(old)

@@ -2,7 +2,7 @@
 checkpoint's ``RenderConfig`` and a quality (``full``, ``preview`` or ``exhaustive``)."""
 
 from dataclasses import dataclass, replace
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Literal
 
 import torch
 
@@ -12,6 +12,11 @@ from visnerf.runtime import batch_factor
 if TYPE_CHECKING:
     from visnerf.checkpoint import CheckpointMeta
 
+
+Quality = Literal["preview", "full"]
+"""The qualities a frame is asked for (the server, ``visnerf render``, movies)."""
+RenderQuality = Literal["preview", "full", "exhaustive"]
+"""The qualities of a render call: those, and the exhaustive reference (evaluation, calibration)."""
 
 EXHAUSTIVE_STEP_RATIO = 0.5
 """Sample spacing of the exhaustive reference, in voxels, at most: the paper's training spacing."""
@@ -67,7 +72,7 @@ class RenderSettings:
 
     @classmethod
     def from_config(
-        cls, cfg: RenderConfig, background: tuple[float, float, float], quality: str = "full"
+        cls, cfg: RenderConfig, background: tuple[float, float, float], quality: RenderQuality = "full"
     ) -> "RenderSettings":
         """``full``: as the server renders; ``preview``: smaller and coarser; ``exhaustive``: the
         plain reference (``exhaustive_step_ratio``, every sample in the model's occupancy grid,
@@ -99,5 +104,5 @@ class RenderSettings:
         return settings
 
     @classmethod
-    def from_meta(cls, meta: "CheckpointMeta", quality: str = "full") -> "RenderSettings":
+    def from_meta(cls, meta: "CheckpointMeta", quality: RenderQuality = "full") -> "RenderSettings":
         return cls.from_config(meta.render, tuple(meta.background), quality)  # type: ignore[arg-type]
