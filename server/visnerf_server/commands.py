@@ -7,8 +7,10 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from visnerf.arg_types import positive_int
+from pydantic import ValidationError
+
 from visnerf_server.registry import SCENE_ID_PATTERN, is_valid_scene_id
+from visnerf_server.settings_options import add_settings_options, given_settings, option_name
 
 LOOPBACK_HOSTS = {"127.0.0.1", "::1", "localhost"}
 
@@ -26,17 +28,9 @@ def register(subparsers: Any) -> None:
         metavar="DIR",
         help="folder of <id>.safetensors (default: the bundled checkpoints/)",
     )
-    serve.add_argument("--device", default=None, help="torch device for the scenes, e.g. cpu or cuda:0")
     serve.add_argument("--no-client", action="store_true", help="serve the API only, not the web client")
-    serve.add_argument(
-        "--threads",
-        type=positive_int,
-        default=None,
-        metavar="N",
-        help="torch threads for rendering (default: $VISNERF_THREADS, else the CPU quota of the cgroup, "
-        "else the usable cores)",
-    )
     serve.add_argument("--log-level", default="info", choices=["debug", "info", "warning", "error"])
+    add_settings_options(serve)
     serve.set_defaults(func=serve_command)
 
     submit = subparsers.add_parser(
@@ -83,16 +77,17 @@ def serve_command(args: argparse.Namespace) -> int:
     from visnerf_server.serving import serve
     from visnerf_server.settings import Settings
 
-    overrides: dict[str, Any] = {}
+    overrides: dict[str, Any] = given_settings(args)
     if args.checkpoints is not None:
         overrides["checkpoints_dir"] = args.checkpoints.resolve()
-    if args.device is not None:
-        overrides["device"] = args.device
     if args.no_client:
         overrides["client_dir"] = None
-    if args.threads is not None:
-        overrides["threads"] = args.threads
-    settings = Settings(**overrides)
+    try:
+        settings = Settings(**overrides)
+    except ValidationError as exc:  # a value out of its range: name the option and the rule
+        problems = "; ".join(f"{option_name(str(e['loc'][0]))}: {e['msg']}" for e in exc.errors())
+        print(f"visnerf serve: error: {problems}", file=sys.stderr)
+        return 2
     configure_logging(args.log_level, settings.log_format)
     log = logging.getLogger("visnerf_server")
     if args.host not in LOOPBACK_HOSTS:
