@@ -1,4 +1,4 @@
-"""Command-line options generated from the typed configuration (``config.py``).
+"""Command-line options generated from the typed configuration (``visnerf.config``).
 
 Every field of ``TrainConfig``, ``FieldConfig`` and ``RenderConfig`` is an option of ``visnerf
 train``: ``--field-name``, typed by the field's annotation, its help the field's docstring, so that
@@ -114,7 +114,7 @@ def add_config_options(parser: argparse.ArgumentParser) -> None:
               "RenderConfig": "renderer (RenderConfig)"}
     for cls in CONFIG_CLASSES:
         docs, hints = field_docs(cls), typing.get_type_hints(cls)
-        group = parser.add_argument_group(titles[cls.__name__], "the recipe's values unless given; see config.py")
+        group = parser.add_argument_group(titles[cls.__name__], "the recipe's values unless given; see model/visnerf/config/")
         for f in dataclasses.fields(cls):
             key = (cls.__name__, f.name)
             if key in HAND_WRITTEN or key in NOT_OPTIONS:

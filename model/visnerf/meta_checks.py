@@ -2,7 +2,7 @@
 from it (``CheckpointMeta.from_json``). Every refusal raises ``MetadataError`` naming the field as
 a path into the document: ``param_axes[1].default``, ``background[2]``, ``camera.fov_deg``.
 
-The configurations (``field``, ``render``) are judged by their own checks (``config.py``).
+The configurations (``field``, ``render``) are judged by their own checks (``visnerf.config``).
 """
 
 import json

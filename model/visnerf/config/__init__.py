@@ -1,0 +1,12 @@
+"""Typed configuration of the field, the renderer, the trainer and the hold-out: one home for every
+setting. The command line is generated from it (``config_options``), the checkpoint stores it whole,
+benchmarks build from it; configurations are never mutated."""
+
+from visnerf.config.checks import config_from_dict
+from visnerf.config.field import FACTOR_STORAGE_DTYPES, FactorStorage, FieldConfig
+from visnerf.config.holdout import HoldoutConfig
+from visnerf.config.render import RenderConfig
+from visnerf.config.train import DEFAULT_ITERATIONS, TrainConfig
+
+__all__ = ["DEFAULT_ITERATIONS", "FACTOR_STORAGE_DTYPES", "FactorStorage", "FieldConfig", "HoldoutConfig",
+           "RenderConfig", "TrainConfig", "config_from_dict"]
