@@ -34,11 +34,9 @@ from visnerf import compiled
 from visnerf.representation.vm_kernel import plane_axes
 
 
-def _sources(c: int, n_q: int, float_type: type):  # noqa: ANN202 - the loops numba compiles
-    """The loops for tables of ``c`` channels and ``n_q`` parameter features in ``float_type``
-    (constants of the compiled loops)."""
-    ft = float_type
-    nf = 3 * c
+@functools.cache
+def _interpolation_loop(ft: type):  # noqa: ANN202 - an inlined numba helper
+    """Each axis's lower node and fraction of sample ``s`` (``vm_taps``' interpolation)."""
 
     @no_type_check
     def _interpolation(coords, s, res, lower, frac):  # noqa: ANN001, ANN202
@@ -55,7 +53,40 @@ def _sources(c: int, n_q: int, float_type: type):  # noqa: ANN202 - the loops nu
             lower[a] = lo
             frac[a] = pos - ft(lo)
 
-    interpolation = compiled.jit(_interpolation, inline=True)
+    return compiled.jit(_interpolation, inline=True)
+
+
+@functools.cache
+def _rest_loop(c: int, n_q: int, ft: type):  # noqa: ANN202 - an inlined numba helper
+    """The columns of a row after its features: ``q``, then the encoding or the ray's tail."""
+    nf = 3 * c
+
+    @no_type_check
+    def _write_rest(coords, s, q, r, tail, n_freqs, out):  # noqa: ANN001, ANN202
+        for j in range(n_q):
+            out[s, nf + j] = q[r, j]
+        col = nf + n_q
+        if n_freqs >= 0:
+            for a in range(3):
+                out[s, col + a] = coords[s, a]
+            for a in range(3):
+                angle = coords[s, a] * ft(math.pi)
+                sn, cs = ft(math.sin(angle)), ft(math.cos(angle))
+                for level in range(n_freqs):
+                    out[s, col + 3 + 6 * level + a] = sn
+                    out[s, col + 6 + 6 * level + a] = cs
+                    sn, cs = ft(2.0) * sn * cs, (cs - sn) * (cs + sn)
+            col += 3 + 6 * n_freqs
+        for j in range(tail.shape[1]):
+            out[s, col + j] = tail[r, j]
+
+    return compiled.jit(_write_rest, inline=True)
+
+
+def _forward_source(c: int, n_q: int, ft: type):  # noqa: ANN202 - the loop numba compiles
+    """``forward`` for tables of ``c`` channels and ``n_q`` parameter features in ``ft``."""
+    interpolation = _interpolation_loop(ft)
+    write_rest = _rest_loop(c, n_q, ft)
 
     @no_type_check
     def _forward(coords, ray, q, tail, plane, line, res, plane_off, line_off, n_freqs, out,  # noqa: ANN001, ANN202
@@ -67,7 +98,6 @@ def _sources(c: int, n_q: int, float_type: type):  # noqa: ANN202 - the loops nu
         lower = np.empty(3, np.int64)
         frac = np.empty(3, ft)
         q_rep = np.empty(c, ft)
-        e = tail.shape[1]
         last_ray = -1
         for s in range(first, stop):
             interpolation(coords, s, res, lower, frac)
@@ -107,22 +137,14 @@ def _sources(c: int, n_q: int, float_type: type):  # noqa: ANN202 - the loops nu
                              + (w01 * plane[r01, ch] + w11 * plane[r01 + 1, ch]))
                         v = (one - fl) * line[l0, ch] + fl * line[l0 + 1, ch]
                         out[s, base + ch] = p * v * q_rep[ch]
-            for j in range(n_q):
-                out[s, nf + j] = q[r, j]
-            col = nf + n_q
-            if n_freqs >= 0:
-                for a in range(3):
-                    out[s, col + a] = coords[s, a]
-                for a in range(3):
-                    angle = coords[s, a] * ft(math.pi)
-                    sn, cs = ft(math.sin(angle)), ft(math.cos(angle))
-                    for level in range(n_freqs):
-                        out[s, col + 3 + 6 * level + a] = sn
-                        out[s, col + 6 + 6 * level + a] = cs
-                        sn, cs = ft(2.0) * sn * cs, (cs - sn) * (cs + sn)
-                col += 3 + 6 * n_freqs
-            for j in range(e):
-                out[s, col + j] = tail[r, j]
+            write_rest(coords, s, q, r, tail, n_freqs, out)
+
+    return _forward
+
+
+def _row_gradients_source(c: int, n_q: int, ft: type):  # noqa: ANN202 - the loop numba compiles
+    """``row_gradients`` for tables of ``c`` channels and ``n_q`` parameter features in ``ft``."""
+    nf = 3 * c
 
     @no_type_check
     def _row_gradients(ray, q, grad_out, line, line_rows, line_weights, plane_values,  # noqa: ANN001, ANN202
@@ -152,7 +174,7 @@ def _sources(c: int, n_q: int, float_type: type):  # noqa: ANN202 - the loops nu
             for j in range(n_q):
                 grad_q[r, j] += grad_out[s, nf + j]
 
-    return compiled.jit(_forward), compiled.jit(_row_gradients)
+    return _row_gradients
 
 
 def _gather_source(c: int, ft: type):  # noqa: ANN202 - the loop numba compiles
@@ -225,4 +247,5 @@ def loops(c: int, n_q: int, float_type: type):  # noqa: ANN201 - two numba dispa
         raise RuntimeError("numba is not installed: the compiled training lookups are unavailable")
     if float_type not in (np.float32, np.float64):
         raise ValueError(f"the training lookups compute in float32 or float64, not {float_type}")
-    return _sources(c, n_q, float_type)
+    return (compiled.jit(_forward_source(c, n_q, float_type)),
+            compiled.jit(_row_gradients_source(c, n_q, float_type)))

@@ -16,6 +16,7 @@ value and moments: lazy Adam. Every other parameter (the decoders, the parameter
 updated whole, as torch's Adam does (tested to float rounding), from its ``.grad``.
 """
 
+import functools
 import math
 from collections.abc import Iterable
 from typing import Any, no_type_check
@@ -32,7 +33,10 @@ _NO_MARKS = np.zeros(1, np.uint8)
 _NO_COEFFICIENTS = np.zeros(1, np.float64)
 
 
-def _sources(ft: type):  # noqa: ANN202 - the two loops numba compiles for float type ``ft``
+@functools.cache
+def _update_loop(ft: type):  # noqa: ANN202 - an inlined numba helper
+    """One row's Adam update in float type ``ft``."""
+
     @no_type_check  # compiled by numba
     def _update(param, g, exp_avg, exp_avg_sq, row, steps, lr, b1, b2, b2c, e, inv_bias1, bias2_sqrts):  # noqa: ANN001, ANN202
         """Adam on ``param[row]`` with gradient row ``g``."""
@@ -48,7 +52,11 @@ def _sources(ft: type):  # noqa: ANN202 - the two loops numba compiles for float
             exp_avg_sq[row, ch] = v
             param[row, ch] -= step_size * m / (math.sqrt(v) * inv_bias2 + e)
 
-    update = compiled.jit(_update, inline=True)
+    return compiled.jit(_update, inline=True)
+
+
+def _marked_source(ft: type):  # noqa: ANN202 - the loop numba compiles for float type ``ft``
+    update = _update_loop(ft)
 
     @no_type_check
     def _adam_marked(param, grad, exp_avg, exp_avg_sq, steps, marks, use_marks, lr, beta1, beta2, eps,  # noqa: ANN001, ANN202
@@ -66,6 +74,12 @@ def _sources(ft: type):  # noqa: ANN202 - the two loops numba compiles for float
                 grad[row, ch] = 0
             if use_marks:
                 marks[row] = 0
+
+    return _adam_marked
+
+
+def _taps_source(ft: type):  # noqa: ANN202 - the loop numba compiles for float type ``ft``
+    update = _update_loop(ft)
 
     @no_type_check
     def _adam_taps(param, exp_avg, exp_avg_sq, steps, starts, taps, tap_weights, values, part_starts,  # noqa: ANN001, ANN202
@@ -102,10 +116,10 @@ def _sources(ft: type):  # noqa: ANN202 - the two loops numba compiles for float
             update(param, g, exp_avg, exp_avg_sq, row, steps, lr, b1, b2, b2c, e, inv_bias1, bias2_sqrts)
         return total
 
-    return compiled.jit(_adam_marked), compiled.jit(_adam_taps)
+    return _adam_taps
 
 
-_LOOPS = {ft: _sources(ft) for ft in (np.float32, np.float64)}
+_LOOPS = {ft: (compiled.jit(_marked_source(ft)), compiled.jit(_taps_source(ft))) for ft in (np.float32, np.float64)}
 
 
 def _rows(t: Tensor) -> Tensor:
