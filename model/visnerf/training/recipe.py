@@ -48,6 +48,7 @@ The measurements behind each choice are in docs/decisions.md.
 import dataclasses
 import math
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
@@ -88,7 +89,8 @@ CHOSEN_FIELDS = frozenset({("TrainConfig", "resolution_final"), ("TrainConfig", 
                            ("TrainConfig", "tv_weight_appearance"), ("TrainConfig", "colour_weight_floor"),
                            ("TrainConfig", "carve_dilation"), ("TrainConfig", "occupancy_refine_dilation"),
                            ("TrainConfig", "silhouette_ray_fraction")})
-"""The configuration fields ``choose_recipe`` sets from the data unless the user gives them."""
+"""The configuration fields ``choose_recipe`` sets from the data unless the user gives them
+(``RULES``, and ``density_shift`` with ``density_scale``)."""
 NEST_TOLERANCE = 0.02
 """Largest share of one setting's visual hull outside its neighbour's for an axis to count as nested
 (``data.nesting``, hulls of ``carve_resolution`` cells): an isovalue sweep's hulls nest exactly, a
@@ -225,146 +227,197 @@ class Recipe:
         return [c.to_dict() for c in self.choices]
 
 
+@dataclass
+class _Context:
+    """What the rules read and write while a recipe is chosen: the data's traits, the values chosen
+    so far (``train`` and ``field``), and the carving, made once the carving rule has decided."""
+
+    scene: SceneData
+    traits: SceneTraits
+    base: TrainConfig
+    base_field: FieldConfig
+    train: dict[str, object] = dataclasses.field(default_factory=dict)
+    field: dict[str, object] = dataclasses.field(default_factory=dict)
+    carved: tuple[torch.Tensor, torch.Tensor] | None = None
+    box: torch.Tensor | None = None
+
+    def value(self, name: str) -> object:
+        """The value of setting ``name`` now: chosen, else the base configuration's."""
+        if name in self.train:
+            return self.train[name]
+        if name in self.field:
+            return self.field[name]
+        return getattr(self.base if hasattr(self.base, name) else self.base_field, name)
+
+    def carve(self) -> None:
+        base = self.base
+        self.carved = carve_content(self.scene, base.carve, base.carve_resolution, base.carve_tolerance,
+                                    float(self.value("carve_min_seen_fraction")))  # type: ignore[arg-type]
+        self.box = content_box(self.scene, self.carved)
+
+    def final_resolution(self) -> int:
+        return int(self.value("resolution_final"))  # type: ignore[call-overload]
+
+
+Decision = tuple[object, str] | None
+"""A rule's answer: (the value chosen, why), or None where it leaves the setting as it is (and
+says why through ``keep``)."""
+
+
+@dataclass(frozen=True)
+class _Rule:
+    """One setting the data decide: its name, whether it lives in the field's configuration, and
+    the function that decides it (returning the value and the reason, or the reason it is kept)."""
+
+    name: str
+    decide: Callable[[_Context], tuple[object | None, str] | None]
+    in_field: bool = False
+
+
+def _carve_seen(ctx: _Context) -> tuple[object, str]:
+    scene, traits = ctx.scene, ctx.traits
+    if traits.framed:
+        return CARVE_FRAMED_FRACTION, (f"every one of the {scene.n_frames} training images shows its content clear "
+                                       "of the border, so content is in every view's frame: cells that a quarter of "
+                                       "their setting's views do not frame are carved")
+    return 0.0, (f"{traits.border_frames} of {scene.n_frames} training images have content on their border: a "
+                 "cell only a few views frame may still be content")
+
+
+def _resolution(ctx: _Context) -> tuple[object, str]:
+    assert ctx.box is not None
+    extent = ctx.box[1] - ctx.box[0]
+    footprint = ctx.traits.pixel_footprint
+    sizes = ", ".join(f"{float(e):.3f}" for e in extent)
+    return voxels_for(extent, VOXEL_PER_PIXEL * footprint), (
+        f"a pixel spans {footprint:.5f} world units at the content; voxels of {VOXEL_PER_PIXEL} pixel over the "
+        f"content box ({sizes})")
+
+
+def _density(ctx: _Context) -> tuple[object | None, str]:
+    traits, base_field = ctx.traits, ctx.base_field
+    if not traits.opaque:
+        return None, (f"{100 * traits.faint_fraction:.1f} % of the foreground pixels are faint: translucent "
+                      "content, densities as the decoder gives them")
+    assert ctx.box is not None
+    voxel = float(torch.prod(ctx.box[1] - ctx.box[0])) ** (1.0 / 3.0) / ctx.final_resolution()
+    fog = F.softplus(torch.tensor(base_field.density_shift)).item() * base_field.density_scale
+    scale, shift = surface_density(voxel, fog)
+    ctx.field["density_shift"] = shift
+    return scale, (f"{100 * traits.faint_fraction:.1f} % of the foreground pixels are faint (under "
+                   f"{100 * SURFACE_MAX_FAINT:g} %): opaque surfaces, whose density must reach an optical depth of "
+                   f"about 10 within a voxel or two; scaled by one over the voxel size, the starting fog kept at "
+                   f"{fog:.3f} per world unit (density_shift {shift:.3f})")
+
+
+def _stop_eps(ctx: _Context) -> Decision:
+    if ctx.traits.opaque:
+        return None  # no choice recorded: the library default stands
+    return 0.0, ("translucent content seldom turns a ray opaque: training steps keep every sample instead of "
+                 "marching a density pass to drop occluded ones")
+
+
+def _opaque_only(value: object, opaque_reason: str, translucent_reason: str) -> Callable[[_Context], Decision]:
+    """A setting made for opaque surfaces only: ``value`` there, the base value elsewhere."""
+    def decide(ctx: _Context) -> Decision:
+        return (value, opaque_reason) if ctx.traits.opaque else (None, translucent_reason)
+
+    return decide
+
+
+def _level_axis(ctx: _Context) -> Decision:
+    traits, scene, base = ctx.traits, ctx.scene, ctx.base
+    if not (traits.opaque and traits.n_params > 0):
+        return None
+    min_seen = float(ctx.value("carve_min_seen_fraction"))  # type: ignore[arg-type]
+    axis, nesting = nested_axis(scene, estimate_bbox(scene), base.carve_resolution, base.carve_tolerance, min_seen,
+                                NEST_TOLERANCE)
+    measured = "; ".join(describe_nesting(n) for n in nesting)
+    if axis >= 0:
+        return axis, (f"opaque surfaces whose visual hulls are nested along {scene.param_axes[axis].name!r} (an "
+                      f"isovalue sweep): its surfaces are level sets of one field ({measured})")
+    return axis, f"opaque surfaces, but no axis's visual hulls are nested within {100 * NEST_TOLERANCE:g} % ({measured})"
+
+
+def _silhouettes(ctx: _Context) -> Decision:
+    if ctx.traits.opaque and int(ctx.value("level_set_axis")) >= 0:  # type: ignore[call-overload]
+        return SURFACE_SILHOUETTE_RAYS, ("opaque surfaces of one level field: the images' colour changes at a "
+                                         "silhouette from the background to a shaded surface within one pixel, and a "
+                                         "surface's error lies there; this share of each batch is drawn from those "
+                                         "pixels")
+    if ctx.traits.opaque:
+        return None, ("opaque surfaces without a level field: their shading is learnt from the pixels inside the "
+                      "silhouettes, which a share drawn from the silhouettes would take rays from")
+    return None, "translucent content: its silhouettes fade, and its error is spread over the content"
+
+
+RULES: tuple[_Rule, ...] = (
+    _Rule("carve_min_seen_fraction", _carve_seen),
+    _Rule("resolution_final", _resolution),
+    _Rule("density_scale", _density, in_field=True),
+    _Rule("stop_eps", _stop_eps),
+    _Rule("colour_weight_floor", _opaque_only(
+        SURFACE_COLOUR_FLOOR,
+        "opaque surfaces start as a faint fog: samples lighter than this are coloured at random (unbiased), not all "
+        "of them, until the surfaces form",
+        "translucent content: its colour is spread over many light samples along a ray, every one coloured")),
+    _Rule("facing_vectors", _opaque_only(
+        FACING_VECTORS,
+        "opaque surfaces: their shading follows the cosine between the surface and the view (a light at the "
+        "camera), which the colour decoder reads from learnt unit vectors",
+        "translucent content: its colours are read with spherical harmonics of the view alone"), in_field=True),
+    _Rule("tv_weight_density", _opaque_only(
+        SURFACE_TV_DENSITY,
+        "opaque surfaces: the images pin the density only where a surface is seen, and a few views fit it with a "
+        "rough surface (and, with a level axis, leave the surfaces between training values free); total "
+        "variation keeps it smooth",
+        "translucent content: its density is seen along every ray through it")),
+    _Rule("tv_weight_appearance", _opaque_only(
+        SURFACE_TV_APPEARANCE,
+        "opaque surfaces: each surface point is seen by a few views, whose fit total variation on the appearance "
+        "factors carries over to its neighbours",
+        "translucent content: its appearance is seen along every ray through it")),
+    _Rule("carve_dilation", _opaque_only(
+        SURFACE_CARVE_DILATION,
+        "opaque surfaces: a density that fills the carved hull renders the training silhouettes exactly; grown, "
+        "the grid's edge cannot stand in for a surface",
+        "translucent content: a filled hull does not fit its images")),
+    _Rule("occupancy_refine_dilation", _opaque_only(
+        SURFACE_REFINE_DILATION,
+        "opaque surfaces: refined grids keep a ring of empty cells, so the grid's edge never cuts a surface that "
+        "grows",
+        "translucent content: refined grids hold only the cells with content (fewer samples a step)")),
+    _Rule("level_set_axis", _level_axis, in_field=True),
+    _Rule("silhouette_ray_fraction", _silhouettes),
+)
+"""The settings the data decide, in the order they are decided (the carving follows the first,
+the density the grid's size); ``CHOSEN_FIELDS`` names them."""
+
+
 def choose_recipe(scene: SceneData, base: TrainConfig, base_field: FieldConfig,
                   fixed: frozenset[str] = frozenset()) -> Recipe:
-    """``base`` and ``base_field`` with the data-dependent settings chosen for ``scene``; those
-    named in ``fixed`` (set by the user) are kept as given and recorded as such."""
-    traits = scene_traits(scene, base.carve_tolerance)
+    """``base`` and ``base_field`` with the data-dependent settings chosen for ``scene`` by
+    ``RULES``, one loop; those named in ``fixed`` (set by the user) are kept as given and recorded
+    as such."""
+    ctx = _Context(scene, scene_traits(scene, base.carve_tolerance), base, base_field)
     choices: list[Choice] = []
-    values: dict[str, object] = {}
-
-    if "carve_min_seen_fraction" in fixed:
-        choices.append(Choice("carve_min_seen_fraction", base.carve_min_seen_fraction, "set by the user"))
-    elif traits.framed:
-        values["carve_min_seen_fraction"] = CARVE_FRAMED_FRACTION
-        choices.append(Choice("carve_min_seen_fraction", CARVE_FRAMED_FRACTION,
-                              f"every one of the {scene.n_frames} training images shows its content clear of the "
-                              "border, so content is in every view's frame: cells that a quarter of their "
-                              "setting's views do not frame are carved"))
-    else:
-        values["carve_min_seen_fraction"] = 0.0
-        choices.append(Choice("carve_min_seen_fraction", 0.0,
-                              f"{traits.border_frames} of {scene.n_frames} training images have content on "
-                              "their border: a cell only a few views frame may still be content"))
-
-    carved = carve_content(scene, base.carve, base.carve_resolution, base.carve_tolerance,
-                           float(values.get("carve_min_seen_fraction", base.carve_min_seen_fraction)))
-    box = content_box(scene, carved)
-    extent = box[1] - box[0]
-    if "resolution_final" in fixed:
-        choices.append(Choice("resolution_final", base.resolution_final, "set by the user"))
-    else:
-        resolution = voxels_for(extent, VOXEL_PER_PIXEL * traits.pixel_footprint)
-        values["resolution_final"] = resolution
-        sizes = ", ".join(f"{float(e):.3f}" for e in extent)
-        choices.append(Choice("resolution_final", resolution,
-                              f"a pixel spans {traits.pixel_footprint:.5f} world units at the content; voxels of "
-                              f"{VOXEL_PER_PIXEL} pixel over the content box ({sizes})"))
-    final = int(values.get("resolution_final", base.resolution_final))  # type: ignore[call-overload]
-    if final < base.resolution_init:
-        values["resolution_init"] = final
-
-    field_values: dict[str, object] = {}
-    if "density_scale" in fixed:
-        choices.append(Choice("density_scale", base_field.density_scale, "set by the user"))
-    elif traits.opaque:
-        voxel = float(torch.prod(extent)) ** (1.0 / 3.0) / final
-        fog = F.softplus(torch.tensor(base_field.density_shift)).item() * base_field.density_scale
-        scale, shift = surface_density(voxel, fog)
-        field_values.update(density_scale=scale, density_shift=shift)
-        choices.append(Choice("density_scale", round(scale, 3),
-                              f"{100 * traits.faint_fraction:.1f} % of the foreground pixels are faint (under "
-                              f"{100 * SURFACE_MAX_FAINT:g} %): opaque surfaces, whose density must reach an optical "
-                              "depth of about 10 within a voxel or two; scaled by one over the voxel size, the "
-                              f"starting fog kept at {fog:.3f} per world unit (density_shift {shift:.3f})"))
-    else:
-        choices.append(Choice("density_scale", base_field.density_scale,
-                              f"{100 * traits.faint_fraction:.1f} % of the foreground pixels are faint: translucent "
-                              "content, densities as the decoder gives them"))
-
-    if "stop_eps" in fixed:
-        choices.append(Choice("stop_eps", base.stop_eps, "set by the user"))
-    elif not traits.opaque:
-        values["stop_eps"] = 0.0
-        choices.append(Choice("stop_eps", 0.0, "translucent content seldom turns a ray opaque: training steps keep "
-                                                "every sample instead of marching a density pass to drop occluded ones"))
-
-    # Made for opaque surfaces only: (the values it goes into, where a given one is, field, value,
-    # why on opaque surfaces, why not on translucent content).
-    opaque_only = (
-        (values, base, "colour_weight_floor", SURFACE_COLOUR_FLOOR,
-         "opaque surfaces start as a faint fog: samples lighter than this are coloured at random (unbiased), not "
-         "all of them, until the surfaces form",
-         "translucent content: its colour is spread over many light samples along a ray, every one coloured"),
-        (field_values, base_field, "facing_vectors", FACING_VECTORS,
-         "opaque surfaces: their shading follows the cosine between the surface and the view (a light at the "
-         "camera), which the colour decoder reads from learnt unit vectors",
-         "translucent content: its colours are read with spherical harmonics of the view alone"),
-        (values, base, "tv_weight_density", SURFACE_TV_DENSITY,
-         "opaque surfaces: the images pin the density only where a surface is seen, and a few views fit it with a "
-         "rough surface (and, with a level axis, leave the surfaces between training values free); total "
-         "variation keeps it smooth",
-         "translucent content: its density is seen along every ray through it"),
-        (values, base, "tv_weight_appearance", SURFACE_TV_APPEARANCE,
-         "opaque surfaces: each surface point is seen by a few views, whose fit total variation on the appearance "
-         "factors carries over to its neighbours",
-         "translucent content: its appearance is seen along every ray through it"),
-        (values, base, "carve_dilation", SURFACE_CARVE_DILATION,
-         "opaque surfaces: a density that fills the carved hull renders the training silhouettes exactly; grown, "
-         "the grid's edge cannot stand in for a surface",
-         "translucent content: a filled hull does not fit its images"),
-        (values, base, "occupancy_refine_dilation", SURFACE_REFINE_DILATION,
-         "opaque surfaces: refined grids keep a ring of empty cells, so the grid's edge never cuts a surface "
-         "that grows",
-         "translucent content: refined grids hold only the cells with content (fewer samples a step)"),
-    )
-    for chosen, given, name, value, opaque_reason, translucent_reason in opaque_only:
-        if name in fixed:
-            choices.append(Choice(name, getattr(given, name), "set by the user"))
-        elif traits.opaque:
-            chosen[name] = value
-            choices.append(Choice(name, value, opaque_reason))
-        else:
-            choices.append(Choice(name, getattr(given, name), translucent_reason))
-
-    if "level_set_axis" in fixed:
-        choices.append(Choice("level_set_axis", base_field.level_set_axis, "set by the user"))
-    elif traits.opaque and traits.n_params > 0:
-        min_seen = float(values.get("carve_min_seen_fraction", base.carve_min_seen_fraction))  # type: ignore[arg-type]
-        axis, nesting = nested_axis(scene, estimate_bbox(scene), base.carve_resolution, base.carve_tolerance,
-                                    min_seen, NEST_TOLERANCE)
-        field_values["level_set_axis"] = axis
-        measured = "; ".join(describe_nesting(n) for n in nesting)
-        if axis >= 0:
-            name = scene.param_axes[axis].name
-            reason = (f"opaque surfaces whose visual hulls are nested along {name!r} (an isovalue sweep): its "
-                      f"surfaces are level sets of one field ({measured})")
-        else:
-            reason = f"opaque surfaces, but no axis's visual hulls are nested within {100 * NEST_TOLERANCE:g} % ({measured})"
-        choices.append(Choice("level_set_axis", axis, reason))
-
-    level_axis = int(field_values.get("level_set_axis", base_field.level_set_axis))  # type: ignore[arg-type]
-    if "silhouette_ray_fraction" in fixed:
-        choices.append(Choice("silhouette_ray_fraction", base.silhouette_ray_fraction, "set by the user"))
-    elif traits.opaque and level_axis >= 0:
-        values["silhouette_ray_fraction"] = SURFACE_SILHOUETTE_RAYS
-        choices.append(Choice("silhouette_ray_fraction", SURFACE_SILHOUETTE_RAYS,
-                              "opaque surfaces of one level field: the images' colour changes at a silhouette from "
-                              "the background to a shaded surface within one pixel, and a surface's error lies "
-                              "there; this share of each batch is drawn from those pixels"))
-    elif traits.opaque:
-        choices.append(Choice("silhouette_ray_fraction", base.silhouette_ray_fraction,
-                              "opaque surfaces without a level field: their shading is learnt from the pixels "
-                              "inside the silhouettes, which a share drawn from the silhouettes would take rays "
-                              "from"))
-    else:
-        choices.append(Choice("silhouette_ray_fraction", base.silhouette_ray_fraction,
-                              "translucent content: its silhouettes fade, and its error is spread over the content"))
-
-    if traits.n_params == 0:
+    for rule in RULES:
+        if rule.name in fixed:
+            choices.append(Choice(rule.name, ctx.value(rule.name), "set by the user"))
+        elif (decision := rule.decide(ctx)) is not None:
+            value, reason = decision
+            if value is not None:
+                (ctx.field if rule.in_field else ctx.train)[rule.name] = value
+            shown = round(value, 3) if rule.name == "density_scale" and isinstance(value, float) else ctx.value(rule.name)
+            choices.append(Choice(rule.name, shown, reason))
+        if rule.name == "carve_min_seen_fraction":
+            ctx.carve()
+    if ctx.final_resolution() < base.resolution_init:
+        ctx.train["resolution_init"] = ctx.final_resolution()
+    if ctx.traits.n_params == 0:
         choices.append(Choice("parameter_axes", 0, "one setting in the data (K = 0): no parameter factors"))
-    return Recipe(dataclasses.replace(base, **values), dataclasses.replace(base_field, **field_values),  # type: ignore[arg-type]
-                  tuple(choices), carved)
+    return Recipe(dataclasses.replace(base, **ctx.train), dataclasses.replace(base_field, **ctx.field),  # type: ignore[arg-type]
+                  tuple(choices), ctx.carved)
 
 
 def carve_content(scene: SceneData, carve: bool, resolution: int, tolerance: int,
