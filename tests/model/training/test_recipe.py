@@ -20,12 +20,10 @@ from visnerf.training.recipe import (
     VOXEL_PER_PIXEL,
     choose_recipe,
     content_box,
-    faint_fraction,
-    frames_cut_by_border,
-    pixel_footprint,
     surface_density,
     voxels_for,
 )
+from visnerf.training.scene_traits import faint_fraction, frames_cut_by_border, pixel_footprint
 
 NYX = Path(__file__).resolve().parents[3].parent / "shared" / "data" / "nyx"
 
