@@ -6,8 +6,9 @@ import json
 import math
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import torch
 
@@ -57,55 +58,65 @@ def _train(args: argparse.Namespace) -> int:
         leave_process_group()
 
 
-def _train_as_rank(args: argparse.Namespace) -> int:
-    from visnerf.data.datasets import DatasetError, has_split, load_dataset, read_split
-    from visnerf.data.holdout import split_holdout
-    from visnerf.training.distributed import Launch, Ranks
-    from visnerf.training.record import write_log
-    from visnerf.training.run_state import RUN_STATE_SUFFIX, RunStateError, run_state_path
-    from visnerf.training.stop_signals import StopRequested, StopSignals
-    from visnerf.training.trainer import Trainer
+class _Refused(Exception):
+    """A bad input to ``visnerf train``: its message is printed as an error, exit status 2, nothing written."""
+
+
+@dataclass(frozen=True)
+class _Options:
+    """``visnerf train``'s configurations and which of their fields the user gave."""
+
+    train: TrainConfig
+    field: FieldConfig
+    render: RenderConfig
+    train_given: dict
+    field_given: dict
+    render_given: dict
+
+
+def _paths(args: argparse.Namespace) -> tuple[Path, Path, Path | None]:
+    """(the checkpoint to write, its run state, the state or checkpoint to resume or None)."""
+    from visnerf.training.run_state import run_state_path
 
     out = Path(args.out)
     if out.suffix != ".safetensors":
-        print(f"error: --out must end in .safetensors, got {out}", file=sys.stderr)
-        return 2
+        raise _Refused(f"--out must end in .safetensors, got {out}")
     if out.exists() and not args.force and args.resume is None:
-        print(f"error: {out} exists; pass --force to overwrite it", file=sys.stderr)
-        return 2
+        raise _Refused(f"{out} exists; pass --force to overwrite it")
     state_path = run_state_path(out)
     resume = None if args.resume is None else Path(args.resume) if args.resume else state_path
     if resume is None and state_path.exists() and not args.force:
-        print(f"error: {state_path} holds the state of an earlier run of {out} that was stopped; pass --resume to "
-              "go on with it, or --force to start afresh (the state is then replaced)", file=sys.stderr)
-        return 2
+        raise _Refused(f"{state_path} holds the state of an earlier run of {out} that was stopped; pass --resume to "
+                       "go on with it, or --force to start afresh (the state is then replaced)")
     if resume is not None and not resume.is_file():
-        print(f"error: no run state or checkpoint at {resume} to resume (a run keeps its state in {state_path} "
-              "while it trains and deletes it when it has written its checkpoint)", file=sys.stderr)
-        return 2
+        raise _Refused(f"no run state or checkpoint at {resume} to resume (a run keeps its state in {state_path} "
+                       "while it trains and deletes it when it has written its checkpoint)")
+    return out, state_path, resume
+
+
+def _options(args: argparse.Namespace, resume: Path | None) -> _Options:
+    """The configurations from the options, judged by their own checks before anything loads."""
     train_given, field_given = given_options(args, TrainConfig), given_options(args, FieldConfig)
     render_given = given_options(args, RenderConfig)
-    try:  # the configurations' own checks judge the options, before anything loads
-        budget = None if args.time_budget is None else args.time_budget * 60
-        cfg = TrainConfig(**{"time_budget_s": budget, **train_given})
-        field_cfg = FieldConfig(**field_given)
-        render_cfg = RenderConfig(**render_given)
+    if args.time_budget is not None:
+        train_given = {"time_budget_s": args.time_budget * 60, **train_given}
+    try:
+        options = _Options(TrainConfig(**{"time_budget_s": None, **train_given}), FieldConfig(**field_given),
+                           RenderConfig(**render_given), train_given, field_given, render_given)
     except ValueError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    if budget is not None:
-        train_given["time_budget_s"] = budget
+        raise _Refused(str(exc)) from None
     shape_given = sorted(set(field_given) - {"factor_storage"})
     if resume is not None and shape_given:
-        print(f"error: {', '.join('--' + k.replace('_', '-') for k in shape_given)} would change the field of "
-              f"{resume}; a resumed run keeps it", file=sys.stderr)
-        return 2
-    try:  # several processes (torchrun, srun): each draws its share of every batch; rank 0 writes
-        ranks = Ranks.start(Launch.from_environment(), pick_device(args.device))
-    except ValueError as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    device, main = ranks.device, ranks.is_main
+        raise _Refused(f"{', '.join('--' + k.replace('_', '-') for k in shape_given)} would change the field of "
+                       f"{resume}; a resumed run keeps it")
+    return options
+
+
+def _data(args: argparse.Namespace) -> tuple[Any, "SceneData", "SceneData | None"]:
+    """(the parsed training split, its training frames, the held-out frames or None)."""
+    from visnerf.data.datasets import DatasetError, has_split, load_dataset, read_split
+    from visnerf.data.holdout import split_holdout
+
     try:
         parsed = read_split(args.data, "train", cinema_camera(args))
         scene = with_bbox(parsed.scene, args.bbox)
@@ -113,45 +124,79 @@ def _train_as_rank(args: argparse.Namespace) -> int:
         if val is None and has_split(args.data, "val"):
             val = load_dataset(args.data, "val")
     except (DatasetError, ValueError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
-    for note in parsed.notes if main else ():
-        print(f"  {note}", file=sys.stderr)
-    if main:
-        print(f"training on {train.n_frames} frames ({val.n_frames if val else 0} held out), "
-              f"K={train.n_params}, {train.intrinsics.width}x{train.intrinsics.height}, device {device}"
-              + (f", {ranks.world_size} ranks" if ranks.world_size > 1 else ""), file=sys.stderr)
+        raise _Refused(str(exc)) from None
+    return parsed, train, val
+
+
+def _make_trainer(options: _Options, resume: Path | None, train: "SceneData", val: "SceneData | None",
+                  device: torch.device, announce: bool) -> "Trainer":
+    """A trainer with the recipe chosen from the data, or going on from a run state or checkpoint."""
+    from visnerf.training.run_state import RUN_STATE_SUFFIX, RunStateError
+    from visnerf.training.trainer import Trainer
+
     try:
         if resume is None:
             from visnerf.training.recipe import recipe_trainer
 
-            fixed = set(train_given) | set(field_given)
-            if "density_shift" in field_given:
+            fixed = set(options.train_given) | set(options.field_given)
+            if "density_shift" in options.field_given:
                 fixed.add("density_scale")
-            trainer = recipe_trainer(train, val, cfg, field_cfg, device, render_cfg, frozenset(fixed))
-            for choice in trainer.recipe_choices if main else ():
+            trainer = recipe_trainer(train, val, options.train, options.field, device, options.render, frozenset(fixed))
+            for choice in trainer.recipe_choices if announce else ():
                 print(f"  {choice['name']} = {choice['value']}: {choice['reason']}", file=sys.stderr)
         elif resume.suffix == RUN_STATE_SUFFIX:
-            trainer = Trainer.from_run_state(resume, train, val, device, train_given, render_given)
-            if main:
+            trainer = Trainer.from_run_state(resume, train, val, device, options.train_given, options.render_given)
+            if announce:
                 print(f"resuming {resume} at iteration {trainer.state.iteration} "
                       f"({trainer.state.train_seconds / 60:.1f} min trained)", file=sys.stderr)
         else:
-            trainer = _trainer_from_checkpoint(resume, train, val, device, train_given, render_given, field_given)
+            trainer = _trainer_from_checkpoint(resume, train, val, device, options.train_given,
+                                               options.render_given, options.field_given)
     except (CheckpointError, RunStateError) as exc:
+        raise _Refused(str(exc)) from None
+    if "factor_storage" in options.field_given:  # storage, not shape: a resumed field may change it
+        trainer.field.cfg = dataclasses.replace(trainer.field.cfg, factor_storage=options.field_given["factor_storage"])
+    return trainer
+
+
+def _train_as_rank(args: argparse.Namespace) -> int:
+    from visnerf.training.distributed import Launch, Ranks
+
+    try:
+        out, state_path, resume = _paths(args)
+        options = _options(args, resume)
+        try:  # several processes (torchrun, srun): each draws its share of every batch; rank 0 writes
+            ranks = Ranks.start(Launch.from_environment(), pick_device(args.device))
+        except ValueError as exc:
+            raise _Refused(str(exc)) from None
+        parsed, train, val = _data(args)
+        main = ranks.is_main
+        for note in parsed.notes if main else ():
+            print(f"  {note}", file=sys.stderr)
+        if main:
+            print(f"training on {train.n_frames} frames ({val.n_frames if val else 0} held out), "
+                  f"K={train.n_params}, {train.intrinsics.width}x{train.intrinsics.height}, device {ranks.device}"
+                  + (f", {ranks.world_size} ranks" if ranks.world_size > 1 else ""), file=sys.stderr)
+        trainer = _make_trainer(options, resume, train, val, ranks.device, main)
+    except _Refused as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    if "factor_storage" in field_given:  # storage, not shape: a resumed field may change it
-        trainer.field.cfg = dataclasses.replace(trainer.field.cfg, factor_storage=field_given["factor_storage"])
     trainer.dataset_notes = list(parsed.notes)  # how the columns were read, into the checkpoint
     trainer.distribute(ranks)
+    return _run_and_save(args, trainer, out, state_path)
 
-    def report(row: dict) -> None:
-        print("  " + json.dumps(row), file=sys.stderr)
 
+def _run_and_save(args: argparse.Namespace, trainer: "Trainer", out: Path, state_path: Path) -> int:
+    """Train until the budget or a stop; rank 0 writes the checkpoint (or, stopped, the log and the
+    run state to resume from) and submits it where asked."""
+    from visnerf.training.record import write_log
+    from visnerf.training.stop_signals import StopRequested, StopSignals
+
+    main = trainer.ranks.is_main
     with StopSignals() as stop:
         try:
-            trainer.run(progress_bar=not args.quiet and main, on_validate=report,
+            trainer.run(progress_bar=not args.quiet and main, on_validate=lambda row: print("  " + json.dumps(row),
+                                                                                           file=sys.stderr),
                         state_path=state_path if main else None, stop=stop)
             if not main:  # rank 0 writes the checkpoint, its log and the run state
                 return stop.exit_status if trainer.stopped else 0

@@ -78,7 +78,7 @@ def test_factor_storage_and_sampled_density_gradients(plume, tmp_path) -> None:
     ("--occupancy-refine-dilation", "-1", "occupancy_refine_dilation must be >= 0"),
     ("--resolution", "0", "resolution_final must be a whole number of at least 2"),
     ("--occupancy-refine-dilation", "0.5", "expected a whole number"),
-    ("--factor-storage", "int4", "factor_storage must be one of"),
+    ("--factor-storage", "int4", "expected one of float32, float16, int8"),
     ("--batch-rays", "0", "batch_rays must be at least 1"),
     ("--micro-batch-rays", "0", "micro_batch_rays must be at least 1"),
     ("--micro-batch-samples", "-5", "micro_batch_samples must be at least 1"),
