@@ -73,6 +73,18 @@ def _release() -> None:
         _busy -= 1
 
 
+def _submit(helper: Callable[[], None], helpers: int, futures: "list[Future[None]]") -> None:
+    """Start ``helpers`` helpers on the pool, appending each to ``futures`` as it starts (so that
+    the caller waits for those that did); the cores of those not started are released."""
+    pool = _executor()
+    try:
+        for _ in range(helpers):
+            futures.append(pool.submit(helper))
+    finally:
+        for _ in range(helpers - len(futures)):  # not started: their cores were never taken
+            _release()
+
+
 def map_chunks(fn: Callable[[int], None], n_chunks: int, workers: int) -> None:
     """Call ``fn(i)`` for every chunk ``i``, on up to ``workers`` threads (the caller's and helpers
     for the cores no other frame's chunks hold). The first exception of a chunk reaches the caller
@@ -109,13 +121,7 @@ def map_chunks(fn: Callable[[int], None], n_chunks: int, workers: int) -> None:
     error: BaseException | None = None
     previous = torch.get_num_threads()
     try:
-        pool = _executor()
-        try:
-            for _ in range(helpers):
-                futures.append(pool.submit(helper))
-        finally:
-            for _ in range(helpers - len(futures)):  # not started: their cores were never taken
-                _release()
+        _submit(helper, helpers, futures)
         torch.set_num_threads(1)
         march()
     except BaseException as caught:  # a chunk failed (or the render was cancelled)

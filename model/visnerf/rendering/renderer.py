@@ -272,9 +272,8 @@ def march_rays(
         return background[None].expand(n, 3).clone()
     # Per active ray, compacted as rays drop out (``index_select``: advanced indexing is several
     # times slower on the CPU).
-    first, last = windows.first.index_select(0, active), windows.last.index_select(0, active)
-    t_near, t_far = windows.t_near.index_select(0, active), windows.t_far.index_select(0, active)
-    origins, directions = rays_o.index_select(0, active), rays_d.index_select(0, active)
+    first, last, t_near, t_far, origins, directions = (
+        x.index_select(0, active) for x in (windows.first, windows.last, windows.t_near, windows.t_far, rays_o, rays_d))
     tau_active = torch.zeros(active.shape[0], dtype=rays_o.dtype, device=rays_o.device)
     longest = int((last - first).max()) + 1
     seg_max = settings.segment_samples if settings.early_termination else longest
@@ -282,44 +281,56 @@ def march_rays(
     ray_terms = frame.direction_terms(rays_d)  # [n, h], once per ray
     tau_stop = -math.log(settings.early_stop_eps) if settings.early_termination else math.inf
     weight_threshold = settings.weight_threshold_per_voxel * settings.step_ratio  # per sample at this spacing
-    all_offsets = torch.arange(seg_max, device=rays_o.device)
     compiled = march_kernel.available(rays_o.device) and rays_o.dtype == torch.float32
-    occupancy = None
-    if compiled and empty_space is not None:
-        occupancy = empty_space.tables(empty_space.occupied).arrays()
+    occupancy = empty_space.tables(empty_space.occupied).arrays() if compiled and empty_space is not None else None
     s0 = 0
-    while s0 < longest:
+    while s0 < longest and active.numel() > 0:
         if compiled:  # the same segment in two compiled loops (``rendering.march_kernel``)
             points, flat = march_kernel.place(origins, directions, t_near, t_far, first, last, s0, seg, step, occupancy)
             _shade_placed_samples(frame, ray_terms, active, points, flat, seg, step, tau_active, weight_threshold, rgbw)
             segment_end = first + (s0 + seg - 1)  # [a]
         else:
-            idx = (first + s0)[:, None] + all_offsets[None, :seg]  # [a, s]
-            t = t_near[:, None] + step * (idx.to(rays_o.dtype) + 0.5)
-            valid = (idx <= last[:, None]) & (t < t_far[:, None])
-            points = origins[:, None, :] + directions[:, None, :] * t[..., None]  # [a, s, 3]
-            if empty_space is not None:
-                flat = valid.view(-1).nonzero()[:, 0]
-                valid = torch.zeros_like(valid).view(-1).index_copy_(
-                    0, flat, empty_space.occupied_at(points.view(-1, 3).index_select(0, flat))).view_as(valid)
-            tau_active += _shade_frame_samples(
-                frame, ray_terms, active, points, step, valid, tau_active, weight_threshold, rgbw,
-            )
+            idx = (first + s0)[:, None] + torch.arange(seg, device=first.device)[None, :]  # [a, s]
+            points, valid = _segment_samples(idx, last, t_near, t_far, origins, directions, step, empty_space)
+            tau_active += _shade_frame_samples(frame, ray_terms, active, points, step, valid, tau_active,
+                                               weight_threshold, rgbw)
             segment_end = idx[:, -1]
         s0 += seg
         seg = min(seg_max, 2 * seg)
         keep = ((tau_active < tau_stop) & (segment_end < last)).nonzero()[:, 0]
         if keep.numel() < active.numel():
             tau_total.index_copy_(0, active, tau_active)
-            if keep.numel() == 0:
-                active = keep
-                break
             active, first, last, t_near, t_far, origins, directions, tau_active = (
                 x.index_select(0, keep) for x in (active, first, last, t_near, t_far, origins, directions, tau_active)
             )
     if active.numel() > 0:
         tau_total.index_copy_(0, active, tau_active)
-    opacity = -torch.expm1(-tau_total)
+    return _over_background(rgbw, tau_total, background, weight_threshold)
+
+
+def _segment_samples(
+    idx: Int[Tensor, "a s"], last: Int[Tensor, " a"], t_near: Float[Tensor, " a"],
+    t_far: Float[Tensor, " a"], origins: Float[Tensor, "a 3"], directions: Float[Tensor, "a 3"], step: float,
+    empty_space: EmptySpace | None,
+) -> tuple[Float[Tensor, "a s 3"], Bool[Tensor, "a s"]]:
+    """The torch twin of ``march_kernel.place``: a segment's sample points and which of them count
+    (inside the ray's window and, with ``empty_space``, in an occupied cell)."""
+    t = t_near[:, None] + step * (idx.to(origins.dtype) + 0.5)
+    valid = (idx <= last[:, None]) & (t < t_far[:, None])
+    points = origins[:, None, :] + directions[:, None, :] * t[..., None]
+    if empty_space is not None:
+        flat = valid.view(-1).nonzero()[:, 0]
+        valid = torch.zeros_like(valid).view(-1).index_copy_(
+            0, flat, empty_space.occupied_at(points.view(-1, 3).index_select(0, flat))).view_as(valid)
+    return points, valid
+
+
+def _over_background(
+    rgbw: Float[Tensor, "n 4"], tau: Float[Tensor, " n"], background: Float[Tensor, " 3"], weight_threshold: float,
+) -> Float[Tensor, "n 3"]:
+    """Marched colour over the background: opacity ``1 - exp(-tau)``; the weight of samples skipped
+    under ``weight_threshold`` given back to the shaded ones (``_unshaded_gain``)."""
+    opacity = -torch.expm1(-tau)
     rgb = rgbw[:, :3]
     if weight_threshold > 0.0:
         rgb = rgb * _unshaded_gain(opacity, rgbw[:, 3])[:, None]

@@ -4,10 +4,9 @@
 three modes) and, for density, its positional encoding. As torch operations that is about a dozen
 passes over ``[m, k]`` arrays: the taps' rows and weights (``TapLayout.taps``), two
 ``embedding_bag`` sums, their product, a cast and the encoding's product and sine. Here one loop
-over the samples computes the interpolation, reads the rows and writes the finished row: on the
-bundled cosmo_sim density grid, 16384 samples along rays, one thread, 1.3 to 1.5 ms against 3.2 to
-4.3 ms for the torch operations. The loop releases the GIL, so the chunk threads of a frame run it
-side by side.
+over the samples computes the interpolation, reads the rows and writes the finished row, in less
+than half the time (docs/decisions.md, "Rendering"). The loop releases the GIL, so the chunk
+threads of a frame run it side by side.
 
 The tables are read in float32 (the model's own parameters, no per-frame copy) and a row is
 rounded to bfloat16 once, when the decoders compute in bfloat16; the torch path rounds the table
@@ -38,42 +37,90 @@ def available(device: torch.device) -> bool:
     return compiled.serves(device)
 
 
-def _kernel_source(c: int):  # noqa: ANN202 - the loop numba compiles for ``c`` channels
-    """The loop for tables of ``c`` channels, compiled once per channel count (``_compiled``).
-
-    The channel count is a constant of the compiled loop, so a mode's channel loop has a known
-    length, and no row is a view made per sample (numba counts a reference to each view, taken
-    and dropped): all rows are indexed in two dimensions. Against the loop of one channel count
-    for all, on a frame of the bundled cosmo_sim and tangle_iso (16 and 48 channels, one thread,
-    medians of 9 interleaved passes, AMD EPYC), bfloat16 rows took 8 to 15 % less time; float32
-    rows the same (within 2 %, either way)."""
+@functools.cache
+def interpolation_loop(ft: type):  # noqa: ANN202 - an inlined numba helper
+    """Each axis's lower node and fraction of sample ``s`` in ``ft`` (``vm_taps``' interpolation)."""
 
     @no_type_check  # compiled by numba: no runtime type checks (tests run jaxtyping's import hook)
+    def _interpolation(coords, s, res, lower, frac):  # noqa: ANN001, ANN202
+        one = ft(1.0)
+        for a in range(3):
+            x = coords[s, a]
+            if not x >= -one:  # NaN reads the border too: no index outside the tables
+                x = -one
+            elif x > one:
+                x = one
+            half = ft(0.5) * ft(res[a] - 1)
+            pos = half * x + half
+            lo = min(math.floor(pos), res[a] - 2)
+            lower[a] = lo
+            frac[a] = pos - ft(lo)
+
+    return compiled.jit(_interpolation, inline=True)
+
+
+@functools.cache
+def encoding_loop(ft: type):  # noqa: ANN202 - an inlined numba helper
+    """``encode_position``'s columns of sample ``s`` into ``out[r, col:]``: the coordinates, then
+    ``6 n_freqs`` sines and cosines, level 0 from libm and each later level by the double-angle
+    formulas (one rounding a level instead of a sine and a cosine call)."""
+
+    @no_type_check
+    def _encode(coords, s, n_freqs, out, r, col):  # noqa: ANN001, ANN202
+        for a in range(3):
+            out[r, col + a] = coords[s, a]
+        for a in range(3):
+            angle = coords[s, a] * ft(math.pi)
+            sn, cs = ft(math.sin(angle)), ft(math.cos(angle))
+            for level in range(n_freqs):
+                out[r, col + 3 + 6 * level + a] = sn
+                out[r, col + 6 + 6 * level + a] = cs
+                sn, cs = ft(2.0) * sn * cs, (cs - sn) * (cs + sn)
+
+    return compiled.jit(_encode, inline=True)
+
+
+@no_type_check
+def _store_row(row, row_bits, s, width, to_bf16, out, out_bits):  # noqa: ANN001, ANN202
+    """Row ``s`` of the output from the scratch row: copied (float32) or rounded to the nearest
+    even bfloat16 (its bits; NaN stays NaN, where rounding could carry it to 0)."""
+    if to_bf16:
+        for j in range(width):
+            b = row_bits[0, j]
+            if (b & np.uint32(0x7FFFFFFF)) > np.uint32(0x7F800000):
+                out_bits[s, j] = np.uint16(0x7FC0)
+            else:
+                out_bits[s, j] = np.uint16((b + np.uint32(0x7FFF) + ((b >> np.uint32(16)) & np.uint32(1)))
+                                           >> np.uint32(16))
+    else:
+        for j in range(width):
+            out[s, j] = row[0, j]
+
+
+store_row = compiled.jit(_store_row, inline=True)
+
+
+def _kernel_source(c: int):  # noqa: ANN202 - the loop numba compiles for ``c`` channels
+    """The loop for tables of ``c`` channels, compiled once per channel count (``_compiled``): a
+    mode's channel loop of known length, and every row indexed in two dimensions (no view made
+    per sample, which numba counts references to); docs/decisions.md, "Rendering"."""
+    interpolation = interpolation_loop(np.float32)
+    encode = encoding_loop(np.float32)
+
+    @no_type_check
     def _kernel(coords, plane, line, res, plane_off, line_off, n_freqs, out, out_bits, to_bf16):  # noqa: ANN001, ANN202
         """Rows ``out[s]`` (float32) or ``out_bits[s]`` (bfloat16 bits, round to nearest even) of the
         samples ``coords[s]``: ``3c`` VM features, then, where ``n_freqs >= 0``, the coordinates and
         their ``6 n_freqs`` sines and cosines (``encode_position``'s column order)."""
-        m = coords.shape[0]
         nf = 3 * c
         width = nf if n_freqs < 0 else nf + 3 + 6 * n_freqs
-        # one row of scratch, written, then copied (float32) or rounded (bfloat16) into the output
-        row = np.empty(width, np.float32)
+        row = np.empty((1, width), np.float32)  # scratch, written, then copied or rounded into the output
         row_bits = row.view(np.uint32)
         lower = np.empty(3, np.int64)
         frac = np.empty(3, np.float32)
         one = np.float32(1.0)
-        for s in range(m):
-            for a in range(3):
-                x = coords[s, a]
-                if not x >= np.float32(-1.0):  # NaN reads the border too: no index outside the tables
-                    x = np.float32(-1.0)
-                elif x > one:
-                    x = one
-                half = np.float32(0.5) * np.float32(res[a] - 1)
-                pos = half * x + half
-                lo = min(math.floor(pos), res[a] - 2)
-                lower[a] = lo
-                frac[a] = pos - np.float32(lo)
+        for s in range(coords.shape[0]):
+            interpolation(coords, s, res, lower, frac)
             for i in range(3):
                 pa, pb, la = plane_axes(i)
                 w = res[pa]
@@ -86,30 +133,10 @@ def _kernel_source(c: int):  # noqa: ANN202 - the loop numba compiles for ``c`` 
                     p = ((w00 * plane[r00, ch] + w10 * plane[r00 + 1, ch])
                          + (w01 * plane[r00 + w, ch] + w11 * plane[r00 + w + 1, ch]))
                     q = (one - fl) * line[l0, ch] + fl * line[l0 + 1, ch]
-                    row[i * c + ch] = p * q
+                    row[0, i * c + ch] = p * q
             if n_freqs >= 0:
-                for a in range(3):
-                    row[nf + a] = coords[s, a]
-                for a in range(3):
-                    # level 0 from libm; each later level by the double-angle formulas (one rounding
-                    # a level instead of a sine and a cosine call)
-                    angle = coords[s, a] * np.float32(math.pi)
-                    sn, cs = np.float32(math.sin(angle)), np.float32(math.cos(angle))
-                    for level in range(n_freqs):
-                        row[nf + 3 + 6 * level + a] = sn
-                        row[nf + 6 + 6 * level + a] = cs
-                        sn, cs = np.float32(2.0) * sn * cs, (cs - sn) * (cs + sn)
-            if to_bf16:
-                for j in range(width):
-                    b = row_bits[j]
-                    if (b & np.uint32(0x7FFFFFFF)) > np.uint32(0x7F800000):  # NaN stays NaN (rounding could carry it to 0)
-                        out_bits[s, j] = np.uint16(0x7FC0)
-                    else:
-                        out_bits[s, j] = np.uint16((b + np.uint32(0x7FFF) + ((b >> np.uint32(16)) & np.uint32(1)))
-                                                   >> np.uint32(16))
-            else:
-                for j in range(width):
-                    out[s, j] = row[j]
+                encode(coords, s, n_freqs, row, 0, nf)
+            store_row(row, row_bits, s, width, to_bf16, out, out_bits)
 
     return _kernel
 

@@ -25,41 +25,19 @@ training, float64 for the tests against autograd); all release the GIL.
 """
 
 import functools
-import math
 from typing import no_type_check
 
 import numpy as np
 
 from visnerf import compiled
-from visnerf.representation.vm_kernel import plane_axes
-
-
-@functools.cache
-def _interpolation_loop(ft: type):  # noqa: ANN202 - an inlined numba helper
-    """Each axis's lower node and fraction of sample ``s`` (``vm_taps``' interpolation)."""
-
-    @no_type_check
-    def _interpolation(coords, s, res, lower, frac):  # noqa: ANN001, ANN202
-        one = ft(1.0)
-        for a in range(3):
-            x = coords[s, a]
-            if not x >= -one:  # NaN reads the border too: no index outside the tables
-                x = -one
-            elif x > one:
-                x = one
-            half = ft(0.5) * ft(res[a] - 1)
-            pos = half * x + half
-            lo = min(math.floor(pos), res[a] - 2)
-            lower[a] = lo
-            frac[a] = pos - ft(lo)
-
-    return compiled.jit(_interpolation, inline=True)
+from visnerf.representation.vm_kernel import encoding_loop, interpolation_loop, plane_axes
 
 
 @functools.cache
 def _rest_loop(c: int, n_q: int, ft: type):  # noqa: ANN202 - an inlined numba helper
     """The columns of a row after its features: ``q``, then the encoding or the ray's tail."""
     nf = 3 * c
+    encode = encoding_loop(ft)
 
     @no_type_check
     def _write_rest(coords, s, q, r, tail, n_freqs, out):  # noqa: ANN001, ANN202
@@ -67,15 +45,7 @@ def _rest_loop(c: int, n_q: int, ft: type):  # noqa: ANN202 - an inlined numba h
             out[s, nf + j] = q[r, j]
         col = nf + n_q
         if n_freqs >= 0:
-            for a in range(3):
-                out[s, col + a] = coords[s, a]
-            for a in range(3):
-                angle = coords[s, a] * ft(math.pi)
-                sn, cs = ft(math.sin(angle)), ft(math.cos(angle))
-                for level in range(n_freqs):
-                    out[s, col + 3 + 6 * level + a] = sn
-                    out[s, col + 6 + 6 * level + a] = cs
-                    sn, cs = ft(2.0) * sn * cs, (cs - sn) * (cs + sn)
+            encode(coords, s, n_freqs, out, s, col)
             col += 3 + 6 * n_freqs
         for j in range(tail.shape[1]):
             out[s, col + j] = tail[r, j]
@@ -85,7 +55,7 @@ def _rest_loop(c: int, n_q: int, ft: type):  # noqa: ANN202 - an inlined numba h
 
 def _forward_source(c: int, n_q: int, ft: type):  # noqa: ANN202 - the loop numba compiles
     """``forward`` for tables of ``c`` channels and ``n_q`` parameter features in ``ft``."""
-    interpolation = _interpolation_loop(ft)
+    interpolation = interpolation_loop(ft)
     write_rest = _rest_loop(c, n_q, ft)
 
     @no_type_check

@@ -72,35 +72,13 @@ class Trainer(Schedule, OccupancyPolicy, Stepping, Resumable, Recording):
         """How the reader took the dataset's columns (``ParsedSplit.notes``), saved in the checkpoint."""
         self.carved: tuple[Tensor, Tensor] | None = None  # (grid, its world box)
         if init_field is None:
-            aabb = estimate_bbox(train_scene) if carved is None else carved[1].clone()
-            if cfg.carve:
-                t0 = time.perf_counter()
-                if carved is not None:
-                    grid = carved[0]
-                else:
-                    grid = carve_occupancy(train_scene, aabb, (cfg.carve_resolution,) * 3, cfg.carve_tolerance,
-                                           min_seen_fraction=cfg.carve_min_seen_fraction)
-                self.setup_seconds += time.perf_counter() - t0
-                bounds = occupied_bounds(grid, aabb)
-                if bounds is not None:
-                    self.carved = (dilate(grid, cfg.carve_dilation), aabb.clone())
-                    aabb = bounds
-            base = field_cfg or FieldConfig()
-            resolution = resolution_for_box(aabb[1] - aabb[0], cfg.resolution_init)
-            fcfg = FieldConfig(**{**base.to_dict(), "resolution": resolution,
-                                  "param_lengths": tuple(len(a.values) for a in train_scene.param_axes)})
-            init_field = VisNerfField(fcfg, aabb)
-            init_field.set_param_knots(train_scene.knots())
+            init_field = self._initial_field(field_cfg or FieldConfig(), carved)
         self.field = init_field.to(device).train()
         set_mixed_precision(self.field, cfg.mixed_precision)
         if self.carved is not None:
             self.field.set_occupancy(self._carved_on(self._occupancy_resolution()))
         self.state = start or TrainState(train_seconds=self.setup_seconds)  # carving counts as training
-        self.sampler = RayBatchSampler(train_scene, device, self.generator)
-        self.sampler.set_aabb(self.field.aabb)
-        if cfg.silhouette_ray_fraction > 0.0:
-            band = silhouette_pixels(train_scene.images, train_scene.background, cfg.carve_tolerance)
-            self.sampler.set_silhouette_band(band, cfg.silhouette_ray_fraction)
+        self.sampler = self._make_sampler()
         self.fused: FusedStep | None = None
         """The fused step where it serves (``fused_step_serves``; ``fused=False`` takes the torch path)."""
         self._use_fused = fused_step_serves(self.field) if fused is None else fused
@@ -113,6 +91,39 @@ class Trainer(Schedule, OccupancyPolicy, Stepping, Resumable, Recording):
         """Whether the last ``run`` returned early on a stop request (its run state is written)."""
         self.ranks = Ranks.solo(device)
         """The processes training this field together (``distribute``); one by default."""
+
+    def _initial_field(self, base: FieldConfig, carved: tuple[Tensor, Tensor] | None) -> VisNerfField:
+        """A fresh field over the content box: the carved one where carving finds content (its grid
+        kept in ``self.carved`` for the first occupancy), else the box every camera sees."""
+        cfg, scene = self.cfg, self.scene
+        aabb = estimate_bbox(scene) if carved is None else carved[1].clone()
+        if cfg.carve:
+            t0 = time.perf_counter()
+            if carved is not None:
+                grid = carved[0]
+            else:
+                grid = carve_occupancy(scene, aabb, (cfg.carve_resolution,) * 3, cfg.carve_tolerance,
+                                       min_seen_fraction=cfg.carve_min_seen_fraction)
+            self.setup_seconds += time.perf_counter() - t0
+            bounds = occupied_bounds(grid, aabb)
+            if bounds is not None:
+                self.carved = (dilate(grid, cfg.carve_dilation), aabb.clone())
+                aabb = bounds
+        resolution = resolution_for_box(aabb[1] - aabb[0], cfg.resolution_init)
+        fcfg = FieldConfig(**{**base.to_dict(), "resolution": resolution,
+                              "param_lengths": tuple(len(a.values) for a in scene.param_axes)})
+        field = VisNerfField(fcfg, aabb)
+        field.set_param_knots(scene.knots())
+        return field
+
+    def _make_sampler(self) -> RayBatchSampler:
+        """Rays of the training frames inside the field's box, a share on the silhouettes' band."""
+        sampler = RayBatchSampler(self.scene, self.device, self.generator)
+        sampler.set_aabb(self.field.aabb)
+        if self.cfg.silhouette_ray_fraction > 0.0:
+            band = silhouette_pixels(self.scene.images, self.scene.background, self.cfg.carve_tolerance)
+            sampler.set_silhouette_band(band, self.cfg.silhouette_ray_fraction)
+        return sampler
 
     def distribute(self, ranks: Ranks) -> None:
         """Train as one of ``ranks`` (``training.distributed``): from rank 0's field, drawing this
@@ -158,30 +169,10 @@ class Trainer(Schedule, OccupancyPolicy, Stepping, Resumable, Recording):
         wall0 = time.perf_counter()
         last_val = last_state = self.state.train_seconds
         self.stopped = False
-        # Under a time budget the bar counts seconds of training (its rate and time left are then
-        # those of the budget, not of an iteration count the run never reaches).
-        timed = cfg.time_budget_s is not None
-        bar = tqdm(total=round(cfg.time_budget_s) if timed else cfg.step_limit,
-                   initial=min(round(self.state.train_seconds), round(cfg.time_budget_s)) if timed else self.state.iteration,
-                   unit="s" if timed else "it", disable=not progress_bar, dynamic_ncols=True, desc="train")
+        bar = self._progress_bar(progress_bar)
         while self._go_on(stop):
-            t0 = time.perf_counter()  # milestones (upsampling, occupancy grids) are training time
-            self._milestones()
-            stats = self.train_step()
-            self.state.iteration += 1
-            self._average_weights()
-            dt = time.perf_counter() - t0
-            self.state.train_seconds += dt
-            if self.state.iteration % self.cfg.trim_every == 0:
-                release_free_memory()
-            self.ema_mse = stats["mse"] if self.ema_mse is None else 0.95 * self.ema_mse + 0.05 * stats["mse"]
-            if timed:
-                bar.update(max(0, min(round(self.state.train_seconds), bar.total) - bar.n))
-            else:
-                bar.update(1)
-            if self.state.iteration % 10 == 0:
-                bar.set_postfix(it=self.state.iteration, loss=f"{stats['loss']:.4f}",
-                                psnr=f"{mse_to_psnr(self.ema_mse):.2f}", res=str(self.field.resolution[0]), refresh=False)
+            stats = self._timed_step()
+            self._show_progress(bar, stats)
             if self.val_scene is not None and self.state.train_seconds - last_val >= cfg.validate_every_s:
                 last_val = self.state.train_seconds
                 self._record(mse_to_psnr(self.ema_mse), wall0, on_validate)
@@ -196,21 +187,58 @@ class Trainer(Schedule, OccupancyPolicy, Stepping, Resumable, Recording):
             return self.state.log
         if stop is not None:
             stop.loop_ended()
+        self._finish(wall0, on_validate, progress_bar)
+        return self.state.log
+
+    def _progress_bar(self, shown: bool) -> tqdm:
+        """Under a time budget the bar counts seconds of training (its rate and time left are then
+        those of the budget, not of an iteration count the run never reaches)."""
+        budget = self.cfg.time_budget_s
+        if budget is not None:
+            return tqdm(total=round(budget), initial=min(round(self.state.train_seconds), round(budget)), unit="s",
+                        disable=not shown, dynamic_ncols=True, desc="train")
+        return tqdm(total=self.cfg.step_limit, initial=self.state.iteration, unit="it", disable=not shown,
+                    dynamic_ncols=True, desc="train")
+
+    def _timed_step(self) -> dict[str, float]:
+        """One step with its milestones (upsampling, occupancy grids), all counted as training time."""
+        t0 = time.perf_counter()
+        self._milestones()
+        stats = self.train_step()
+        self.state.iteration += 1
+        self._average_weights()
+        self.state.train_seconds += time.perf_counter() - t0
+        if self.state.iteration % self.cfg.trim_every == 0:
+            release_free_memory()
+        self.ema_mse = stats["mse"] if self.ema_mse is None else 0.95 * self.ema_mse + 0.05 * stats["mse"]
+        return stats
+
+    def _show_progress(self, bar: tqdm, stats: dict[str, float]) -> None:
+        if self.cfg.time_budget_s is not None:
+            bar.update(max(0, min(round(self.state.train_seconds), bar.total) - bar.n))
+        else:
+            bar.update(1)
+        if self.state.iteration % 10 == 0:
+            bar.set_postfix(it=self.state.iteration, loss=f"{stats['loss']:.4f}",
+                            psnr=f"{mse_to_psnr(self.ema_mse):.2f}", res=str(self.field.resolution[0]), refresh=False)
+
+    def _finish(self, wall0: float, on_validate: Callable[[dict[str, float]], None] | None, shown: bool) -> None:
+        """The final steps: the weight average where it wins, the final occupancy grid, the
+        full-quality spacing, and the last record."""
         compared = self._use_weight_average()
         self.finish_occupancy()  # final grid, for fast inference
-        if cfg.choose_full_spacing:
+        if self.cfg.choose_full_spacing:
             # Without held-out frames the training frames serve: the choice weighs each spacing's
             # sampling error against the exhaustive render of the same frame, not how the model
             # generalises, which costs nothing measurable (docs/decisions.md, "Rendering").
             held_out = self.val_scene is not None
             frames = self.val_scene if held_out else self.scene
-            choice = choose_full_spacing(self.field, frames, self.render_cfg, cfg.validate_max_images)
+            choice = choose_full_spacing(self.field, frames, self.render_cfg, self.cfg.validate_max_images)
             self.render_cfg = replace(self.render_cfg, full_step_ratio=choice.ratio)
             self.spacing_note = choice.describe(training_frames=not held_out)
-            if progress_bar:
+            if shown:
                 tqdm.write(self.spacing_note)
         self._record(mse_to_psnr(self.ema_mse) if self.ema_mse else float("nan"), wall0, on_validate, compared)
-        return self.state.log
 
     def _go_on(self, stop: StopRequest | None) -> bool:
         """Whether to take another step: progress is left and no stop was asked for (which sets

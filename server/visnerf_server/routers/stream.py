@@ -57,7 +57,7 @@ from visnerf_server.dependencies import (
     ServerDep,
     SettingsDep,
 )
-from visnerf_server.frames import FrameJob, FrameRenderer, prepare_frame
+from visnerf_server.frames import Frame, FrameJob, FrameRenderer, prepare_frame
 from visnerf_server.metrics import Metrics
 from visnerf_server.origins import origin_allowed
 from visnerf_server.rate_limit import RateLimited, TokenBucket
@@ -78,6 +78,13 @@ CLOSE_POLICY_VIOLATION = 1008
 RATE_LIMITED = 429
 QUEUE_RETRY_S = 0.02
 RATE_WAIT_MAX_S = 1.0
+
+
+class _Closed:
+    """What ``_render`` returns where the session closed while it waited."""
+
+
+_CLOSED = _Closed()
 """A frame over the client's pixel budget waits this long at most for it to refill (the stream
 slows down); longer, and it gets an error with status 429."""
 
@@ -220,7 +227,6 @@ class StreamSession:
             self.wakeup.set()
 
     async def render_loop(self) -> None:
-        loop = asyncio.get_running_loop()
         while True:
             await self.wakeup.wait()
             self.wakeup.clear()
@@ -230,63 +236,63 @@ class StreamSession:
                 continue
             seq, job = self.pending
             self.pending = None
-            deadline = loop.time() + self.frames.timeout_s
-            while True:
-                try:
-                    frame = await self.frames.render_unless_superseded(
-                        job, self.client, self.wakeup, lambda: self.pending is not None or self.closed)
-                    if frame is None:  # a newer request came while a large frame rendered
-                        self._drop()
-                    break
-                except RateLimited as exc:  # the client's pixel budget (``rate_limit``)
-                    if exc.retry_after_s <= RATE_WAIT_MAX_S and loop.time() + exc.retry_after_s < deadline:
-                        await asyncio.sleep(exc.retry_after_s)  # a short wait: the stream slows down
-                        if self.closed:
-                            return
-                        if self.pending is not None:  # a newer request replaces this one
-                            self._drop()
-                            frame = None
-                            break
-                        continue
+            frame = await self._render(seq, job)
+            if isinstance(frame, _Closed):
+                return
+            if frame is not None:
+                await self._send_frame(seq, job, frame)
+
+    async def _render(self, seq: int, job: FrameJob) -> Frame | None | _Closed:
+        """The frame of ``job``; None where it was superseded or refused (the error sent); ``_CLOSED``
+        where the session closed meanwhile. Short rate-limit waits and full queues are waited out
+        until the frame timeout, unless a newer request replaces this one."""
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + self.frames.timeout_s
+        while True:
+            try:
+                frame = await self.frames.render_unless_superseded(
+                    job, self.client, self.wakeup, lambda: self.pending is not None or self.closed)
+                if frame is None:  # a newer request came while a large frame rendered
+                    self._drop()
+                return frame
+            except RateLimited as exc:  # the client's pixel budget (``rate_limit``)
+                if exc.retry_after_s > RATE_WAIT_MAX_S or loop.time() + exc.retry_after_s >= deadline:
                     await self.send_error(seq, RATE_LIMITED, str(exc), retry_after=round(exc.retry_after_s, 3))
-                    frame = None
-                    break
-                except WouldOutwaitError as exc:  # a large frame behind large ones: sooner is no use
-                    await self.send_error(seq, 503, str(exc), retry_after=round(exc.retry_after_s, 3))
-                    frame = None
-                    break
-                except QueueFullError:  # back off; a newer request may replace this one meanwhile
-                    if self.closed:
-                        return
-                    if self.pending is not None:
-                        self._drop()
-                        frame = None
-                        break
+                    return None
+                await asyncio.sleep(exc.retry_after_s)  # a short wait: the stream slows down
+            except WouldOutwaitError as exc:  # a large frame behind large ones: sooner is no use
+                await self.send_error(seq, 503, str(exc), retry_after=round(exc.retry_after_s, 3))
+                return None
+            except QueueFullError:  # back off; a newer request may replace this one meanwhile
+                if not self.closed and self.pending is None:
                     if loop.time() > deadline:
                         await self.send_error(seq, 503, "render queue is full; try again")
-                        frame = None
-                        break
+                        return None
                     await asyncio.sleep(QUEUE_RETRY_S)
-                except RenderTimeoutError as exc:
-                    await self.send_error(seq, 504 if exc.started else 503, f"render {exc}")
-                    frame = None
-                    break
-                # A ValueError here is a bug (``prepare_frame`` checked the request): it ends the
-                # session with close code 1011 and a logged traceback (``run``), not a 422.
-            if frame is None:
-                continue
-            header = {
-                "type": "frame",
-                "seq": seq,
-                "render_ms": round(frame.render_ms, 2),
-                "width": frame.width,
-                "height": frame.height,
-                "format": job.format,
-                "dropped": self.dropped,
-            }
-            async with self.send_lock:
-                await self.websocket.send_text(json.dumps(header))
-                await self.websocket.send_bytes(frame.data)
+            except RenderTimeoutError as exc:
+                await self.send_error(seq, 504 if exc.started else 503, f"render {exc}")
+                return None
+            # A ValueError here is a bug (``prepare_frame`` checked the request): it ends the
+            # session with close code 1011 and a logged traceback (``run``), not a 422.
+            if self.closed:
+                return _CLOSED
+            if self.pending is not None:  # a newer request replaces this one
+                self._drop()
+                return None
+
+    async def _send_frame(self, seq: int, job: FrameJob, frame: Frame) -> None:
+        header = {
+            "type": "frame",
+            "seq": seq,
+            "render_ms": round(frame.render_ms, 2),
+            "width": frame.width,
+            "height": frame.height,
+            "format": job.format,
+            "dropped": self.dropped,
+        }
+        async with self.send_lock:
+            await self.websocket.send_text(json.dumps(header))
+            await self.websocket.send_bytes(frame.data)
 
     async def run(self) -> None:
         receiver = asyncio.create_task(self.receive_loop())
