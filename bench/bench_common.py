@@ -21,14 +21,13 @@ from typing import Any
 
 import numpy as np
 import torch
-from matplotlib.backends.backend_agg import FigureCanvasAgg
-from matplotlib.figure import Figure
 
 from visnerf.checkpoint import load_checkpoint
 from visnerf.config import HoldoutConfig, TrainConfig
 from visnerf.data.datasets import load_dataset
 from visnerf.data.holdout import split_holdout
 from visnerf.data.scene import SceneData
+from visnerf.evaluation.plots import save_figure  # noqa: F401 - the benchmarks take it from here
 from visnerf.training.trainer import Trainer
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -250,12 +249,6 @@ def write_results(out_dir: Path, stem: str, record: dict[str, Any],
     write_json(out_dir / f"{stem}.json", record)
     write_markdown(out_dir / f"{stem}.md", record)
     print(f"results -> {out_dir / stem}.json and .md", file=sys.stderr)
-
-
-def save_figure(fig: Figure, path: Path, dpi: int = 110) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    FigureCanvasAgg(fig)
-    fig.savefig(path, dpi=dpi)
 
 
 def fmt(value: float | None, digits: int = 1) -> str:

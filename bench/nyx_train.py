@@ -43,8 +43,8 @@ figures in columns (per held-out kind where a run has them; reports from before 
 views and settings) and the validation PSNR at each validation with its difference from the first
 run (``--about`` adds a paragraph on what they share and differ in); it trains nothing.
 
-    .venv/bin/python bench/nyx_train.py --side-by-side bench/results/nyx_product_vs_tuned_2 \\
-        --run tuned="the tuned recipe" --run product="the product" --title "Nyx, side by side"
+    .venv/bin/python bench/nyx_train.py --side-by-side bench/results/nyx_fused_hour \\
+        --run fused="the fused step" --run before="the tree before" --title "Nyx, side by side"
 """
 
 import argparse

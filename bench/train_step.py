@@ -15,6 +15,14 @@ and seed (one after the other), and the report compares their photometric loss i
         --scene runs/lit512.safetensors data/lit_series_512 --loss-steps 2000
 
 Writes train_step.json and train_step.md to --results (bench/results).
+
+On a GPU (the project never needs one), ``--device cuda`` steps the first scene's torch path (the
+one every device has) at each ``--batches`` size, ``--steps`` steps after ``--warm-up`` untimed
+ones, then times full-quality frames at each ``--frame-sizes``, and writes cuda_check.json and
+cuda_check.md with the GPU named:
+
+    python bench/train_step.py --device cuda --scene runs/nyx.safetensors ../shared/data/nyx \\
+        --steps 20 --results bench/results/cuda_check
 """
 
 import argparse
@@ -24,6 +32,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import torch
 from bench_common import (
     RESULTS,
     alternate_steps,
@@ -31,11 +40,14 @@ from bench_common import (
     load_average,
     machine_record,
     markdown_header,
+    write_json,
     write_results,
 )
 
 from visnerf.config import TrainConfig
+from visnerf.data.cameras import orbit_c2w
 from visnerf.data.datasets import load_dataset
+from visnerf.inference import load_scene
 from visnerf.runtime import configure
 from visnerf.training.trainer import Trainer
 
@@ -105,6 +117,79 @@ def write_markdown(path: Path, record: dict) -> None:
     path.write_text("\n".join(lines) + "\n")
 
 
+def synchronise(device: torch.device) -> None:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+def step_rates(args: argparse.Namespace, device: torch.device) -> list[dict]:
+    """The torch path's step at each ``--batches`` size on ``device``, synchronised around each step."""
+    ckpt, data = (Path(p) for p in args.scene[0])
+    scene = load_dataset(data, "train")
+    rows = []
+    for batch in args.batches:
+        trainer = late_trainer(ckpt, scene, batch, device=device)
+        for _ in range(args.warm_up):
+            trainer.train_step()
+        times, samples = [], []
+        for _ in range(args.steps):
+            synchronise(device)
+            t0 = time.perf_counter()
+            stats = trainer.train_step()
+            synchronise(device)
+            times.append(time.perf_counter() - t0)
+            samples.append(stats["samples"])
+        ms = 1000 * statistics.median(times)
+        rows.append({"batch_rays": batch, "ms_median": ms, "rays_per_s": batch / ms * 1000,
+                     "samples_per_s": statistics.median(samples) / ms * 1000, "samples_median": statistics.median(samples)})
+        print(rows[-1], flush=True)
+        del trainer
+        if device.type == "cuda":
+            torch.cuda.empty_cache()
+    return rows
+
+
+def frame_times(args: argparse.Namespace, device: torch.device) -> list[dict]:
+    """Full-quality frames of the first checkpoint at each ``--frame-sizes`` (random views and values)."""
+    scene = load_scene(args.scene[0][0], device)
+    g = np.random.default_rng(0)
+    distance = scene.info.camera.get("distance", 2.0)
+    rows = []
+    for size in args.frame_sizes:
+        times = []
+        for i in range(args.frames + 1):
+            c2w = orbit_c2w(float(g.uniform(-180, 180)), float(g.uniform(-60, 60)), distance)
+            params = {a.name: float(g.uniform(a.min, a.max)) for a in scene.info.params}
+            synchronise(device)
+            t0 = time.perf_counter()
+            scene.render(c2w, 30.0, size, size, params)
+            synchronise(device)
+            if i > 0:  # the first builds the occupancy and the kernels
+                times.append(time.perf_counter() - t0)
+        rows.append({"size": size, "ms_median": 1000 * statistics.median(times), "frames": args.frames})
+        print(rows[-1], flush=True)
+    return rows
+
+
+def device_check(args: argparse.Namespace) -> int:
+    """On a GPU (``--device cuda``): rays a second against rays a step, and frame times."""
+    device = torch.device(args.device)
+    gpu = torch.cuda.get_device_name(device) if device.type == "cuda" else args.device
+    record = {**machine_record(), "gpu": gpu, "command": "python bench/train_step.py " + " ".join(sys.argv[1:]),
+              "steps": step_rates(args, device), "frames": frame_times(args, device)}
+    write_json(args.results / "cuda_check.json", record)
+    lines = ["# Training and frames on a GPU", "", f"`{record['command']}`  ",
+             f"{gpu}; {record['machine']}, torch {record['torch']}, {record['date']}.", "",
+             "| rays a step | ms a step (median) | rays / s | samples / s |", "| --- | --- | --- | --- |"]
+    lines += [f"| {r['batch_rays']} | {r['ms_median']:.1f} | {r['rays_per_s']:,.0f} | {r['samples_per_s']:,.0f} |"
+              for r in record["steps"]]
+    lines += ["", "| frame | ms (median) |", "| --- | --- |"]
+    lines += [f"| {r['size']}x{r['size']} full quality | {r['ms_median']:.1f} |" for r in record["frames"]]
+    (args.results / "cuda_check.md").write_text("\n".join(lines) + "\n")
+    print("\n".join(lines))
+    return 0
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scene", nargs=2, action="append", metavar=("CHECKPOINT", "DATA"), required=True)
@@ -115,11 +200,20 @@ def main() -> int:
     ap.add_argument("--window", type=int, default=200)
     ap.add_argument("--threads", type=int, default=None)
     ap.add_argument("--results", type=Path, default=RESULTS)
+    ap.add_argument("--device", default="cpu", help="another device (cuda): the torch path at each --batches, "
+                                                    "frames at each --frame-sizes, into cuda_check.md")
+    ap.add_argument("--batches", type=int, nargs="+", default=[2048, 8192, 32768, 131072])
+    ap.add_argument("--warm-up", type=int, default=3, help="untimed steps before each batch size (--device)")
+    ap.add_argument("--frame-sizes", type=int, nargs="+", default=[256, 800])
+    ap.add_argument("--frames", type=int, default=10, help="frames timed at each size (--device)")
     args = ap.parse_args()
     for ckpt, data in args.scene:
         for p in (ckpt, data):
             if not Path(p).exists():
                 ap.error(f"{p} does not exist")
+    if args.device != "cpu":
+        args.results.mkdir(parents=True, exist_ok=True)
+        return device_check(args)
     configure(args.threads)
     record = {**machine_record(), "command": "python bench/train_step.py " + " ".join(sys.argv[1:]),
               "batch_rays": args.batch_rays, "rounds": args.rounds, "steps": args.steps,

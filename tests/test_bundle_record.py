@@ -1,4 +1,4 @@
-"""bench/bundle_record.py: a run of some bundled scenes replaces their rows and keeps the others'."""
+"""The bundled record of bench/eval_scenes.py: a run of some bundled scenes replaces their rows and keeps the others'."""
 
 import json
 import sys
@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
-from bundle_record import BEGIN, END, bundle_entry, write_bundle_record  # noqa: E402
+from eval_scenes import BEGIN, END, bundle_entry, write_bundle_record  # noqa: E402
 
 
 def _run(tmp: Path, scenes: dict[str, float], minutes: float, command: str,

@@ -29,7 +29,7 @@ from visnerf_server.schemas import MEDIA_TYPES, MatrixCamera, RenderRequest
 
 LARGE_FRAME_PIXELS = inference.TRIM_AFTER_PIXELS
 """Full frames of at least this many pixels (512x512) run one at a time (``render_queue``): a
-1440x1440 frame holds 350 to 400 MB while it renders (bench/results/render_memory.md)."""
+1440x1440 frame holds 350 to 400 MB while it renders (docs/decisions.md)."""
 
 
 def is_large_frame(width: int, height: int, quality: str) -> bool:

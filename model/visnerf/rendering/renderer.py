@@ -40,7 +40,7 @@ BLOCK_RAYS = 262144
 empty-space walk runs on all of a block's rays at once, and a whole 1440x1440 frame at once
 (2 million rays) raised peak memory by 1.0 to 1.3 GB over the loaded model, in blocks by 0.35 to
 0.40 GB, in about the same time; a frame of at most this many rays is one block, as before
-(bench/results/render_memory.md)."""
+(docs/decisions.md, "Measurements whose scripts have left the tree")."""
 
 
 def _shade_frame_samples(
