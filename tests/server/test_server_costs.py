@@ -124,15 +124,19 @@ def test_previews_overtake_queued_full_frames_and_the_capacity_is_shared() -> No
     assert queue.waiting == queue.running == 0
 
 
-def cooperative_job(cancel: threading.Event, seconds: float = 10.0):  # noqa: ANN201
-    """A fake render that checks ``cancel`` every 5 ms, as the renderer does between chunks."""
+def cooperative_job(cancel: threading.Event, seconds: float = 10.0, log: list[str] | None = None):  # noqa: ANN201
+    """A fake render that checks ``cancel`` every 5 ms, as the renderer does between chunks; it
+    appends how it ended ("stopped" or "finished") to ``log``."""
+    log = [] if log is None else log
 
     def run() -> str:
         deadline = time.monotonic() + seconds
         while time.monotonic() < deadline:
             if cancel.is_set():
+                log.append("stopped")
                 raise RenderCancelled("stopped")
             time.sleep(0.005)
+        log.append("finished")
         return "finished"
 
     return run
@@ -141,23 +145,22 @@ def cooperative_job(cancel: threading.Event, seconds: float = 10.0):  # noqa: AN
 def test_a_render_past_its_deadline_is_stopped_and_frees_the_worker() -> None:
     metrics = Metrics()
     queue = RenderQueue(workers=1, queue_size=2, metrics=metrics)
-    cancel = threading.Event()
+    cancel, log = threading.Event(), []
     with pytest.raises(RenderTimeoutError) as timed_out:
-        queue.run(cooperative_job(cancel), timeout=0.2, cancel=cancel)
+        queue.run(cooperative_job(cancel, log=log), timeout=0.2, cancel=cancel)
     assert timed_out.value.started and cancel.is_set()
-    started = time.monotonic()
-    assert queue.run(lambda: 7, timeout=5) == 7
-    assert time.monotonic() - started < 0.5  # not the 10 s the abandoned job would have taken
+    assert queue.run(lambda: log.append("next") or 7, timeout=5) == 7
+    assert log == ["stopped", "next"]  # the one worker was freed by stopping the job, not by its end
     assert metrics.cancelled._value.get() == 1
     queue.shutdown()
 
 
 def test_a_render_whose_caller_leaves_is_stopped() -> None:
     queue = RenderQueue(workers=1, queue_size=2, metrics=Metrics())
-    cancel = threading.Event()
+    cancel, log = threading.Event(), []
 
     async def leave_early() -> None:
-        task = asyncio.create_task(queue.run_async(cooperative_job(cancel), timeout=30, cancel=cancel))
+        task = asyncio.create_task(queue.run_async(cooperative_job(cancel, log=log), timeout=30, cancel=cancel))
         while queue.running == 0:
             await asyncio.sleep(0.005)
         task.cancel()  # what a disconnect or a closed stream does to the waiting task
@@ -179,9 +182,8 @@ def test_a_render_whose_caller_leaves_is_stopped() -> None:
     runner.join(timeout=30)
     assert outcome == [None], outcome
     assert cancel.is_set()
-    started = time.monotonic()
-    assert queue.run(lambda: 8, timeout=5) == 8
-    assert time.monotonic() - started < 0.5
+    assert queue.run(lambda: log.append("next") or 8, timeout=5) == 8
+    assert log == ["stopped", "next"]
     queue.shutdown()
 
 
@@ -249,14 +251,13 @@ def test_a_jobs_outcome_is_freed_without_the_garbage_collector() -> None:
 
 def test_shutdown_stops_running_renders_and_fails_queued_ones() -> None:
     queue = RenderQueue(workers=1, queue_size=2, metrics=Metrics())
-    cancel = threading.Event()
-    running = queue.submit(cooperative_job(cancel), Lane.FULL, cancel)
+    cancel, log = threading.Event(), []
+    running = queue.submit(cooperative_job(cancel, log=log), Lane.FULL, cancel)
     while queue.running == 0:
         time.sleep(0.002)
-    queued = queue.submit(lambda: "never", Lane.PREVIEW)
-    started = time.monotonic()
+    queued = queue.submit(lambda: log.append("queued ran") or "never", Lane.PREVIEW)
     queue.shutdown()
-    assert time.monotonic() - started < 1.0
+    assert log == ["stopped"]  # stopped, not run to its end; the queued one never ran
     assert isinstance(running.exception(1), RenderCancelled)
     assert isinstance(queued.exception(1), QueueFullError)  # its request answers 503
     assert queue.waiting == queue.running == 0
@@ -275,10 +276,8 @@ def test_a_request_past_its_deadline_frees_the_worker_for_the_next(ckpt_dir: Pat
         ckpt_dir, tmp_path / "state", render_timeout_s=1.5, max_full_pixels=BIG_PIXELS, rate_limit_pixels_per_s=0
     )
     with TestClient(create_app(settings)) as client:
-        started = time.monotonic()
         late = client.post("/api/scenes/tiny/render", json={**SMALL, "width": BIG, "height": BIG, "format": "jpeg"})
         assert late.status_code == 504, late.text
-        assert time.monotonic() - started < 4.0
         nxt = client.post("/api/scenes/tiny/render", json=SMALL)
         assert nxt.status_code == 200, nxt.text
         metrics = client.get("/metrics").text
@@ -373,12 +372,9 @@ def test_a_client_that_leaves_and_a_sigterm_stop_large_renders(ckpt_dir: Path, t
         while "visnerf_renders_in_flight 1.0" not in httpx.get(f"{server.url}/metrics").text:
             assert time.monotonic() < deadline, "the large render never started"
             time.sleep(0.05)
-        started = time.monotonic()
         server.process.send_signal(signal.SIGTERM)
-        assert server.process.wait(timeout=15) == 0, server.log()
-        stopped_s = time.monotonic() - started
-        worker.join(15)
-        assert stopped_s < 10, stopped_s
+        assert server.process.wait(timeout=60) == 0, server.log()
+        worker.join(60)
         answer = outcome[0]
         assert isinstance(answer, httpx.Response) and answer.status_code == 503, answer
         assert "shutting down" in answer.json()["detail"] and answer.headers["retry-after"] == "1"

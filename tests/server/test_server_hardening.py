@@ -333,11 +333,9 @@ def test_health_answers_while_renders_and_the_thread_pool_are_busy(ckpt_dir: Pat
                 assert time.monotonic() < deadline, (server.queue.running, limiter.borrowed_tokens)
                 time.sleep(0.01)
             for path in ("/api/health", "/api/ready"):
-                started = time.monotonic()
-                response = client.get(path)
-                assert response.status_code == 200
-                assert time.monotonic() - started < 1.0, path
-            assert limiter.borrowed_tokens == limiter.total_tokens  # still busy while they answered
+                assert client.get(path).status_code == 200, path
+            # answered while every worker thread was held: they need none
+            assert limiter.borrowed_tokens == limiter.total_tokens
         finally:
             gate.set()
         assert [f.result(20).status_code for f in renders] == [200] * 10

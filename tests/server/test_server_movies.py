@@ -4,7 +4,6 @@ renders kept ahead of the job's frames; a scene deleted under a running job."""
 
 import dataclasses
 import io
-import statistics
 import threading
 import time
 from collections.abc import Iterator
@@ -76,13 +75,11 @@ def wait_running(client: TestClient, job_id: str, frames: int = 2) -> None:
         time.sleep(0.01)
 
 
-def preview_ms(client: TestClient, azimuth: float) -> float:
-    """Latency of one uncached 64x64 preview."""
+def preview(client: TestClient, azimuth: float) -> None:
+    """One uncached 64x64 preview, answered."""
     body = {"camera": {**ORBIT, "azimuth": azimuth}, "width": 64, "height": 64, "quality": "preview"}
-    started = time.perf_counter()
     response = client.post("/api/scenes/tiny/render", json=body)
     assert response.status_code == 200, response.text
-    return (time.perf_counter() - started) * 1e3
 
 
 def metric(client: TestClient, line_start: str) -> float:
@@ -202,7 +199,6 @@ def test_per_client_limit_and_rate_limit(ckpt_dir: Path, tmp_path: Path) -> None
 
 
 def test_cancel_a_running_job_frees_the_worker(movies: TestClient) -> None:
-    idle = statistics.median(preview_ms(movies, a) for a in range(5))
     created = create(movies, LONG)
     job_id = created["job_id"]
     wait_running(movies, job_id)
@@ -215,7 +211,7 @@ def test_cancel_a_running_job_frees_the_worker(movies: TestClient) -> None:
     file = movies.get(created["file_url"])
     assert file.status_code == 409 and "cancelled" in file.json()["detail"]
     assert list((movies.app.state.server.movies.folder).iterdir()) == []
-    assert preview_ms(movies, 99.0) < 5 * idle + 50
+    preview(movies, 99.0)  # the worker is free: nothing running, nothing waiting (above)
     assert metric(movies, 'visnerf_movie_jobs_finished_total{state="cancelled"}') == 1
     assert movies.delete(f"/api/movies/{job_id}").status_code == 204  # a finished job is forgotten
     assert movies.get(f"/api/movies/{job_id}").status_code == 404
@@ -233,15 +229,12 @@ def test_cancel_stops_the_frame_being_rendered(movies: TestClient) -> None:
     while endless.started == 0:
         assert time.monotonic() < deadline
         time.sleep(0.01)
-    started = time.perf_counter()
     assert movies.delete(created["status_url"]).status_code == 204
-    assert time.perf_counter() - started < 2.0  # not the 20 s the frame would take
-    assert (endless.started, endless.stopped) == (1, 1)
+    assert (endless.started, endless.stopped) == (1, 1)  # the frame was stopped, not rendered to its end
     assert movies.get(created["status_url"]).json()["state"] == "cancelled"
 
 
 def test_interactive_renders_keep_priority(movies: TestClient) -> None:
-    idle = statistics.median(preview_ms(movies, a) for a in range(7))
     queue = movies.app.state.server.queue
     real_submit = queue.submit
     lanes: list[Lane] = []
@@ -266,10 +259,10 @@ def test_interactive_renders_keep_priority(movies: TestClient) -> None:
     queue.submit = spy
     created = create(movies, LONG)
     wait_running(movies, created["job_id"])
-    busy = statistics.median(preview_ms(movies, 100.0 + a) for a in range(7))
+    for a in range(7):
+        preview(movies, 100.0 + a)
     status = movies.get(created["status_url"]).json()
-    assert status["state"] == "running", status  # the job ran all along
-    assert busy < 5 * idle, (busy, idle)
+    assert status["state"] == "running", status  # the job ran all along, the previews beside it
     assert movies.delete(created["status_url"]).status_code == 204
     assert set(lanes) == {Lane.BACKGROUND, Lane.PREVIEW} and len(in_queue) >= 2
     assert max(in_queue) == 0, "a movie frame was queued while another one was in the queue"
@@ -326,8 +319,8 @@ def test_shutdown_stops_a_running_job_and_removes_the_files(ckpt_dir: Path, tmp_
     with movie_client(ckpt_dir, tmp_path) as client:
         created = create(client, LONG)
         wait_running(client, created["job_id"])
-        started = time.perf_counter()
-    assert time.perf_counter() - started < 5.0
+        job = client.app.state.server.movies.get(created["job_id"])
+    assert job is not None and job.ended.is_set() and job.frames_done < created["frames"]  # stopped, not finished
     assert list((tmp_path / "movies").iterdir()) == []
 
 

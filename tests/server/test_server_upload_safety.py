@@ -75,33 +75,48 @@ def test_the_answer_is_built_before_the_scene_is_committed(
     assert scene_ids(client) == ["tiny", "two"]
 
 
+class SlowValidation(threading.Event):
+    """Set once a validation has begun; ``most_at_once``: the most validations that ran together."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.running = self.most_at_once = 0
+        self.lock = threading.Lock()
+
+
 @pytest.fixture
-def slow_validation(monkeypatch: pytest.MonkeyPatch) -> threading.Event:
-    """Validation of an upload takes 0.3 s more; the event is set once one has begun."""
+def slow_validation(monkeypatch: pytest.MonkeyPatch) -> SlowValidation:
+    """Validation of an upload takes 0.3 s more, long enough for a second upload to arrive."""
     real = uploads.load_and_check
-    begun = threading.Event()
+    seen = SlowValidation()
 
     def slow(path, device):  # noqa: ANN001, ANN202
-        begun.set()
-        time.sleep(0.3)
-        return real(path, device)
+        with seen.lock:
+            seen.running += 1
+            seen.most_at_once = max(seen.most_at_once, seen.running)
+        seen.set()
+        try:
+            time.sleep(0.3)
+            return real(path, device)
+        finally:
+            with seen.lock:
+                seen.running -= 1
 
     monkeypatch.setattr(uploads, "load_and_check", slow)
-    return begun
+    return seen
 
 
-def test_concurrent_uploads_of_one_id_never_both_create(client: TestClient, templates, slow_validation) -> None:  # noqa: ANN001
+def test_concurrent_uploads_of_one_id_never_both_create(client: TestClient, templates, slow_validation: SlowValidation) -> None:  # noqa: ANN001
     data = templates["still"].read_bytes()
 
     def put(scene_id: str):  # noqa: ANN202
         return client.put(f"/api/scenes/{scene_id}", content=data, headers=AUTH)
 
     for scene_id in ("race-a", "race-b"):
-        started = time.monotonic()
         with ThreadPoolExecutor(2) as pool:
             answers = list(pool.map(put, [scene_id, scene_id]))
         assert sorted(r.status_code for r in answers) == [200, 201], [r.text for r in answers]
-        assert time.monotonic() - started >= 0.6  # one after the other
+        assert slow_validation.most_at_once == 1  # one after the other
         created = next(r for r in answers if r.status_code == 201)
         assert created.headers["location"] == f"/api/scenes/{scene_id}"
     assert scene_ids(client) == ["race-a", "race-b", "tiny", "two"]
@@ -109,7 +124,7 @@ def test_concurrent_uploads_of_one_id_never_both_create(client: TestClient, temp
 
 
 def test_a_delete_waits_for_the_upload_of_its_id(
-    client: TestClient, ckpt_dir: Path, templates, slow_validation: threading.Event  # noqa: ANN001
+    client: TestClient, ckpt_dir: Path, templates, slow_validation: SlowValidation  # noqa: ANN001
 ) -> None:
     with ThreadPoolExecutor(1) as pool:
         upload = pool.submit(client.put, "/api/scenes/fresh", content=templates["still"].read_bytes(), headers=AUTH)
