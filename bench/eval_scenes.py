@@ -260,7 +260,9 @@ def table_lines(record: dict, commands: bool = True) -> list[str]:
     if commands:  # the details: a list, one group a line
         return [*lines, "", "\\* Rerun after a change that concerns them (the other rows are the record's):", "",
                 *(f"- {text}" for text in each)]
-    return [*lines, "", f"\\* Rerun after a change that concerns them: {'; '.join(each)}. The other rows are the record's."]
+    rerun_scenes = sorted({scene for scenes in groups.values() for scene in scenes})
+    return [*lines, "", f"\\* Rerun after a change that concerns them ({', '.join(rerun_scenes)}; when and on which CPU: "
+                        "[details](bench/results/eval_scenes.md)). The other rows are the record's."]
 
 
 PLACES = {"at_training_values": "at training values", "between_training_values": "between training values",
