@@ -144,6 +144,11 @@ whatever spacing (read as one per voxel it would be another threshold at every s
 default applies), ``chunk_rays`` belongs to the machine, not the model."""
 
 
+V1_TRAIN_DROPPED = ("random_background",)
+"""Training settings a version 1 run recorded that are gone: random backgrounds were measured and
+not kept (docs/decisions.md), and every run recorded it off."""
+
+
 def migrate(data: dict[str, Any]) -> dict[str, Any]:
     """A metadata document of an older format as the current format writes it (a copy); the current
     format and anything else are returned as they are (``from_json`` refuses an unknown version)."""
@@ -154,6 +159,10 @@ def migrate(data: dict[str, Any]) -> dict[str, Any]:
         out["field"] = {**V1_FIELD_DEFAULTS, **data["field"]}
     if isinstance(data.get("render"), dict):
         out["render"] = {k: v for k, v in data["render"].items() if k not in V1_RENDER_DROPPED}
+    provenance = data.get("provenance")
+    if isinstance(provenance, dict) and isinstance(provenance.get("recipe"), dict):
+        recipe = {k: v for k, v in provenance["recipe"].items() if k not in V1_TRAIN_DROPPED}
+        out["provenance"] = {**provenance, "recipe": recipe}
     out["format_version"] = FORMAT_VERSION
     return out
 

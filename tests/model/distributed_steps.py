@@ -34,7 +34,7 @@ from visnerf.training.trainer import Trainer
 BATCH = 512
 STEPS = 4
 CONFIG = TrainConfig(iterations=STEPS, batch_rays=BATCH, micro_batch_rays=96, resolution_init=10, resolution_final=14,
-                     upsample_at=(0.5,), carve=False, random_background=False, density_grad_keep=1.0, stop_eps=0.0,
+                     upsample_at=(0.5,), carve=False, density_grad_keep=1.0, stop_eps=0.0,
                      weight_average_span=0.0, mixed_precision=False, seed=3)
 FIELD = FieldConfig(n_density_components=4, n_appearance_components=8, hidden_width=16)
 

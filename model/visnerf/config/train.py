@@ -183,8 +183,6 @@ class TrainConfig:
     out."""
     seed: int = 0
     """Seed of the ray draws, the sample jitter and the field's initial factors."""
-    random_background: bool = False
-    """Composite on a random colour per ray in training (useful when content touches the background)."""
 
     @property
     def step_limit(self) -> int | None:

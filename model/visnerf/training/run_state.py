@@ -24,11 +24,11 @@ from safetensors.torch import load as load_safetensors_bytes
 from safetensors.torch import save as save_safetensors_bytes
 from torch import Tensor
 
-from visnerf.checkpoint import CheckpointError, read_safetensors_header, write_atomically
+from visnerf.checkpoint import V1_TRAIN_DROPPED, CheckpointError, read_safetensors_header, write_atomically
 from visnerf.data.scene import SceneData
 
 RUN_STATE_KEY = "visnerf_run_state"
-RUN_STATE_VERSION = 1
+RUN_STATE_VERSION = 2
 RUN_STATE_SUFFIX = ".resume"
 _MAX_HEADER_BYTES = 64 * 1024 * 1024
 """Longest JSON header read: the document holds the run's whole log."""
@@ -81,7 +81,9 @@ def read_run_state(path: str | Path) -> tuple[dict[str, Any], dict[str, Tensor]]
     except (json.JSONDecodeError, KeyError, AttributeError, TypeError):
         raise RunStateError(f"{path} is not a run state of visnerf train (no {RUN_STATE_KEY!r} document)") from None
     version = document.get("format_version") if isinstance(document, dict) else None
-    if version != RUN_STATE_VERSION:
+    if version == 1:
+        document = migrate_run_state(document)
+    elif version != RUN_STATE_VERSION:
         raise RunStateError(f"{path}: unsupported run-state version {version!r} (this build reads {RUN_STATE_VERSION})")
     try:
         tensors = load_safetensors_bytes(blob)
@@ -91,6 +93,16 @@ def read_run_state(path: str | Path) -> tuple[dict[str, Any], dict[str, Tensor]]
         if t.is_floating_point() and not bool(torch.isfinite(t).all()):
             raise RunStateError(f"{path}: tensor {name!r} holds non-finite values")
     return document, tensors
+
+
+def migrate_run_state(document: dict[str, Any]) -> dict[str, Any]:
+    """A version 1 document as version 2 writes it (a copy): the training settings that are gone
+    (``checkpoint.V1_TRAIN_DROPPED``) left out of its configuration."""
+    out = dict(document)
+    if isinstance(document.get("train"), dict):
+        out["train"] = {k: v for k, v in document["train"].items() if k not in V1_TRAIN_DROPPED}
+    out["format_version"] = RUN_STATE_VERSION
+    return out
 
 
 def pack_optimizer(optimizer: torch.optim.Optimizer) -> tuple[dict[str, Tensor], dict[str, Any]]:

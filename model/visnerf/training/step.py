@@ -126,16 +126,8 @@ class Stepping:
         cfg = self.cfg
         rays, n = self.ranks.batch_share(cfg.batch_rays)  # one process: all of them, their count
         batch = self.sampler.sample(rays)
-        if cfg.random_background:
-            bg = torch.rand(batch.rgb.shape, generator=self.generator).to(self.device)
-        else:
-            bg = torch.tensor(self.scene.background, device=self.device).expand_as(batch.rgb)
-        target = batch.rgb
-        if cfg.random_background:
-            # Target pixels of background colour stand for empty space: re-composite them on bg.
-            is_bg = (batch.rgb - torch.tensor(self.scene.background, device=self.device)).abs().amax(-1) < 1e-3
-            target = torch.where(is_bg[:, None], bg, batch.rgb)
-        return StepBatch(batch.rays_o, batch.rays_d, batch.params, target, bg, n)
+        bg = torch.tensor(self.scene.background, device=self.device).expand_as(batch.rgb)
+        return StepBatch(batch.rays_o, batch.rays_d, batch.params, batch.rgb, bg, n)
 
     def _sampling(self, batch: StepBatch) -> Sampling:
         """Where this step samples its rays (each only its occupied span) and how it shades them."""

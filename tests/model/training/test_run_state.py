@@ -104,6 +104,26 @@ def test_a_run_state_refuses_other_frames_and_damage(scene_split, tmp_path) -> N
         read_run_state(tmp_path / "other.resume")
 
 
+def test_a_version_1_run_state_goes_on(scene_split, tmp_path) -> None:
+    """A run state written before a setting was retired (version 1, ``random_background`` in its
+    training configuration) is read as version 2 and the run goes on from it."""
+    _, train, val = scene_split
+    cpu = torch.device("cpu")
+    first = Trainer(train, val, SCHEDULE, cpu)
+    stop = StopAt(3)
+    stop.trainer = first
+    state = tmp_path / "m.resume"
+    first.run(progress_bar=False, state_path=state, stop=stop)
+    document, tensors = read_run_state(state)
+    assert document["format_version"] == 2
+    old = {**document, "format_version": 1, "train": {**document["train"], "random_background": False}}
+    write_run_state(tmp_path / "v1.resume", tensors, old)
+    migrated, _ = read_run_state(tmp_path / "v1.resume")
+    assert migrated == document
+    resumed = Trainer.from_run_state(tmp_path / "v1.resume", train, val, cpu)
+    assert resumed.state.iteration == first.state.iteration
+
+
 def _train_command(data: Path, out: Path, *extra: str) -> list[str]:
     return [sys.executable, "-m", "visnerf.cli", "train", str(data), "--out", str(out), "--iterations", "240",
             "--resolution", "16", "--batch-rays", "256", "--holdout-views", "2,9", "--validate-every", "0.5",
