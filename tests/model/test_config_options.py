@@ -11,14 +11,8 @@ import pytest
 from visnerf.checkpoint import read_checkpoint
 from visnerf.cli import build_parser
 from visnerf.config import FieldConfig, RenderConfig, TrainConfig
+from visnerf.config.recipe import RECIPE
 from visnerf.config_options import CONFIG_CLASSES, NOT_OPTIONS, field_docs, option_of
-from visnerf.training.recipe import (
-    SURFACE_CARVE_DILATION,
-    SURFACE_COLOUR_FLOOR,
-    SURFACE_REFINE_DILATION,
-    SURFACE_TV_APPEARANCE,
-    SURFACE_TV_DENSITY,
-)
 
 
 def train_parser() -> argparse.ArgumentParser:
@@ -80,9 +74,9 @@ def test_given_options_round_trip_through_the_checkpoint(tangle, tmp_path) -> No
                                  betas=(0.8, 0.95), stop_eps=1e-3, resolution_final=recipe.resolution_final,
                                  resolution_init=recipe.resolution_init,
                                  carve_min_seen_fraction=recipe.carve_min_seen_fraction,
-                                 tv_weight_density=SURFACE_TV_DENSITY, tv_weight_appearance=SURFACE_TV_APPEARANCE,
-                                 colour_weight_floor=SURFACE_COLOUR_FLOOR, carve_dilation=SURFACE_CARVE_DILATION,
-                                 occupancy_refine_dilation=SURFACE_REFINE_DILATION)
+                                 tv_weight_density=RECIPE.surface.tv_density, tv_weight_appearance=RECIPE.surface.tv_appearance,
+                                 colour_weight_floor=RECIPE.surface.colour_floor, carve_dilation=RECIPE.surface.carve_dilation,
+                                 occupancy_refine_dilation=RECIPE.surface.refine_dilation)
 
 
 def test_options_not_given_keep_the_recipe(tangle, tmp_path) -> None:
@@ -93,9 +87,9 @@ def test_options_not_given_keep_the_recipe(tangle, tmp_path) -> None:
     assert recipe.stop_eps == TrainConfig.stop_eps and recipe.betas == TrainConfig.betas
     assert meta.field.hidden_width == FieldConfig.hidden_width and meta.render.max_samples == RenderConfig.max_samples
     assert meta.field.density_scale > 1.0  # tangle_static is opaque: the recipe's surface density
-    assert (recipe.tv_weight_density, recipe.tv_weight_appearance) == (SURFACE_TV_DENSITY, SURFACE_TV_APPEARANCE)
-    assert recipe.colour_weight_floor == SURFACE_COLOUR_FLOOR
-    assert (recipe.carve_dilation, recipe.occupancy_refine_dilation) == (SURFACE_CARVE_DILATION, SURFACE_REFINE_DILATION)
+    assert (recipe.tv_weight_density, recipe.tv_weight_appearance) == (RECIPE.surface.tv_density, RECIPE.surface.tv_appearance)
+    assert recipe.colour_weight_floor == RECIPE.surface.colour_floor
+    assert (recipe.carve_dilation, recipe.occupancy_refine_dilation) == (RECIPE.surface.carve_dilation, RECIPE.surface.refine_dilation)
     assert recipe.silhouette_ray_fraction == 0.0  # tangle_static has no level field
 
 

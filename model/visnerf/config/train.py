@@ -73,7 +73,7 @@ class TrainConfig:
     around the cells that hold content. The ``occupancy_at`` grids keep one cell, room for content
     still forming; once formed, 0 leaves out a ring of near-empty cells that training would keep
     sampling (Nyx: 2.6 times fewer density samples a step, 1.20 times faster). ``visnerf train``
-    keeps a ring of ``training.recipe.SURFACE_REFINE_DILATION`` cells for opaque surfaces, which
+    keeps a ring of ``config.recipe.SurfaceRecipe.refine_dilation`` cells for opaque surfaces, which
     the grid's edge would otherwise cut."""
     occupancy_min_iterations: int = 300
     """Occupancy milestones wait for at least this many iterations (a time budget on a busy machine
@@ -89,7 +89,7 @@ class TrainConfig:
     """Cells per axis of the carved grid."""
     carve_dilation: int = 0
     """Cells of the carved grid by which it is grown before training samples in it (the box stays
-    the hull's). ``visnerf train`` grows it by ``training.recipe.SURFACE_CARVE_DILATION`` cells for
+    the hull's). ``visnerf train`` grows it by ``config.recipe.SurfaceRecipe.carve_dilation`` cells for
     opaque surfaces, which can otherwise settle on the hull's edge."""
     carve_tolerance: int = 2
     """Largest channel difference (0-255) from the background that still counts as background."""
@@ -130,7 +130,7 @@ class TrainConfig:
     training surface's level can drift off on fading gradients until the whole occupancy grid lies
     inside that surface; a pull toward even bands instead of a bound fits held-out views far worse.
     What pushed the level is the grid's edge cutting the surface
-    (``training.recipe.SURFACE_CARVE_DILATION`` and ``SURFACE_REFINE_DILATION`` answer it;
+    (``config.recipe.SurfaceRecipe.carve_dilation`` and ``refine_dilation`` answer it;
     docs/decisions.md, "Configuration defaults")."""
     level_spacing_ratio: float = 4.0
     """Factor by which neighbouring bands' slopes may differ at no cost (trained tangle_iso fields

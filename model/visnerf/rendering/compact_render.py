@@ -20,6 +20,7 @@ from visnerf.rendering.colour_sampling import ColourSampling, draw_coloured
 from visnerf.rendering.compact_samples import CompactSamples
 from visnerf.rendering.composite_kernel import composite, sample_weights
 from visnerf.rendering.density_gradients import DensityGradientSampling, traced_samples
+from visnerf.rendering.render_settings import RenderSettings
 from visnerf.representation.training_field import TrainingField
 
 
@@ -74,7 +75,7 @@ def drop_occluded_compact(
     params: Float[Tensor, "n k"],
     step: float,
     stop_eps: float,
-    first_segment: int = 16,
+    first_segment: int = RenderSettings.first_segment_samples,
 ) -> CompactSamples:
     """``renderer.drop_occluded`` on compact samples: those a ray reaches with transmittance at or
     above ``stop_eps``, with their densities. A sample is kept exactly when the optical depth

@@ -53,11 +53,9 @@ class RenderSettings:
     chunk_rays: int = 4096
     """Rays per chunk of a frame (inference); chunks are marched one per thread on the CPU."""
     segment_samples: int = 128
-    """Samples marched per segment before finished rays are dropped (inference). With two threads on
-    an idle machine, 4096 rays by 128 samples rendered 256x256 frames of the bundled checkpoints and
-    Nyx in 322 / 739 / 439 ms (medians of 8 views) against 354 / 765 / 527 ms at 2048 by 64 and
-    452 ms (Nyx) at 8192 by 128. The chunk size used to be stored in checkpoints; it belongs to the
-    machine, not the model, and a stored value is ignored."""
+    """Samples marched per segment before finished rays are dropped (inference); 4096 rays by 128
+    samples was the fastest chunk (docs/decisions.md, "Rendering"). The chunk size belongs to the
+    machine, not the model: a value stored in an older checkpoint is dropped by its migration."""
     first_segment_samples: int = 16
     """Samples in a ray's first segment; each later one doubles, up to ``segment_samples``. Rays
     that turn opaque early (surfaces) then stop without marching a whole long segment."""

@@ -14,6 +14,7 @@ from visnerf.rendering.aabb import intersect_aabb
 from visnerf.rendering.colour_sampling import ColourSampling, pick_coloured
 from visnerf.rendering.density_gradients import DensityGradientSampling, density_with_sampled_gradients
 from visnerf.rendering.occupancy import query_occupancy
+from visnerf.rendering.render_settings import RenderSettings
 from visnerf.rendering.sampling import uniform_noise, uniform_samples
 from visnerf.rendering.volume import exclusive_optical_depth, optical_depths, weights_from_optical_depth
 from visnerf.representation.field import VisNerfField
@@ -148,7 +149,7 @@ def drop_occluded(
     samples: RaySamples,
     params: Float[Tensor, "n k"],
     stop_eps: float,
-    first_segment: int = 16,
+    first_segment: int = RenderSettings.first_segment_samples,
 ) -> RaySamples:
     """``samples`` without those a ray reaches with transmittance below ``stop_eps`` (hidden
     behind opaque content), with the densities of the samples kept, evaluated without a graph.

@@ -4,13 +4,13 @@ The library's ``TrainConfig`` defaults hold what suits every scene (the step, th
 priors, the schedule as fractions of the run). What depends on the dataset is chosen here from
 the images and cameras alone, each choice with the reason ``visnerf info`` shows:
 
-- the final grid: voxels ``VOXEL_PER_PIXEL`` of the pixel footprint at the content (the world
+- the final grid: voxels ``RECIPE.voxel_per_pixel`` of the pixel footprint at the content (the world
   size one pixel spans there, from the focal length and the cameras' distance), over the box the
-  space carving leaves, rounded to a multiple of 8 and kept within ``RESOLUTION_RANGE``;
+  space carving leaves, rounded to a multiple of 8 and kept within ``RECIPE.resolution_range``;
 - the carving's ``min_seen_fraction``: where every training image shows its content whole (no
   foreground pixel on the image border), every cell of the content is in every view's image, and a
   cell that a quarter of its setting's views do not have in frame is camera-box corner, not
-  content (``CARVE_FRAMED_FRACTION``); where content is cut by the border, 0 keeps what few views
+  content (``RECIPE.carve_framed_fraction``); where content is cut by the border, 0 keeps what few views
   see;
 - surface-style density for opaque scenes: where no foreground pixel is faint (within a quarter
   of the image's full contrast of the background, as translucent volume renderings are around
@@ -29,7 +29,7 @@ the images and cameras alone, each choice with the reason ``visnerf info`` shows
 - facing cosines (``FieldConfig.facing_vectors``) only for opaque scenes: a surface shaded by a
   light at the camera (isosurface renderers' headlight) changes colour with the cosine between its
   normal and the view, too sharply for spherical harmonics of degree 3; the field learns
-  ``FACING_VECTORS`` unit vectors per point and its colour decoder reads their cosines with the
+  ``RECIPE.surface.facing_vectors`` unit vectors per point and its colour decoder reads their cosines with the
   view. A volume rendering without lighting looks the same from every side and gets none;
 - total variation on the density and appearance factors (``TrainConfig.tv_weight_density``,
   ``tv_weight_appearance``) for opaque scenes: the surface and its colours between the views, and
@@ -56,26 +56,17 @@ import torch
 import torch.nn.functional as F
 
 from visnerf.config import FieldConfig, RenderConfig, TrainConfig
+from visnerf.config.recipe import RECIPE
 from visnerf.data.carving import carve_occupancy
 from visnerf.data.nesting import describe as describe_nesting
 from visnerf.data.nesting import nested_axis
 from visnerf.data.scene import SceneData, estimate_bbox
 from visnerf.rendering.occupancy import occupied_bounds
-from visnerf.training.scene_traits import SURFACE_MAX_FAINT, SceneTraits, scene_traits
+from visnerf.training.scene_traits import SceneTraits, scene_traits
 
 if TYPE_CHECKING:
     from visnerf.training.trainer import Trainer
 
-VOXEL_PER_PIXEL = 0.93
-"""Final voxel size over the pixel footprint at the content: detail at the pixel scale needs
-voxels a little under a pixel (docs/decisions.md, "Recipe: grid and carving")."""
-FACING_VECTORS = 4
-"""Facing vectors of opaque scenes: a headlight's shading follows the cosine between normal and
-view, too sharp for spherical harmonics (docs/decisions.md, "Recipe: opaque surfaces")."""
-RESOLUTION_RANGE = (48, 256)
-"""Fewest and most voxels per axis the recipe picks (memory and checkpoint size bound the top)."""
-CARVE_FRAMED_FRACTION = 0.75
-"""``carve_min_seen_fraction`` where every image frames its content whole."""
 CHOSEN_FIELDS = frozenset({("TrainConfig", "resolution_final"), ("TrainConfig", "carve_min_seen_fraction"),
                            ("FieldConfig", "density_scale"), ("FieldConfig", "density_shift"),
                            ("TrainConfig", "stop_eps"), ("FieldConfig", "facing_vectors"),
@@ -85,36 +76,8 @@ CHOSEN_FIELDS = frozenset({("TrainConfig", "resolution_final"), ("TrainConfig", 
                            ("TrainConfig", "silhouette_ray_fraction")})
 """The configuration fields ``choose_recipe`` sets from the data unless the user gives them
 (``RULES``, and ``density_shift`` with ``density_scale``)."""
-NEST_TOLERANCE = 0.02
-"""Largest share of one setting's visual hull outside its neighbour's for an axis to count as nested
-(``data.nesting``, hulls of ``carve_resolution`` cells): an isovalue sweep's hulls nest exactly, a
-timestep series' do not (docs/decisions.md, "Recipe: opaque surfaces")."""
-SURFACE_TV_DENSITY = 0.1
-"""``TrainConfig.tv_weight_density`` of opaque scenes: the images pin a surface's density only
-where it is seen, and a level axis's surfaces between training values are its level sets there;
-total variation keeps them smooth (docs/decisions.md, "Recipe: opaque surfaces")."""
-SURFACE_TV_APPEARANCE = 0.1
-"""``TrainConfig.tv_weight_appearance`` of opaque scenes: a surface point seen by a few views takes
-its neighbours' fits (docs/decisions.md, "Recipe: opaque surfaces")."""
-SURFACE_COLOUR_FLOOR = 0.1
-"""``TrainConfig.colour_weight_floor`` of opaque scenes: lighter samples are coloured at random
-(``rendering.colour_sampling``), so the early fog of light samples does not make the first steps
-several times as long as the last (docs/decisions.md, "Recipe: opaque surfaces")."""
-SURFACE_CARVE_DILATION = 2
-"""``TrainConfig.carve_dilation`` of opaque scenes: training samples only inside the carved grid,
-and a density filling the exact visual hull renders the training silhouettes with the colours
-painted on; grown by two cells the grid's edge cannot stand in for the surface. Translucent
-content does not fit its images as a filled hull (docs/decisions.md, "Recipe: opaque surfaces")."""
-SURFACE_SILHOUETTE_RAYS = 0.25
-"""``TrainConfig.silhouette_ray_fraction`` of opaque scenes with a level axis: a quarter of each
-batch's rays come from the training images' silhouette band
-(``training.ray_batches.silhouette_pixels``), where an isosurface rendering's error lies. Only
-with a level axis, whose normals shade the surface (docs/decisions.md, "Recipe: opaque surfaces")."""
-SURFACE_REFINE_DILATION = 1
-"""``TrainConfig.occupancy_refine_dilation`` of opaque scenes: refined grids keep a ring of one
-empty cell around the content, and a surface that grows into the ring gets a new one
-(``Trainer.refine_occupancy``); a surface pressed against the grid's edge would be cut there and
-its level could run past the images' surface unseen (docs/decisions.md, "Recipe: opaque surfaces")."""
+
+
 def surface_density(voxel: float, fog: float) -> tuple[float, float]:
     """``(density_scale, density_shift)`` for surfaces: a scale of one over the voxel size, and
     the shift that keeps the fresh field's fog at ``fog`` per world unit
@@ -125,9 +88,9 @@ def surface_density(voxel: float, fog: float) -> tuple[float, float]:
 
 def voxels_for(extent: torch.Tensor, voxel: float) -> int:
     """Voxels per axis (cube root of the count) that give cells of size ``voxel`` over a box of
-    ``extent``, a multiple of 8 within ``RESOLUTION_RANGE``."""
+    ``extent``, a multiple of 8 within ``RECIPE.resolution_range``."""
     per_axis = float(torch.prod(extent)) ** (1.0 / 3.0) / voxel
-    lo, hi = RESOLUTION_RANGE
+    lo, hi = RECIPE.resolution_range
     return int(min(hi, max(lo, 8 * round(per_axis / 8))))
 
 
@@ -207,7 +170,7 @@ class _Rule:
 def _carve_seen(ctx: _Context) -> tuple[object, str]:
     scene, traits = ctx.scene, ctx.traits
     if traits.framed:
-        return CARVE_FRAMED_FRACTION, (f"every one of the {scene.n_frames} training images shows its content clear "
+        return RECIPE.carve_framed_fraction, (f"every one of the {scene.n_frames} training images shows its content clear "
                                        "of the border, so content is in every view's frame: cells that a quarter of "
                                        "their setting's views do not frame are carved")
     return 0.0, (f"{traits.border_frames} of {scene.n_frames} training images have content on their border: a "
@@ -219,8 +182,8 @@ def _resolution(ctx: _Context) -> tuple[object, str]:
     extent = ctx.box[1] - ctx.box[0]
     footprint = ctx.traits.pixel_footprint
     sizes = ", ".join(f"{float(e):.3f}" for e in extent)
-    return voxels_for(extent, VOXEL_PER_PIXEL * footprint), (
-        f"a pixel spans {footprint:.5f} world units at the content; voxels of {VOXEL_PER_PIXEL} pixel over the "
+    return voxels_for(extent, RECIPE.voxel_per_pixel * footprint), (
+        f"a pixel spans {footprint:.5f} world units at the content; voxels of {RECIPE.voxel_per_pixel} pixel over the "
         f"content box ({sizes})")
 
 
@@ -235,7 +198,7 @@ def _density(ctx: _Context) -> tuple[object | None, str]:
     scale, shift = surface_density(voxel, fog)
     ctx.field["density_shift"] = shift
     return scale, (f"{100 * traits.faint_fraction:.1f} % of the foreground pixels are faint (under "
-                   f"{100 * SURFACE_MAX_FAINT:g} %): opaque surfaces, whose density must reach an optical depth of "
+                   f"{100 * RECIPE.surface_max_faint:g} %): opaque surfaces, whose density must reach an optical depth of "
                    f"about 10 within a voxel or two; scaled by one over the voxel size, the starting fog kept at "
                    f"{fog:.3f} per world unit (density_shift {shift:.3f})")
 
@@ -261,17 +224,17 @@ def _level_axis(ctx: _Context) -> Decision:
         return None
     min_seen = float(ctx.value("carve_min_seen_fraction"))  # type: ignore[arg-type]
     axis, nesting = nested_axis(scene, estimate_bbox(scene), base.carve_resolution, base.carve_tolerance, min_seen,
-                                NEST_TOLERANCE)
+                                RECIPE.nest_tolerance)
     measured = "; ".join(describe_nesting(n) for n in nesting)
     if axis >= 0:
         return axis, (f"opaque surfaces whose visual hulls are nested along {scene.param_axes[axis].name!r} (an "
                       f"isovalue sweep): its surfaces are level sets of one field ({measured})")
-    return axis, f"opaque surfaces, but no axis's visual hulls are nested within {100 * NEST_TOLERANCE:g} % ({measured})"
+    return axis, f"opaque surfaces, but no axis's visual hulls are nested within {100 * RECIPE.nest_tolerance:g} % ({measured})"
 
 
 def _silhouettes(ctx: _Context) -> Decision:
     if ctx.traits.opaque and int(ctx.value("level_set_axis")) >= 0:  # type: ignore[call-overload]
-        return SURFACE_SILHOUETTE_RAYS, ("opaque surfaces of one level field: the images' colour changes at a "
+        return RECIPE.surface.silhouette_rays, ("opaque surfaces of one level field: the images' colour changes at a "
                                          "silhouette from the background to a shaded surface within one pixel, and a "
                                          "surface's error lies there; this share of each batch is drawn from those "
                                          "pixels")
@@ -287,33 +250,33 @@ RULES: tuple[_Rule, ...] = (
     _Rule("density_scale", _density, in_field=True),
     _Rule("stop_eps", _stop_eps),
     _Rule("colour_weight_floor", _opaque_only(
-        SURFACE_COLOUR_FLOOR,
+        RECIPE.surface.colour_floor,
         "opaque surfaces start as a faint fog: samples lighter than this are coloured at random (unbiased), not all "
         "of them, until the surfaces form",
         "translucent content: its colour is spread over many light samples along a ray, every one coloured")),
     _Rule("facing_vectors", _opaque_only(
-        FACING_VECTORS,
+        RECIPE.surface.facing_vectors,
         "opaque surfaces: their shading follows the cosine between the surface and the view (a light at the "
         "camera), which the colour decoder reads from learnt unit vectors",
         "translucent content: its colours are read with spherical harmonics of the view alone"), in_field=True),
     _Rule("tv_weight_density", _opaque_only(
-        SURFACE_TV_DENSITY,
+        RECIPE.surface.tv_density,
         "opaque surfaces: the images pin the density only where a surface is seen, and a few views fit it with a "
         "rough surface (and, with a level axis, leave the surfaces between training values free); total "
         "variation keeps it smooth",
         "translucent content: its density is seen along every ray through it")),
     _Rule("tv_weight_appearance", _opaque_only(
-        SURFACE_TV_APPEARANCE,
+        RECIPE.surface.tv_appearance,
         "opaque surfaces: each surface point is seen by a few views, whose fit total variation on the appearance "
         "factors carries over to its neighbours",
         "translucent content: its appearance is seen along every ray through it")),
     _Rule("carve_dilation", _opaque_only(
-        SURFACE_CARVE_DILATION,
+        RECIPE.surface.carve_dilation,
         "opaque surfaces: a density that fills the carved hull renders the training silhouettes exactly; grown, "
         "the grid's edge cannot stand in for a surface",
         "translucent content: a filled hull does not fit its images")),
     _Rule("occupancy_refine_dilation", _opaque_only(
-        SURFACE_REFINE_DILATION,
+        RECIPE.surface.refine_dilation,
         "opaque surfaces: refined grids keep a ring of empty cells, so the grid's edge never cuts a surface that "
         "grows",
         "translucent content: refined grids hold only the cells with content (fewer samples a step)")),

@@ -6,18 +6,9 @@ from dataclasses import dataclass
 
 import torch
 
+from visnerf.config.recipe import RECIPE
 from visnerf.data.carving import foreground_masks
 from visnerf.data.scene import SceneData, estimate_bbox
-
-FAINT_CONTRAST = 0.25
-"""A foreground pixel is faint when its difference from the background is below this fraction of
-the 99th percentile of the foreground's differences."""
-SURFACE_MAX_FAINT = 0.01
-"""Most faint foreground pixels (a fraction) for a scene to count as opaque surfaces: isosurface
-renderings have none, volume renderings several per cent (docs/decisions.md, "Recipe: grid and
-carving")."""
-BORDER_PIXELS = 1
-"""Width of the image border in which a foreground pixel means content cut by the frame."""
 
 
 @dataclass(frozen=True)
@@ -31,12 +22,12 @@ class SceneTraits:
     border_frames: int
     """Training images with foreground on their border."""
     faint_fraction: float
-    """Fraction of the foreground pixels that are faint (``FAINT_CONTRAST``)."""
+    """Fraction of the foreground pixels that are faint (``RECIPE.faint_contrast``)."""
     n_params: int
 
     @property
     def opaque(self) -> bool:
-        return self.faint_fraction < SURFACE_MAX_FAINT
+        return self.faint_fraction < RECIPE.surface_max_faint
 
 
 def pixel_footprint(scene: SceneData, centre: torch.Tensor) -> float:
@@ -49,8 +40,8 @@ def pixel_footprint(scene: SceneData, centre: torch.Tensor) -> float:
 
 def frames_cut_by_border(scene: SceneData, tolerance: int, chunk: int = 64) -> int:
     """Training images with a foreground pixel (farther than ``tolerance`` from the background)
-    within ``BORDER_PIXELS`` of the image's edge."""
-    count, b = 0, BORDER_PIXELS
+    within ``RECIPE.border_pixels`` of the image's edge."""
+    count, b = 0, RECIPE.border_pixels
     for start in range(0, scene.n_frames, chunk):
         fg = foreground_masks(scene.images[start : start + chunk], scene.background, tolerance, 0)  # [c, h, w]
         edge = fg[:, :b, :].flatten(1).any(1) | fg[:, -b:, :].flatten(1).any(1)
@@ -61,7 +52,7 @@ def frames_cut_by_border(scene: SceneData, tolerance: int, chunk: int = 64) -> i
 
 def faint_fraction(scene: SceneData, tolerance: int, max_frames: int = 64) -> float:
     """Fraction of the foreground pixels (of up to ``max_frames`` evenly chosen training images)
-    whose difference from the background is below ``FAINT_CONTRAST`` of the foreground's 99th
+    whose difference from the background is below ``RECIPE.faint_contrast`` of the foreground's 99th
     percentile difference: the soft fringe of translucent content; 0 for opaque surfaces."""
     pick = torch.linspace(0, scene.n_frames - 1, min(max_frames, scene.n_frames)).round().long().unique()
     background = (torch.tensor(scene.background) * 255.0).round().to(torch.int16)
@@ -70,7 +61,7 @@ def faint_fraction(scene: SceneData, tolerance: int, max_frames: int = 64) -> fl
     if fg.numel() == 0:
         return 1.0  # nothing but background: no evidence of a surface
     top = torch.quantile(fg[:: max(1, fg.numel() // 100_000)], 0.99)
-    return float((fg < FAINT_CONTRAST * top).float().mean())
+    return float((fg < RECIPE.faint_contrast * top).float().mean())
 
 
 def scene_traits(scene: SceneData, tolerance: int) -> SceneTraits:

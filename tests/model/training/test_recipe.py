@@ -8,16 +8,8 @@ import pytest
 import torch
 
 from visnerf.config import FieldConfig, TrainConfig
+from visnerf.config.recipe import RECIPE
 from visnerf.training.recipe import (
-    CARVE_FRAMED_FRACTION,
-    FACING_VECTORS,
-    SURFACE_CARVE_DILATION,
-    SURFACE_COLOUR_FLOOR,
-    SURFACE_REFINE_DILATION,
-    SURFACE_SILHOUETTE_RAYS,
-    SURFACE_TV_APPEARANCE,
-    SURFACE_TV_DENSITY,
-    VOXEL_PER_PIXEL,
     choose_recipe,
     content_box,
     surface_density,
@@ -44,26 +36,26 @@ def test_opaque_surfaces_get_a_surface_density_and_volumes_do_not(surface_scene,
     assert got == pytest.approx(fog, rel=1e-5)
     assert "opaque" in next(c.reason for c in surface.choices if c.name == "density_scale")
     # Only opaque content reads the facing cosines (a headlight's shading); a volume keeps none.
-    assert surface.field.facing_vectors == FACING_VECTORS > 0 and volume.field.facing_vectors == 0
+    assert surface.field.facing_vectors == RECIPE.surface.facing_vectors > 0 and volume.field.facing_vectors == 0
     assert "opaque" in next(c.reason for c in surface.choices if c.name == "facing_vectors")
     assert "translucent" in next(c.reason for c in volume.choices if c.name == "facing_vectors")
     # Only opaque content gets total variation on its density and appearance.
-    assert surface.train.tv_weight_density == SURFACE_TV_DENSITY > volume.train.tv_weight_density == 0.0
-    assert surface.train.tv_weight_appearance == SURFACE_TV_APPEARANCE > 0.0
+    assert surface.train.tv_weight_density == RECIPE.surface.tv_density > volume.train.tv_weight_density == 0.0
+    assert surface.train.tv_weight_appearance == RECIPE.surface.tv_appearance > 0.0
     assert volume.train.tv_weight_appearance == TrainConfig().tv_weight_appearance
     for name in ("tv_weight_density", "tv_weight_appearance"):
         assert "opaque" in next(c.reason for c in surface.choices if c.name == name)
         assert "translucent" in next(c.reason for c in volume.choices if c.name == name)
     # Only opaque content colours its light samples at random.
-    assert surface.train.colour_weight_floor == SURFACE_COLOUR_FLOOR > volume.train.colour_weight_floor == 0.0
+    assert surface.train.colour_weight_floor == RECIPE.surface.colour_floor > volume.train.colour_weight_floor == 0.0
     assert "opaque" in next(c.reason for c in surface.choices if c.name == "colour_weight_floor")
     assert "translucent" in next(c.reason for c in volume.choices if c.name == "colour_weight_floor")
     # Only opaque content samples a carved grid grown past the visual hull.
-    assert surface.train.carve_dilation == SURFACE_CARVE_DILATION > volume.train.carve_dilation == 0
+    assert surface.train.carve_dilation == RECIPE.surface.carve_dilation > volume.train.carve_dilation == 0
     assert "opaque" in next(c.reason for c in surface.choices if c.name == "carve_dilation")
     assert "translucent" in next(c.reason for c in volume.choices if c.name == "carve_dilation")
     # Only opaque content keeps a ring of empty cells around its refined grids.
-    assert surface.train.occupancy_refine_dilation == SURFACE_REFINE_DILATION > 0
+    assert surface.train.occupancy_refine_dilation == RECIPE.surface.refine_dilation > 0
     assert volume.train.occupancy_refine_dilation == TrainConfig().occupancy_refine_dilation == 0
     # Only opaque surfaces of a level field draw a share of their rays from the images' silhouettes.
     assert surface.train.silhouette_ray_fraction == volume.train.silhouette_ray_fraction == 0.0
@@ -84,7 +76,7 @@ def test_surface_density_scale_is_one_over_the_voxel():
 def test_framed_content_carves_at_three_quarters_and_cut_content_at_zero(volume_scene):
     framed = choose_recipe(volume_scene, TrainConfig(), FieldConfig())
     assert frames_cut_by_border(volume_scene, 2) == 0
-    assert framed.train.carve_min_seen_fraction == CARVE_FRAMED_FRACTION
+    assert framed.train.carve_min_seen_fraction == RECIPE.carve_framed_fraction
     images = volume_scene.images.clone()
     images[::3, :, 0] = 0  # content reaching the left edge of every third image
     cut_scene = dataclasses.replace(volume_scene, images=images)
@@ -99,7 +91,7 @@ def test_resolution_follows_the_pixel_size(volume_scene):
     # 32 pixels over 30 degrees at a distance of 2.1: a pixel is 0.0352 world units at the origin.
     assert pixel_footprint(volume_scene, torch.zeros(3)) == pytest.approx(2.1 * 2 * 0.26795 / 32, rel=1e-3)
     box = content_box(volume_scene, recipe.carved)
-    assert recipe.train.resolution_final == voxels_for(box[1] - box[0], VOXEL_PER_PIXEL * 2.1 * 2 * 0.26795 / 32)
+    assert recipe.train.resolution_final == voxels_for(box[1] - box[0], RECIPE.voxel_per_pixel * 2.1 * 2 * 0.26795 / 32)
     assert recipe.train.resolution_final % 8 == 0
     assert recipe.train.resolution_init <= recipe.train.resolution_final
 
@@ -148,16 +140,16 @@ def test_an_isovalue_sweep_gets_a_level_axis_and_other_scenes_do_not(iso_sweep_s
     assert iso.field.level_set_axis == 0
     reason = next(c.reason for c in iso.choices if c.name == "level_set_axis")
     assert "nested along 'isovalue'" in reason and "shrink" in reason
-    assert iso.train.tv_weight_density == SURFACE_TV_DENSITY > TrainConfig().tv_weight_density
+    assert iso.train.tv_weight_density == RECIPE.surface.tv_density > TrainConfig().tv_weight_density
     # Its surfaces, shaded by the level field's normals, draw a share of their rays from the silhouettes.
-    assert iso.train.silhouette_ray_fraction == SURFACE_SILHOUETTE_RAYS > 0
+    assert iso.train.silhouette_ray_fraction == RECIPE.surface.silhouette_rays > 0
     assert "level field" in next(c.reason for c in iso.choices if c.name == "silhouette_ray_fraction")
     # The same opaque images with their isovalues shuffled: the hulls jump in and out, no level axis.
     values = sorted(set(iso_sweep_scene.params[:, 0].tolist()))
     shuffled = dict(zip(values, [values[i] for i in (0, 4, 1, 3, 2)], strict=True))
     params = torch.tensor([[shuffled[v]] for v in iso_sweep_scene.params[:, 0].tolist()])
     mixed = choose_recipe(dataclasses.replace(iso_sweep_scene, params=params), TrainConfig(), FieldConfig())
-    assert mixed.field.level_set_axis == -1 and mixed.train.tv_weight_density == SURFACE_TV_DENSITY
+    assert mixed.field.level_set_axis == -1 and mixed.train.tv_weight_density == RECIPE.surface.tv_density
     assert mixed.train.silhouette_ray_fraction == 0.0
     assert "no axis" in next(c.reason for c in mixed.choices if c.name == "level_set_axis")
     # Translucent content (whose hulls may nest as a transfer function fades it) and K = 0: none.
