@@ -1,7 +1,7 @@
 """Train and evaluate every synthetic scene under a fixed wall-clock budget; tabulate error and time.
 
-For each scene of ``visnerf scenes``: generate the dataset at ``--res`` (the full protocol: 42
-icosphere views per parameter setting, a 181-view test path between training values), train under
+For each scene of ``visnerf scenes``: generate the dataset at ``--res`` (the full protocol: the
+scene's icosphere views per parameter setting, a 181-view test path between training values), train under
 ``--minutes-per-scene`` with views 3, 11 and 25 held out for validation, evaluate the checkpoint on
 the test path as ``visnerf eval`` does (per-scene report in RESULTS/eval_scenes/NAME/, or
 RESULTS/eval_scenes.partial/NAME/ for a partial run, RESULTS/bundled_eval/NAME/ for a partial run
@@ -213,7 +213,7 @@ def scene_row(spec: SceneSpec, summary: dict, trainer: Trainer, gen_seconds: flo
         "scene": spec.name, "kind": spec.kind, "K": len(spec.axes), "holdout_views": list(holdout_views),
         **evaluation_fields(summary),
         "train_minutes": trainer.state.train_seconds / 60.0, "iterations": trainer.state.iteration,
-        "resolution": list(trainer.field.resolution), "generation_seconds": gen_seconds,
+        "resolution": list(trainer.field.resolution), "generation_seconds": gen_seconds, "views": spec.n_views,
         "choices": trainer.recipe_choices, "paper": None if paper is None else {"dataset": paper[0], "psnr": paper[1]},
     }  # fmt: skip
 
@@ -293,6 +293,14 @@ def place_lines(record: dict) -> list[str]:
     return [*lines, ""]
 
 
+def views_per_setting(record: dict) -> str:
+    """Views per parameter setting: the protocol's, or each scene's own where they differ."""
+    counts = {r["scene"]: r.get("views", record["views"]) for r in record["scenes"]}
+    if len(set(counts.values())) <= 1:
+        return f"{next(iter(counts.values()), record['views'])} views per parameter setting"
+    return "views per parameter setting: " + ", ".join(f"{scene} {n}" for scene, n in counts.items())
+
+
 def write_markdown(path: Path, record: dict) -> None:
     m = record["machine"]
     lines = [
@@ -301,8 +309,7 @@ def write_markdown(path: Path, record: dict) -> None:
         f"`{record['command']}` on {m.get('cpu', m['platform'])}, {m['cpu_cores']} CPU cores, device {m['device']}, "
         f"torch {m['torch']} with {m['torch_threads']} thread(s), {record['date']}.",
         "",
-        f"Each scene: dataset at {record['resolution']}x{record['resolution']} ({record['views']} views per "
-        f"parameter setting), training for {record['minutes_per_scene']:g} minute(s) of wall-clock time "
+        f"Each scene: dataset at {record['resolution']}x{record['resolution']} ({views_per_setting(record)}), training for {record['minutes_per_scene']:g} minute(s) of wall-clock time "
         "(the product's recipe, no flags) with views "
         f"{', '.join(map(str, HOLDOUT_VIEWS))} held out, then `visnerf eval` on {record['test_views']} test views "
         "(parameters between training values). PSNR and SSIM are means over the evaluated test frames, "
