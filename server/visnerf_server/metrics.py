@@ -35,6 +35,10 @@ class Metrics:
         self.rate_limited = Counter(
             "visnerf_rate_limited", "Render requests refused by the per-client rate limit", registry=r
         )
+        self.stream_rate_waits = Counter(
+            "visnerf_stream_rate_waits", "Stream frames that waited for the client's pixel budget instead of a 429",
+            registry=r,
+        )
         self.dropped_frames = Counter(
             "visnerf_stream_dropped_frames", "Stale stream requests replaced before rendering", registry=r
         )

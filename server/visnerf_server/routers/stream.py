@@ -259,6 +259,7 @@ class StreamSession:
                 if exc.retry_after_s > RATE_WAIT_MAX_S or loop.time() + exc.retry_after_s >= deadline:
                     await self.send_error(seq, RATE_LIMITED, str(exc), retry_after=round(exc.retry_after_s, 3))
                     return None
+                self.metrics.stream_rate_waits.inc()
                 await asyncio.sleep(exc.retry_after_s)  # a short wait: the stream slows down
             except WouldOutwaitError as exc:  # a large frame behind large ones: sooner is no use
                 await self.send_error(seq, 503, str(exc), retry_after=round(exc.retry_after_s, 3))
