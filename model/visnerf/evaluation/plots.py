@@ -30,7 +30,6 @@ def save_figure(fig: Figure, path: Path, dpi: int = _DPI) -> Path:
     return path
 
 
-_save = save_figure
 
 
 def legend_colormap() -> ListedColormap:
@@ -54,7 +53,7 @@ def plot_per_frame(path: Path, psnrs: list[float], groups: list[str], ms: list[f
     ax_ms.set_ylabel("render ms")
     ax_ms.set_xlabel("frame (split order)")
     ax_ms.grid(alpha=0.3)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def plot_render_sweep(path: Path, points: list[SweepPoint]) -> Path:
@@ -78,7 +77,7 @@ def plot_render_sweep(path: Path, points: list[SweepPoint]) -> Path:
     ax.set_ylabel("PSNR (dB)")
     ax.grid(alpha=0.3, which="both")
     ax.legend(fontsize="small")
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def plot_training_curves(path: Path, runs: list[TrainingRun]) -> Path:
@@ -94,7 +93,7 @@ def plot_training_curves(path: Path, runs: list[TrainingRun]) -> Path:
     ax.set_ylabel("validation PSNR (dB)")
     ax.grid(alpha=0.3)
     ax.legend(fontsize="small")
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def plot_difference(
@@ -114,7 +113,7 @@ def plot_difference(
         ax.set_yticks([])
     fig.colorbar(image, ax=axes[2], fraction=0.046, extend="max", label="ΔE*uv")
     fig.suptitle(title, fontsize=10)
-    return _save(fig, path)
+    return save_figure(fig, path)
 
 
 def plot_legend(path: Path, scale_max: int | float) -> Path:
@@ -125,4 +124,4 @@ def plot_legend(path: Path, scale_max: int | float) -> Path:
               extent=(0.0, scale_max, 0.0, 1.0), norm=Normalize(0.0, scale_max))
     ax.set_yticks([])
     ax.set_xlabel(f"CIELUV ΔE*uv (values above {scale_max:g} take the top colour)")
-    return _save(fig, path)
+    return save_figure(fig, path)

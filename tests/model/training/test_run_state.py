@@ -80,14 +80,20 @@ def test_a_stopped_run_resumed_from_its_state_is_the_uninterrupted_run(scene_spl
     assert abs(psnr_whole - psnr_resumed) < 1e-6
 
 
-def test_a_run_state_refuses_other_frames_and_damage(scene_split, tmp_path) -> None:
-    _, train, val = scene_split
-    cpu = torch.device("cpu")
-    first = Trainer(train, val, SCHEDULE, cpu)
+def _stopped_after_three_steps(train, val, tmp_path: Path) -> tuple[Trainer, Path]:  # noqa: ANN001
+    """A run stopped after three steps, its run state written to ``tmp_path / "m.resume"``."""
+    first = Trainer(train, val, SCHEDULE, torch.device("cpu"))
     stop = StopAt(3)
     stop.trainer = first
     state = tmp_path / "m.resume"
     first.run(progress_bar=False, state_path=state, stop=stop)
+    return first, state
+
+
+def test_a_run_state_refuses_other_frames_and_damage(scene_split, tmp_path) -> None:
+    _, train, val = scene_split
+    cpu = torch.device("cpu")
+    first, state = _stopped_after_three_steps(train, val, tmp_path)
     with pytest.raises(RunStateError, match="other training frames"):
         Trainer.from_run_state(state, val, None, cpu)  # the held-out frames are not the training frames
     document, tensors = read_run_state(state)
@@ -109,11 +115,7 @@ def test_a_version_1_run_state_goes_on(scene_split, tmp_path) -> None:
     training configuration) is read as version 2 and the run goes on from it."""
     _, train, val = scene_split
     cpu = torch.device("cpu")
-    first = Trainer(train, val, SCHEDULE, cpu)
-    stop = StopAt(3)
-    stop.trainer = first
-    state = tmp_path / "m.resume"
-    first.run(progress_bar=False, state_path=state, stop=stop)
+    first, state = _stopped_after_three_steps(train, val, tmp_path)
     document, tensors = read_run_state(state)
     assert document["format_version"] == 2
     old = {**document, "format_version": 1, "train": {**document["train"], "random_background": False}}
