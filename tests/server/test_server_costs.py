@@ -366,6 +366,10 @@ def test_a_client_that_leaves_and_a_sigterm_stop_large_renders(ckpt_dir: Path, t
             except httpx.HTTPError as exc:
                 outcome.append(exc)
 
+        deadline = time.monotonic() + 30
+        while "visnerf_renders_in_flight 0.0" not in httpx.get(f"{server.url}/metrics").text:
+            assert time.monotonic() < deadline, "the abandoned render never let go of its worker"
+            time.sleep(0.05)  # the gauge below must count the next render, not the abandoned one
         worker = threading.Thread(target=large_render)
         worker.start()
         deadline = time.monotonic() + 10
