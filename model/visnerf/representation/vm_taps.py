@@ -7,8 +7,6 @@ border. A plane of mode ``i`` (axes ``(a, b)``) is stored ``[c, n_b, n_a]``; as 
 """
 
 import warnings
-from collections.abc import Iterator
-from contextlib import contextmanager
 from dataclasses import dataclass
 
 import torch
@@ -127,30 +125,6 @@ class TapLayout:
         return VMTaps(plane_rows, plane_weights, line_rows, line_weights)
 
 
-_table_gradients_in_place = 0
-"""Depth of ``table_gradients_in_place`` contexts (module-wide: the CPU autograd engine runs a
-backward on the thread that called it, and a trainer has one)."""
-
-
-@contextmanager
-def table_gradients_in_place() -> Iterator[None]:
-    """Within this context, the backward of ``weighted_row_sum`` (CPU) adds its table gradient into
-    the table's ``.grad`` in place (created as zeros where None) and hands autograd none.
-
-    For ``Tensor.backward`` over micro-batches: autograd would otherwise allocate a zero-filled
-    gradient the size of the table for each micro-batch and add it into ``.grad`` (two passes over
-    16.6 MB for a 170^3 appearance plane table, per lookup). ``torch.autograd.grad`` sees no table
-    gradient inside the context, so only a trainer's ``backward`` calls belong in it; tables that
-    are not leaves (no ``.grad`` to accumulate into) get their gradient the usual way.
-    """
-    global _table_gradients_in_place
-    _table_gradients_in_place += 1
-    try:
-        yield
-    finally:
-        _table_gradients_in_place -= 1
-
-
 def grad_buffer(table: Tensor) -> Tensor:
     """``table.grad`` to accumulate into in place, created as zeros where None (a trainer's
     ``zero_grad`` sets it to None each step)."""
@@ -180,8 +154,7 @@ class _WeightedRowSum(torch.autograd.Function):
     differentiable in the table, whose backward on the CPU is one sparse-dense product.
 
     The table's gradient is ``T^T @ grad`` for the tap matrix ``T [m, n_rows]``; ``T^T`` is built
-    in compressed-row form from a stable sort of the taps (``transposed_taps``), and within
-    ``table_gradients_in_place`` the product is added into ``.grad`` in place (``addmm_``).
+    in compressed-row form from a stable sort of the taps (``transposed_taps``).
     ``embedding_bag``'s own CPU backward sorts the taps and adds one row per tap, and hands
     autograd a table-sized gradient to add (docs/decisions.md, "Training step"). The product is
     deterministic and independent of the thread count (tested)."""
@@ -189,18 +162,14 @@ class _WeightedRowSum(torch.autograd.Function):
     @staticmethod
     def forward(ctx, table: Tensor, rows: Tensor, weights: Tensor) -> Tensor:  # noqa: ANN001
         ctx.save_for_backward(rows, weights)
-        ctx.table = table
+        ctx.table_shape, ctx.table_dtype = table.shape, table.dtype
         return F.embedding_bag(rows, table, per_sample_weights=weights, mode="sum")
 
     @staticmethod
     def backward(ctx, grad: Tensor) -> tuple[Tensor | None, None, None]:  # noqa: ANN001
         rows, weights = ctx.saved_tensors
-        table: Tensor = ctx.table
-        taps_t = transposed_taps(rows, weights.to(table.dtype), table.shape[0])
-        grad = grad.to(table.dtype).contiguous()
-        if _table_gradients_in_place and table.is_leaf:
-            grad_buffer(table).addmm_(taps_t, grad)
-            return None, None, None
+        taps_t = transposed_taps(rows, weights.to(ctx.table_dtype), ctx.table_shape[0])
+        grad = grad.to(ctx.table_dtype).contiguous()
         return taps_t @ grad, None, None
 
 

@@ -18,7 +18,6 @@ from visnerf.rendering.empty_space import EmptySpace
 from visnerf.rendering.renderer import empty_space_of, ray_windows
 from visnerf.rendering.training_render import drop_occluded, place_samples, shade_rays
 from visnerf.representation.field import VisNerfField
-from visnerf.representation.vm_taps import table_gradients_in_place
 from visnerf.runtime import bf16_native
 from visnerf.training.fused_step import Sampling, StepBatch
 from visnerf.training.ray_batches import micro_batches
@@ -161,8 +160,7 @@ class Stepping:
             if not torch.isfinite(part):
                 raise FloatingPointError(f"non-finite loss at iteration {self.state.iteration}")
             if part.requires_grad:  # a chunk whose rays meet no occupied cell has nothing to learn
-                with table_gradients_in_place():  # each chunk's factor gradients add into .grad
-                    part.backward()
+                part.backward()
             sq_error += float(part.detach())
         return sq_error, int(per_ray.sum())
 

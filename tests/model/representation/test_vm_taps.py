@@ -5,8 +5,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from visnerf.representation import vm_taps
-from visnerf.representation.vm_taps import table_gradients_in_place, transposed_taps, weighted_row_sum
+from visnerf.representation.vm_taps import transposed_taps, weighted_row_sum
 
 
 def _case(n_rows: int, channels: int, bags: int, taps: int, dtype: torch.dtype, seed: int = 0):
@@ -78,42 +77,3 @@ def test_transposed_taps_list_each_rows_readers_in_sample_order() -> None:
         for k in range(2):
             dense[rows[i, k], i] += weights[i, k]
     assert torch.equal(t.to_dense(), dense)
-
-
-def test_in_place_gradients_over_micro_batches_equal_autograds() -> None:
-    """Inside ``table_gradients_in_place`` the lookups add into ``.grad`` (from None) and the sum
-    over micro-batches is autograd's gradient of the whole batch; the context then ends."""
-    table, rows, weights, cot = _case(500, 16, 4000, 4, torch.float32, seed=2)
-    table.requires_grad_(True)
-    (whole,) = torch.autograd.grad(weighted_row_sum(rows, weights, table), table, cot)
-    with table_gradients_in_place():
-        for half in (slice(0, 1500), slice(1500, 4000)):
-            weighted_row_sum(rows[half], weights[half], table).backward(cot[half])
-    assert torch.allclose(table.grad, whole, atol=1e-5, rtol=1e-5)
-    assert vm_taps._table_gradients_in_place == 0
-    table.grad = None
-    weighted_row_sum(rows, weights, table).backward(cot)  # outside: autograd accumulates as usual
-    assert torch.allclose(table.grad, whole, atol=1e-5, rtol=1e-5)
-
-
-def test_in_place_mixes_with_other_gradients_and_spares_non_leaves() -> None:
-    """A regulariser's gradient of the same table adds to the in-place one; a table computed from a
-    leaf (not a leaf itself) passes its gradient back through autograd."""
-    table, rows, weights, cot = _case(50, 3, 200, 4, torch.float64, seed=3)
-    leaf = table.clone().requires_grad_(True)
-    with table_gradients_in_place():
-        weighted_row_sum(rows, weights, leaf).backward(cot)
-        (leaf**2).sum().backward()
-        scaled = 3.0 * leaf
-        weighted_row_sum(rows, weights, scaled).backward(cot)
-    ref = table.clone().requires_grad_(True)
-    (weighted_row_sum(rows, weights, ref) * cot).sum().backward()
-    (ref**2).sum().backward()
-    (weighted_row_sum(rows, weights, 3.0 * ref) * cot).sum().backward()
-    assert torch.allclose(leaf.grad, ref.grad, atol=1e-12)
-
-
-def test_in_place_context_ends_on_an_error() -> None:
-    with pytest.raises(RuntimeError, match="inside"), table_gradients_in_place():
-        raise RuntimeError("inside")
-    assert vm_taps._table_gradients_in_place == 0
