@@ -34,7 +34,7 @@ from visnerf.data.parsers.cinema_cameras import (
     ascent_c2w,
 )
 from visnerf.scenes.catalog import SceneSpec
-from visnerf.scenes.reference_renderer import RayOutput, RenderConfig, render_image
+from visnerf.scenes.reference_renderer import MarchConfig, RayOutput, render_image
 from visnerf.scenes.writer import DatasetOptions, Frame, plan_frames
 
 SPLIT_FOLDERS = {"train": "train.cdb", "test": "test.cdb"}
@@ -83,7 +83,7 @@ def cinema_view(spec: SceneSpec, frame: Frame, convention: Convention, resolutio
 
 def _render(spec: SceneSpec, frame: Frame, view: CinemaView) -> RayOutput:
     c2w = torch.tensor(view.c2w, dtype=torch.float32)
-    return render_image(spec.volume_at(frame.params), c2w, view.intrinsics, RenderConfig(step=spec.step))
+    return render_image(spec.volume_at(frame.params), c2w, view.intrinsics, MarchConfig(step=spec.step))
 
 
 def _rgb8(output: RayOutput, resolution: int) -> np.ndarray:

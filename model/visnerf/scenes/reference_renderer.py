@@ -42,7 +42,7 @@ class DvrVolume:
     support_radius: float | None = None
     """If set, the field is zero outside the ball of this radius at the origin (rays are clipped)."""
     lit: bool = False
-    """Shade each sample's colour with a headlight (Blinn-Phong, ``RenderConfig.shading``) about the
+    """Shade each sample's colour with a headlight (Blinn-Phong, ``MarchConfig.shading``) about the
     field's gradient, as volume renderers' shading option does (``lit_colours``): translucent
     layers then show shading and highlights that change with the view."""
 
@@ -83,7 +83,7 @@ class ShadingConfig:
 
 
 @dataclass(frozen=True)
-class RenderConfig:
+class MarchConfig:
     """How the reference renderer marches and shades."""
 
     step: float = 1.0 / 256.0
@@ -122,7 +122,7 @@ def render_rays(
     volume: Volume,
     rays_o: Float[Tensor, "n 3"],
     rays_d: Float[Tensor, "n 3"],
-    config: RenderConfig,
+    config: MarchConfig,
 ) -> RayOutput:
     """Render unit-direction rays in chunks of ``config.chunk_rays``. Not differentiable."""
     outputs = []
@@ -148,7 +148,7 @@ def render_rays(
 
 
 def render_image(
-    volume: Volume, c2w: Float[Tensor, "4 4"], intrinsics: Intrinsics, config: RenderConfig
+    volume: Volume, c2w: Float[Tensor, "4 4"], intrinsics: Intrinsics, config: MarchConfig
 ) -> RayOutput:
     """Render every pixel of one camera; fields are row-major ``[h * w]`` (reshape to ``[h, w]``)."""
     rays_o, rays_d = image_rays(c2w, intrinsics)  # [h, w, 3]
@@ -156,7 +156,7 @@ def render_image(
 
 
 def _intervals(
-    volume: Volume, rays_o: Tensor, rays_d: Tensor, config: RenderConfig
+    volume: Volume, rays_o: Tensor, rays_d: Tensor, config: MarchConfig
 ) -> tuple[Tensor, Tensor, Tensor]:
     """Per ray: start distance, segment count (0: misses the volume) and segment length."""
     t_near, t_far, valid = ray_intervals(
@@ -166,11 +166,11 @@ def _intervals(
     return t_near, count, delta
 
 
-def _background(config: RenderConfig, like: Tensor) -> Tensor:
+def _background(config: MarchConfig, like: Tensor) -> Tensor:
     return torch.tensor(config.background, dtype=like.dtype, device=like.device)
 
 
-def _render_dvr(volume: DvrVolume, rays_o: Tensor, rays_d: Tensor, config: RenderConfig) -> RayOutput:
+def _render_dvr(volume: DvrVolume, rays_o: Tensor, rays_d: Tensor, config: MarchConfig) -> RayOutput:
     t_near, count, delta = _intervals(volume, rays_o, rays_d, config)
     n, s = rays_o.shape[0], config.samples_per_pass
     rgb = rays_o.new_zeros(n, 3)
@@ -223,7 +223,7 @@ def _offset_from_isovalue(volume: IsoVolume, points: Tensor) -> Tensor:
     return volume.field(points.reshape(-1, 3)).reshape(points.shape[:-1]) - volume.isovalue
 
 
-def _render_iso(volume: IsoVolume, rays_o: Tensor, rays_d: Tensor, config: RenderConfig) -> RayOutput:
+def _render_iso(volume: IsoVolume, rays_o: Tensor, rays_d: Tensor, config: MarchConfig) -> RayOutput:
     t_near, count, delta = _intervals(volume, rays_o, rays_d, config)
     n, s = rays_o.shape[0], config.samples_per_pass
     t_lo = rays_o.new_zeros(n)  # bracket [t_lo, t_lo + delta] of the first crossing
@@ -287,7 +287,7 @@ def field_gradient(field: ScalarField, points: Float[Tensor, "n 3"], eps: float)
 
 def lit_colours(
     field: ScalarField, points: Float[Tensor, "n 3"], rays_d: Float[Tensor, "n 3"], colour: Float[Tensor, "n 3"],
-    sigma: Float[Tensor, " n"], config: RenderConfig,
+    sigma: Float[Tensor, " n"], config: MarchConfig,
 ) -> Float[Tensor, "n 3"]:
     """The transfer function's colours of a lit volume: Blinn-Phong with a headlight about the
     field's gradient (central differences, only where the extinction is not zero), two-sided, with
@@ -306,7 +306,7 @@ def lit_colours(
     return out
 
 
-def _shade(volume: IsoVolume, points: Tensor, rays_d: Tensor, config: RenderConfig) -> Tensor:
+def _shade(volume: IsoVolume, points: Tensor, rays_d: Tensor, config: MarchConfig) -> Tensor:
     shading = config.shading
     outward = -field_gradient(volume.field, points, config.normal_eps)  # [m, 3] field grows inwards
     norm = torch.linalg.norm(outward, dim=-1, keepdim=True)  # [m, 1]

@@ -30,7 +30,7 @@ from visnerf.scenes.protocol import (
     path_params,
     training_directions,
 )
-from visnerf.scenes.reference_renderer import RenderConfig, render_image
+from visnerf.scenes.reference_renderer import MarchConfig, render_image
 
 
 @dataclass(frozen=True)
@@ -92,7 +92,7 @@ def render_frame(spec: SceneSpec, frame: Frame, resolution: int) -> UInt8[np.nda
     """The 8-bit RGB image of one frame."""
     c2w = torch.tensor(orbit_c2w(frame.azimuth, frame.elevation, spec.camera_distance), dtype=torch.float32)
     intrinsics = Intrinsics.from_fov(resolution, resolution, spec.fov_x_rad)
-    output = render_image(spec.volume_at(frame.params), c2w, intrinsics, RenderConfig(step=spec.step))
+    output = render_image(spec.volume_at(frame.params), c2w, intrinsics, MarchConfig(step=spec.step))
     rgb = output.rgb.reshape(resolution, resolution, 3).clamp(0.0, 1.0)
     return (rgb * 255.0).round().to(torch.uint8).numpy()
 

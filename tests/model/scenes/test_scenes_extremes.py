@@ -8,7 +8,7 @@ import torch
 from visnerf.data.cameras import Intrinsics, orbit_c2w
 from visnerf.scenes.catalog import scene_catalog
 from visnerf.scenes.fields import TangleField, VortexField
-from visnerf.scenes.reference_renderer import DvrVolume, IsoVolume, RenderConfig, render_image
+from visnerf.scenes.reference_renderer import DvrVolume, IsoVolume, MarchConfig, render_image
 from visnerf.scenes.transfer_function import TransferFunction
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")  # small renders: one thread (conftest)
@@ -16,7 +16,7 @@ pytestmark = pytest.mark.usefixtures("one_torch_thread")  # small renders: one t
 
 def _render(volume, c2w: torch.Tensor, size: int = 17) -> torch.Tensor:
     intrinsics = Intrinsics.from_fov(size, size, math.radians(30.0))
-    out = render_image(volume, c2w, intrinsics, RenderConfig(step=1.0 / 64.0))
+    out = render_image(volume, c2w, intrinsics, MarchConfig(step=1.0 / 64.0))
     assert torch.isfinite(out.rgb).all() and torch.isfinite(out.opacity).all()
     assert out.rgb.min() >= 0.0 and out.rgb.max() <= 1.0 + 1e-6
     return out.rgb
@@ -75,7 +75,7 @@ def test_each_scene_step_is_converged(name: str) -> None:
     volume = spec.volume_at(tuple(axis.values()[axis.count // 2] for axis in spec.axes))
     intrinsics = Intrinsics.from_fov(32, 32, math.radians(30.0))
     c2w = _orbit(40.0, 25.0, spec.camera_distance)
-    coarse = render_image(volume, c2w, intrinsics, RenderConfig(step=spec.step)).rgb
-    fine = render_image(volume, c2w, intrinsics, RenderConfig(step=spec.step / 3.0)).rgb
+    coarse = render_image(volume, c2w, intrinsics, MarchConfig(step=spec.step)).rgb
+    fine = render_image(volume, c2w, intrinsics, MarchConfig(step=spec.step / 3.0)).rgb
     error = (coarse - fine).abs().flatten() * 255.0
     assert error.quantile(0.99) < 0.5 and error.max() < 3.0

@@ -9,7 +9,7 @@ import torch
 
 from visnerf.data.cameras import Intrinsics, image_rays, orbit_c2w
 from visnerf.scenes.fields import ConstantField, LinearRampField, RadialDistanceField
-from visnerf.scenes.reference_renderer import DvrVolume, IsoVolume, RenderConfig, lit_colours, render_image, render_rays
+from visnerf.scenes.reference_renderer import DvrVolume, IsoVolume, MarchConfig, lit_colours, render_image, render_rays
 from visnerf.scenes.transfer_function import TransferFunction, constant_extinction_tf
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")  # small renders: one thread (conftest)
@@ -33,7 +33,7 @@ def test_homogeneous_box_transmittance_is_exp_minus_sigma_length(dtype: torch.dt
     volume = DvrVolume(ConstantField(1.0), constant_extinction_tf(sigma), bbox=box)
     intrinsics = Intrinsics.from_fov(33, 33, math.radians(30.0))
     c2w = _c2w(0.0, 0.0, 2.0, dtype)
-    out = render_image(volume, c2w, intrinsics, RenderConfig(step=0.01, early_stop_transmittance=0.0))
+    out = render_image(volume, c2w, intrinsics, MarchConfig(step=0.01, early_stop_transmittance=0.0))
     rays_o, rays_d = (r.reshape(-1, 3).double() for r in image_rays(c2w, intrinsics))
     t_front = (0.25 - rays_o[:, 2]) / rays_d[:, 2]  # [n]
     t_back = (-0.25 - rays_o[:, 2]) / rays_d[:, 2]
@@ -62,7 +62,7 @@ def _ramp_transmittance(step: float) -> torch.Tensor:
     rays_d = torch.cat([slopes, -torch.ones(4, 1, dtype=torch.float64)], dim=1)
     rays_d = rays_d / torch.linalg.norm(rays_d, dim=1, keepdim=True)
     rays_o = torch.tensor([[0.0, 0.0, 2.0]], dtype=torch.float64).expand(4, 3)
-    out = render_rays(volume, rays_o, rays_d, RenderConfig(step=step, early_stop_transmittance=0.0))
+    out = render_rays(volume, rays_o, rays_d, MarchConfig(step=step, early_stop_transmittance=0.0))
     return out.rgb[:, 1]  # green = transmittance for a black medium on white
 
 
@@ -119,13 +119,13 @@ def test_opacity_correction_makes_the_image_independent_of_the_step() -> None:
     intrinsics = Intrinsics.from_fov(24, 24, math.radians(30.0))
     c2w = _c2w(30.0, 20.0, 2.0)
     images = {
-        n: render_image(_blob_volume(0.01), c2w, intrinsics, RenderConfig(step=1.0 / n)).rgb
+        n: render_image(_blob_volume(0.01), c2w, intrinsics, MarchConfig(step=1.0 / n)).rgb
         for n in (128, 256, 512)
     }
     assert (images[128] - images[512]).abs().max() < 1e-3
     assert (images[256] - images[512]).abs().max() < 1e-3
     naive = {
-        n: render_image(_blob_volume(1.0 / n), c2w, intrinsics, RenderConfig(step=1.0 / n)).rgb
+        n: render_image(_blob_volume(1.0 / n), c2w, intrinsics, MarchConfig(step=1.0 / n)).rgb
         for n in (128, 256)
     }
     assert (naive[128] - naive[256]).abs().max() > 0.05
@@ -143,7 +143,7 @@ def test_sphere_isosurface_has_the_analytic_silhouette_and_depth() -> None:
     intrinsics = Intrinsics.from_fov(size, size, math.radians(30.0))
     c2w = _c2w(35.0, 20.0, distance)
     volume = IsoVolume(RadialDistanceField(), radius)
-    out = render_image(volume, c2w, intrinsics, RenderConfig(step=1.0 / 128.0))
+    out = render_image(volume, c2w, intrinsics, MarchConfig(step=1.0 / 128.0))
     hit = (out.opacity > 0).reshape(size, size)
     silhouette = intrinsics.fx * math.tan(math.asin(radius / distance))
     assert abs(silhouette - 18.40) < 0.01
@@ -166,7 +166,7 @@ def test_sphere_isosurface_has_the_analytic_silhouette_and_depth() -> None:
 def test_sphere_shading_is_brightest_facing_the_headlight() -> None:
     """Blinn-Phong from a headlight: the centre pixel (normal towards the eye) is the brightest."""
     intrinsics = Intrinsics.from_fov(33, 33, math.radians(30.0))
-    out = render_image(IsoVolume(RadialDistanceField(), 0.3), _c2w(0.0, 0.0, 2.0), intrinsics, RenderConfig())
+    out = render_image(IsoVolume(RadialDistanceField(), 0.3), _c2w(0.0, 0.0, 2.0), intrinsics, MarchConfig())
     brightness = out.rgb.sum(dim=1).reshape(33, 33)
     brightness[out.opacity.reshape(33, 33) == 0] = 0.0
     row, col = np.unravel_index(int(torch.argmax(brightness)), (33, 33))
@@ -177,7 +177,7 @@ def test_early_stop_and_chunking_do_not_change_the_result() -> None:
     """Chunked rendering equals one chunk; early stopping changes colours by < the stop threshold."""
     intrinsics = Intrinsics.from_fov(20, 20, math.radians(30.0))
     c2w = _c2w(-40.0, 10.0, 2.0)
-    base = RenderConfig(step=1.0 / 128.0, chunk_rays=4096, early_stop_transmittance=0.0)
+    base = MarchConfig(step=1.0 / 128.0, chunk_rays=4096, early_stop_transmittance=0.0)
     whole = render_image(_blob_volume(0.01), c2w, intrinsics, base)
     chunked = render_image(_blob_volume(0.01), c2w, intrinsics, dataclasses.replace(base, chunk_rays=37))
     stopped = render_image(
@@ -191,7 +191,7 @@ def test_lit_colours_follow_blinn_phong_about_the_gradient() -> None:
     """A ramp's gradient is known: seen along it, a sample takes the full diffuse light and the
     highlight; seen at 60 degrees to it, cos = 1/2 (two-sided: from behind as well); where the
     extinction is zero the colour stays the transfer function's."""
-    config = RenderConfig()
+    config = MarchConfig()
     s = config.shading
     points = torch.zeros(4, 3, dtype=torch.float64)
     half = math.sqrt(3.0) / 2.0
