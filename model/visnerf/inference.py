@@ -5,11 +5,13 @@
     image = scene.render(c2w, fov_deg=30, width=256, height=256, params={"opacity_a": 0.4})
     image.shape, image.dtype     # (256, 256, 3), uint8
 
+A caller that checks a request before it renders it (the server) splits ``render`` in two:
+``view`` checks the frame once and returns a ``FrameView``, ``draw`` renders it.
+
 Nothing here reaches into training code.
 """
 
 import math
-import threading
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -21,17 +23,20 @@ from visnerf.checkpoint import CheckpointError, CheckpointMeta, ParamAxis, load_
 from visnerf.data.cameras import Intrinsics, check_rigid_c2w
 from visnerf.lens import Projection, choose_lens
 from visnerf.rendering.cancel import CancelCheck, RenderCancelled
+from visnerf.rendering.empty_space import EmptySpace
 from visnerf.rendering.render_settings import Quality, RenderSettings
 from visnerf.rendering.renderer import render_image_scaled
-from visnerf.rendering.setting_occupancy import BackgroundRunner, SettingOccupancy, SettingOccupancyConfig
+from visnerf.rendering.setting_occupancy import GridBuild, SettingOccupancy, SettingOccupancyConfig
 from visnerf.representation import output_kernel, vm_kernel
 from visnerf.representation.field import VisNerfField
 from visnerf.runtime import release_free_memory
 
 __all__ = [
-    "BackgroundRunner",
     "CancelCheck",
     "CheckpointError",
+    "EmptySpace",
+    "FrameView",
+    "GridBuild",
     "ParamAxis",
     "Projection",
     "Quality",
@@ -78,6 +83,23 @@ def _scene_info(meta: CheckpointMeta) -> SceneInfo:
     )
 
 
+@dataclass(frozen=True)
+class FrameView:
+    """A frame checked against its scene (``SceneRenderer.view``): ``draw`` renders it as it is."""
+
+    c2w: np.ndarray
+    """[4, 4] float64, a rigid camera-to-world matrix in OpenGL axes."""
+    fov_deg: float | None
+    """Horizontal field of view of a perspective frame; None for an orthographic one."""
+    view_height: float | None
+    """World units an orthographic frame spans vertically; None for a perspective one."""
+    width: int
+    height: int
+    values: tuple[float, ...]
+    """Every parameter's value in axis order, defaults filled in, within the training range."""
+    quality: Quality
+
+
 TRIM_AFTER_PIXELS = 512 * 512
 """Frames of at least this many pixels give their freed memory back to the system when done
 (``runtime.release_free_memory``). A large frame allocates hundreds of megabytes in many blocks, on
@@ -88,8 +110,8 @@ takes milliseconds; smaller frames reuse the same blocks frame after frame."""
 
 
 class SceneRenderer:
-    """A loaded scene. ``render`` is thread safe: frames of any quality render at once (they read the
-    field; the cache of setting grids is behind a lock)."""
+    """A loaded scene. ``render`` and ``draw`` are thread safe: frames of any quality render at once
+    (they read the field; the cache of setting grids has its own lock)."""
 
     def __init__(
         self,
@@ -105,7 +127,6 @@ class SceneRenderer:
         self.meta = meta
         self.device = device
         self.info = _scene_info(meta)
-        self._lock = threading.Lock()
         cfg = setting_occupancy or SettingOccupancyConfig(threshold=meta.render.occupancy_threshold)
         self.setting_occupancy = SettingOccupancy(self.field, cfg)
         """Full-quality frames at a parameter tuple asked for more than once march that tuple's own
@@ -133,7 +154,7 @@ class SceneRenderer:
             values.append(min(max(value, axis.min), axis.max))
         return values
 
-    def render(
+    def view(
         self,
         c2w: np.ndarray,
         fov_deg: float | None,
@@ -141,21 +162,12 @@ class SceneRenderer:
         height: int,
         params: Mapping[str, float] | None = None,
         quality: Quality = "full",
-        cancel: CancelCheck | None = None,
-        background: BackgroundRunner | None = None,
         view_height: float | None = None,
-    ) -> np.ndarray:
-        """Render one frame: uint8 array [height, width, 3].
-
-        ``c2w`` is a 4x4 camera-to-world matrix in OpenGL axes; ``fov_deg`` the horizontal field of
-        view of a perspective camera, or ``view_height`` (with ``fov_deg`` None) the world units an
-        orthographic camera's image spans vertically. ``preview`` renders at half resolution with
-        twice the step and upsamples.
-        Raises ValueError for any invalid input (nothing is rendered then), and RenderCancelled
-        once ``cancel`` answers True (asked between chunks of rays). ``background`` runs the build
-        of this parameter setting's occupancy grid when one is due (default: the scene's own
-        thread; ``rendering.setting_occupancy``).
-        """
+    ) -> FrameView:
+        """The frame ``render`` takes, checked: ``c2w`` a 4x4 rigid camera-to-world matrix (OpenGL
+        axes); ``fov_deg`` the horizontal field of view of a perspective camera, or ``view_height``
+        (with ``fov_deg`` None) the world units an orthographic image spans vertically; parameters
+        by name (missing ones take their default). ValueError names the first problem."""
         m = check_rigid_c2w(c2w)
         if (fov_deg is None) == (view_height is None):
             raise ValueError("give fov_deg (perspective) or view_height (orthographic), one of them")
@@ -167,25 +179,61 @@ class SceneRenderer:
             raise ValueError(f"image size must be positive, got {width}x{height}")
         if quality not in ("preview", "full"):
             raise ValueError(f"quality must be 'preview' or 'full', got {quality!r}")
-        values = self.resolve_params(params or {})
-        settings = RenderSettings.from_meta(self.meta, quality)
-        intrinsics = (Intrinsics.from_fov(width, height, math.radians(fov_deg)) if fov_deg is not None
-                      else Intrinsics.from_view_height(width, height, float(view_height)))  # type: ignore[arg-type]
-        c2w_t = torch.as_tensor(m, dtype=torch.float32, device=self.device)
-        normalized = [axis.normalize(v) for axis, v in zip(self.meta.param_axes, values, strict=True)]
-        params_t = torch.tensor(normalized, dtype=torch.float32, device=self.device)
+        values = tuple(self.resolve_params(params or {}))
+        return FrameView(m, None if fov_deg is None else float(fov_deg),
+                         None if view_height is None else float(view_height), int(width), int(height), values, quality)
+
+    def _params(self, view: FrameView) -> torch.Tensor:
+        """The view's parameters normalised, [k] on the scene's device."""
+        normalized = [axis.normalize(v) for axis, v in zip(self.meta.param_axes, view.values, strict=True)]
+        return torch.tensor(normalized, dtype=torch.float32, device=self.device)
+
+    def setting_grid(self, view: FrameView) -> tuple[EmptySpace | None, GridBuild | None]:
+        """(the occupancy grid of the view's parameter setting, or None: march the union grid; the
+        build of that grid when one is due, for the caller to run or drop, or None). Full-quality
+        frames only (``rendering.setting_occupancy``)."""
+        settings = RenderSettings.from_meta(self.meta, view.quality)
+        if view.quality != "full" or not settings.use_occupancy:
+            return None, None
+        return self.setting_occupancy.lookup(self._params(view), self.field.voxel_size() * settings.step_ratio)
+
+    def draw(self, view: FrameView, own: EmptySpace | None = None, cancel: CancelCheck | None = None) -> np.ndarray:
+        """Render a checked frame: uint8 [height, width, 3]. ``own``: the grid of its setting
+        (``setting_grid``), None for the union. ``preview`` renders at a fraction of the resolution
+        with a longer step and upsamples. RenderCancelled once ``cancel`` answers True (asked
+        between chunks of rays)."""
+        settings = RenderSettings.from_meta(self.meta, view.quality)
+        intrinsics = (Intrinsics.from_fov(view.width, view.height, math.radians(view.fov_deg))
+                      if view.fov_deg is not None
+                      else Intrinsics.from_view_height(view.width, view.height, float(view.view_height)))  # type: ignore[arg-type]
+        c2w_t = torch.as_tensor(view.c2w, dtype=torch.float32, device=self.device)
         try:
             with torch.inference_mode():
-                own = None
-                if quality == "full" and settings.use_occupancy:
-                    step = self.field.voxel_size() * settings.step_ratio
-                    with self._lock:  # the setting grids' cache is shared state; rendering only reads
-                        own = self.setting_occupancy.lookup(params_t, step, background)
-                rgb = render_image_scaled(self.field, c2w_t, intrinsics, params_t, settings, own, cancel)  # [h, w, 3]
+                rgb = render_image_scaled(self.field, c2w_t, intrinsics, self._params(view), settings, own, cancel)  # [h, w, 3]
                 return (rgb.clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
         finally:  # a frame stopped early allocated as much as a finished one
-            if width * height >= TRIM_AFTER_PIXELS:
+            if view.width * view.height >= TRIM_AFTER_PIXELS:
                 release_free_memory()
+
+    def render(
+        self,
+        c2w: np.ndarray,
+        fov_deg: float | None,
+        width: int,
+        height: int,
+        params: Mapping[str, float] | None = None,
+        quality: Quality = "full",
+        cancel: CancelCheck | None = None,
+        view_height: float | None = None,
+    ) -> np.ndarray:
+        """``draw`` of ``view``: one frame, uint8 [height, width, 3]; ValueError for any invalid
+        input (nothing is rendered then). A setting grid that falls due is built on the scene's own
+        worker thread (``SettingOccupancy.run_own``)."""
+        frame = self.view(c2w, fov_deg, width, height, params, quality, view_height)
+        own, build = self.setting_grid(frame)
+        if build is not None:
+            own = self.setting_occupancy.run_own(build)
+        return self.draw(frame, own, cancel)
 
 
 def load_scene(path: str | Path, device: torch.device | None = None) -> SceneRenderer:

@@ -8,7 +8,6 @@ import io
 import threading
 import time
 from collections.abc import Callable
-from concurrent.futures import Future
 from dataclasses import dataclass
 
 import numpy as np
@@ -16,8 +15,7 @@ from PIL import Image
 
 from visnerf import inference
 from visnerf.data.cameras import orbit_c2w
-from visnerf.inference import RenderCancelled, choose_lens
-from visnerf.rendering.empty_space import EmptySpace
+from visnerf.inference import CancelCheck, FrameView, Quality, RenderCancelled, SceneRenderer, choose_lens
 from visnerf.runtime import release_free_memory
 from visnerf_server.costs import FrameLimits
 from visnerf_server.frame_cache import CachedFrame, FrameCache
@@ -39,22 +37,26 @@ def is_large_frame(width: int, height: int, quality: str) -> bool:
 
 @dataclass(frozen=True)
 class FrameJob:
-    """A fully validated render request."""
+    """A render request checked once (``prepare_frame``), handed on resolved."""
 
     scene: Scene
-    c2w: np.ndarray
-    fov_deg: float | None
-    """Horizontal field of view of a perspective frame; None for an orthographic one."""
-    width: int
-    height: int
-    params: dict[str, float]
-    """Every parameter of the scene, by name, defaults filled in."""
-    quality: str
+    view: FrameView
+    """The frame as the scene's renderer checked it (``SceneRenderer.view``)."""
     format: str
     cost: float = 0.0
     """Rate-limit price: the frame's pixels, a preview pixel at ``FrameLimits.preview_pixel_cost``."""
-    view_height: float | None = None
-    """World units an orthographic frame spans vertically; None for a perspective one."""
+
+    @property
+    def width(self) -> int:
+        return self.view.width
+
+    @property
+    def height(self) -> int:
+        return self.view.height
+
+    @property
+    def quality(self) -> Quality:
+        return self.view.quality
 
     @property
     def large(self) -> bool:
@@ -63,16 +65,17 @@ class FrameJob:
 
     def key(self) -> tuple:
         """Identical requests (same scene version) give identical keys; starts with the scene id."""
+        view = self.view
         return (
             self.scene.id,
             self.scene.version,
-            tuple(round(float(x), 9) for x in self.c2w.reshape(-1)),
-            None if self.fov_deg is None else round(self.fov_deg, 9),
-            None if self.view_height is None else round(self.view_height, 9),
-            self.width,
-            self.height,
-            tuple(sorted(self.params.items())),
-            self.quality,
+            tuple(round(float(x), 9) for x in view.c2w.reshape(-1)),
+            None if view.fov_deg is None else round(view.fov_deg, 9),
+            None if view.view_height is None else round(view.view_height, 9),
+            view.width,
+            view.height,
+            view.values,
+            view.quality,
             self.format,
         )
 
@@ -106,27 +109,39 @@ class Frame:
 
 
 def prepare_frame(scene: Scene, request: RenderRequest, limits: FrameLimits) -> FrameJob:
-    """Check a request against the scene and the server's limits; ValueError names the problem
-    (``costs.FrameTooLarge`` for a size over the limits). A size not given is the scene's trained
-    size, scaled down to fit the limits."""
-    default_c2w = default_view(scene.renderer)
+    """Check a request against the server's limits and the scene (``SceneRenderer.view``), once;
+    ValueError names the problem (``costs.FrameTooLarge`` for a size over the limits). A size not
+    given is the scene's trained size, scaled down to fit the limits."""
     default_w, default_h = limits.default_size(*scene.renderer.info.image_size, request.quality)
     width = request.width if request.width is not None else default_w
     height = request.height if request.height is not None else default_h
     limits.check(width, height, request.quality)
     camera = request.camera
     if camera is None:
-        c2w = default_c2w
+        c2w = default_view(scene.renderer)
     elif isinstance(camera, MatrixCamera):
         c2w = np.asarray(camera.c2w, dtype=np.float64)
     else:
         c2w = orbit_c2w(camera.azimuth, camera.elevation, camera.distance)
     fov_deg, view_height = choose_lens(scene.renderer.info.camera, request.fov_deg, request.view_height,
                                        request.projection)
-    values = scene.renderer.resolve_params(request.params)
-    params = {axis.name: v for axis, v in zip(scene.renderer.info.params, values, strict=True)}
-    cost = limits.cost(width, height, request.quality)
-    return FrameJob(scene, c2w, fov_deg, width, height, params, request.quality, request.format, cost, view_height)
+    view = scene.renderer.view(c2w, fov_deg, width, height, request.params, request.quality, view_height)
+    return FrameJob(scene, view, request.format, limits.cost(width, height, request.quality))
+
+
+def draw_in_lanes(queue: RenderQueue, renderer: SceneRenderer, view: FrameView, cancel: CancelCheck) -> np.ndarray:
+    """``renderer.draw(view)``, a setting grid that falls due built in the queue's background lane:
+    it counts against the queue's capacity like any render instead of taking CPU beside it, and a
+    queue that takes no work now leaves it for a later frame."""
+    own, build = renderer.setting_grid(view)
+    if build is not None:
+        try:
+            future = queue.submit(build.run, Lane.BACKGROUND)
+        except QueueFullError:
+            build.drop()
+        else:
+            future.add_done_callback(lambda done: build.drop() if done.cancelled() else None)
+    return renderer.draw(view, own, cancel)
 
 
 def encode_image(image: np.ndarray, fmt: str, quality: int) -> bytes:
@@ -180,11 +195,6 @@ class FrameRenderer:
         if self.limiter is not None and client is not None:
             self.limiter.give_back(client, job.cost)
 
-    def _in_background(self, build: Callable[[], EmptySpace]) -> "Future[EmptySpace]":
-        """Occupancy grid builds wait in the queue's background lane: they count against its
-        capacity like any render instead of taking CPU beside it."""
-        return self.queue.submit(build, Lane.BACKGROUND)
-
     def _work(self, job: FrameJob, submitted: float, cancel: threading.Event):
         def run() -> Frame:
             try:
@@ -199,17 +209,7 @@ class FrameRenderer:
 
         def render_and_encode() -> Frame:
             started = time.perf_counter()
-            image = job.scene.renderer.render(
-                job.c2w,
-                job.fov_deg,
-                job.width,
-                job.height,
-                job.params,
-                job.quality,  # type: ignore[arg-type]
-                cancel=cancel.is_set,
-                background=self._in_background,
-                view_height=job.view_height,
-            )
+            image = draw_in_lanes(self.queue, job.scene.renderer, job.view, cancel.is_set)
             rendered = time.perf_counter()
             data = encode_image(image, job.format, self.jpeg_quality)
             done = time.perf_counter()

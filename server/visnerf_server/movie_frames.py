@@ -17,7 +17,7 @@ import numpy as np
 
 from visnerf.animation.path import FrameSpec
 from visnerf.inference import RenderCancelled
-from visnerf_server.frames import is_large_frame
+from visnerf_server.frames import draw_in_lanes, is_large_frame
 from visnerf_server.movie_plans import MoviePlan
 from visnerf_server.registry import SceneRegistry
 from visnerf_server.render_queue import Lane, QueueFullError, RenderQueue
@@ -51,19 +51,11 @@ def render_frame(queue: RenderQueue, plan: MoviePlan, spec: FrameSpec, cancel: E
     renderer = plan.scene.renderer
     settings = plan.settings
     large = is_large_frame(settings.width, settings.height, settings.quality)
+    view = renderer.view(spec.c2w, spec.fov_deg, settings.width, settings.height, spec.params,
+                         settings.quality, spec.view_height)  # type: ignore[arg-type]
 
     def run() -> np.ndarray:
-        return renderer.render(
-            spec.c2w,
-            spec.fov_deg,
-            settings.width,
-            settings.height,
-            spec.params,
-            settings.quality,  # type: ignore[arg-type]
-            cancel=cancel.is_set,
-            background=lambda build: queue.submit(build, Lane.BACKGROUND),
-            view_height=spec.view_height,
-        )
+        return draw_in_lanes(queue, renderer, view, cancel.is_set)
 
     while True:
         if cancel.is_set():

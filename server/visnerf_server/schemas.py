@@ -1,13 +1,12 @@
 """Request and response models. Every number a client sends is finite and bounded here; parameter
-values are then checked against the scene's training ranges by ``SceneRenderer.resolve_params``."""
+the frame is then checked once against the scene (rigid camera, parameter ranges) by
+``SceneRenderer.view``."""
 
 import math
 from typing import Annotated, Any, Literal
 
-import numpy as np
-from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, model_validator
 
-from visnerf.data.cameras import check_rigid_c2w
 from visnerf.inference import Quality
 from visnerf.lens import Projection
 
@@ -40,12 +39,7 @@ class MatrixCamera(BaseModel):
     model_config = ConfigDict(extra="forbid", allow_inf_nan=False)
 
     c2w: Annotated[list[Row4], Field(min_length=4, max_length=4)]
-
-    @field_validator("c2w")
-    @classmethod
-    def _rigid(cls, value: list[list[float]]) -> list[list[float]]:
-        check_rigid_c2w(np.asarray(value, dtype=np.float64))  # ValueError -> 422 naming the problem
-        return value
+    """Checked to be rigid with the rest of the frame (``SceneRenderer.view``)."""
 
 
 def _camera_kind(value: Any) -> str:

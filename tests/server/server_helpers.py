@@ -104,13 +104,13 @@ class SlowRenderer:
         self.delay_s = delay_s
         self.calls = 0
 
-    def resolve_params(self, params):  # noqa: ANN001, ANN201
-        return self.inner.resolve_params(params)
+    def __getattr__(self, name: str):  # noqa: ANN204 - view, setting_grid, ... of the real scene
+        return getattr(self.inner, name)
 
-    def render(self, *args, **kwargs) -> np.ndarray:  # noqa: ANN002, ANN003
+    def draw(self, *args, **kwargs) -> np.ndarray:  # noqa: ANN002, ANN003
         self.calls += 1
         time.sleep(self.delay_s)
-        return self.inner.render(*args, **kwargs)
+        return self.inner.draw(*args, **kwargs)
 
 
 class UntilCancelledRenderer:
@@ -126,11 +126,11 @@ class UntilCancelledRenderer:
         self.stopped = 0
         self.began = threading.Event()
 
-    def resolve_params(self, params):  # noqa: ANN001, ANN201
-        return self.inner.resolve_params(params)
+    def __getattr__(self, name: str):  # noqa: ANN204 - view, setting_grid, ... of the real scene
+        return getattr(self.inner, name)
 
-    def render(self, c2w, fov_deg, width, height, *args, cancel=None, **kwargs) -> np.ndarray:  # noqa: ANN001, ANN002, ANN003
-        if width * height >= self.min_pixels:
+    def draw(self, view, own=None, cancel=None) -> np.ndarray:  # noqa: ANN001
+        if view.width * view.height >= self.min_pixels:
             self.started += 1
             self.began.set()
             deadline = time.monotonic() + 20
@@ -139,7 +139,7 @@ class UntilCancelledRenderer:
                     self.stopped += 1
                     raise RenderCancelled("render cancelled")
                 time.sleep(0.005)
-        return self.inner.render(c2w, fov_deg, width, height, *args, cancel=cancel, **kwargs)
+        return self.inner.draw(view, own, cancel)
 
 
 # --- a real server process ---------------------------------------------------------------------

@@ -14,7 +14,6 @@ import threading
 import time
 import weakref
 from collections.abc import Callable
-from functools import partial
 from pathlib import Path
 
 import httpx
@@ -24,7 +23,7 @@ import torch
 from fastapi.testclient import TestClient
 from server_helpers import AUTH, ORBIT, image_size, make_settings, serve_process
 
-from visnerf.inference import RenderCancelled
+from visnerf.inference import FrameView, RenderCancelled
 from visnerf_server.app import create_app
 from visnerf_server.frames import FrameJob
 from visnerf_server.metrics import Metrics
@@ -467,8 +466,9 @@ def test_a_refused_large_frame_answers_503_with_the_estimated_wait(
 
 
 def test_large_frames_are_full_frames_of_512_by_512_or_more() -> None:
-    scene = object()
-    job = partial(FrameJob, scene, np.eye(4), 40.0, params={}, format="jpeg")
+    def job(width: int, height: int, quality: str) -> FrameJob:
+        return FrameJob(object(), FrameView(np.eye(4), 40.0, None, width, height, (), quality), "jpeg")  # type: ignore[arg-type]
+
     assert job(512, 512, quality="full").large and job(1440, 1440, quality="full").large
     assert not job(511, 512, quality="full").large and not job(512, 512, quality="preview").large
 

@@ -292,7 +292,7 @@ def test_docs_are_off_by_default_and_never_from_a_cdn(ckpt_dir: Path, tmp_path: 
 
 
 class GatedRenderer:
-    """Wraps a real scene; every render waits for ``gate``, then returns a grey frame."""
+    """Wraps a real scene; every frame drawn waits for ``gate``, then is grey."""
 
     def __init__(self, inner, gate: threading.Event) -> None:  # noqa: ANN001
         self.inner = inner
@@ -301,9 +301,9 @@ class GatedRenderer:
     def __getattr__(self, name: str):  # noqa: ANN204
         return getattr(self.inner, name)
 
-    def render(self, c2w, fov_deg, width, height, *args, **kwargs) -> np.ndarray:  # noqa: ANN001
+    def draw(self, view, *args, **kwargs) -> np.ndarray:  # noqa: ANN001, ANN002, ANN003
         self.gate.wait(20)
-        return np.full((height, width, 3), 128, np.uint8)
+        return np.full((view.height, view.width, 3), 128, np.uint8)
 
 
 def test_health_answers_while_renders_and_the_thread_pool_are_busy(ckpt_dir: Path, tmp_path: Path) -> None:

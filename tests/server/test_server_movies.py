@@ -369,7 +369,8 @@ def test_a_full_movie_frame_of_512_by_512_or_more_is_large(size: int, quality: s
 
     queue.submit = spy
     image = np.zeros((size, size, 3), np.uint8)
-    renderer = SimpleNamespace(render=lambda *args, **kwargs: image)
+    renderer = SimpleNamespace(view=lambda *args: None, setting_grid=lambda view: (None, None),
+                               draw=lambda *args: image)
     plan = SimpleNamespace(scene=SimpleNamespace(renderer=renderer),
                            settings=SimpleNamespace(width=size, height=size, quality=quality))
     spec = SimpleNamespace(c2w=None, fov_deg=40.0, params={}, view_height=None)

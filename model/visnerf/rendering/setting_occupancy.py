@@ -9,20 +9,20 @@ the last ``capacity`` tuples.
 
 A grid is built only for a tuple that asks ``build_after`` times: a parameter path (a slider
 being dragged, a test path) asks once per tuple and never pays for a build it cannot amortise;
-orbiting at one setting builds once, from the second frame on. With ``background`` the build runs
-on a worker thread (one at a time) and the frames go on with the union grid until it is ready, so
-no frame waits for it. The key is the exact tuple of normalised values (Python floats): two
-tuples that differ at all never share a grid. A caller that bounds the work running at once (the
-render server's queue) hands ``lookup`` a ``BackgroundRunner`` and the build runs there instead.
+orbiting at one setting builds once, from the second frame on. One build runs at a time, and the
+frames go on with the union grid until it is stored, so no frame waits for it. The key is the
+exact tuple of normalised values (Python floats): two tuples that differ at all never share a grid.
+
+``lookup`` answers the grid to march now and, when one is due, a ``GridBuild`` that its caller
+runs where it bounds its work (the render server's background lane), or hands to ``run_own``: on
+this cache's worker thread (``background``) or at once.
 """
 
-import contextlib
 import logging
+import threading
 from collections import OrderedDict
-from collections.abc import Callable
-from concurrent.futures import CancelledError, Future, ThreadPoolExecutor
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from functools import partial
 
 import torch
 from jaxtyping import Float
@@ -33,9 +33,6 @@ from visnerf.rendering.occupancy import build_occupancy
 from visnerf.representation.field import VisNerfField
 
 ParamKey = tuple[float, ...]
-BackgroundRunner = Callable[[Callable[[], EmptySpace]], "Future[EmptySpace]"]
-"""Runs a grid build off the frame's thread and returns its future; raises RuntimeError when it
-takes no work now (full or stopping), and the build is asked for again by a later frame."""
 log = logging.getLogger(__name__)
 
 
@@ -51,7 +48,7 @@ class SettingOccupancyConfig:
     """Density samples per cell and axis (as the union grid is built: structure thinner than a
     cell between two cell centres is still seen)."""
     background: bool = True
-    """Build on a worker thread and use the grid once it is ready (False: build in ``lookup``)."""
+    """``run_own`` builds on a worker thread and uses the grid once it is ready (False: at once)."""
 
     def __post_init__(self) -> None:
         if self.capacity < 0 or self.build_after < 1 or self.samples_per_axis < 1:
@@ -78,15 +75,40 @@ def build_setting_grid(
     return own & union
 
 
+@dataclass(eq=False)
+class GridBuild:
+    """The build of one tuple's grid that a lookup found due: ``run`` it (any thread; it stores the
+    grid), or ``drop`` it where nothing will run it (the tuple is asked for again by a later frame).
+    A failed build is logged and dropped: the union grid keeps serving that tuple."""
+
+    cache: "SettingOccupancy"
+    key: ParamKey
+    params: Tensor
+    step: float
+
+    def run(self) -> None:
+        try:
+            space = self.cache.build(self.params, self.step)
+        except Exception:  # noqa: BLE001 - the union grid is always a correct fallback
+            log.exception("building the occupancy grid of parameters %s failed", self.key)
+            space = None
+        self.cache._finish(self, space)
+
+    def drop(self) -> None:
+        self.cache._finish(self, None)
+
+
 class SettingOccupancy:
-    """LRU of ``EmptySpace`` per parameter tuple for one field. ``lookup`` is not thread safe:
-    call it under the scene's render lock (a background build only reads the field)."""
+    """LRU of ``EmptySpace`` per parameter tuple for one field; thread safe (a build only reads the
+    field)."""
 
     def __init__(self, field: VisNerfField, cfg: SettingOccupancyConfig) -> None:
         self.field, self.cfg = field, cfg
         self._grids: OrderedDict[ParamKey, EmptySpace] = OrderedDict()
         self._asked: OrderedDict[ParamKey, int] = OrderedDict()
-        self._pending: tuple[ParamKey, Future[EmptySpace]] | None = None
+        self._pending: GridBuild | None = None
+        self._lock = threading.Lock()
+        self._idle = threading.Condition(self._lock)
         self._pool: ThreadPoolExecutor | None = None
         self.builds = 0
 
@@ -99,68 +121,56 @@ class SettingOccupancy:
             grid = build_setting_grid(self.field, params, step, self.cfg.threshold, self.cfg.samples_per_axis)
             return EmptySpace.of(grid, self.field.aabb)
 
-    def _store(self, key: ParamKey, space: EmptySpace) -> EmptySpace:
-        self.builds += 1
-        self._grids[key] = space
-        while len(self._grids) > self.cfg.capacity:
-            self._grids.popitem(last=False)
-        return space
-
-    def _collect(self) -> None:
-        """Store the background build if it has finished (a failed build is logged and dropped:
-        the union grid keeps serving that tuple)."""
-        if self._pending is None or not self._pending[1].done():
-            return
-        key, future = self._pending
-        self._pending = None
-        if future.cancelled():  # dropped by its runner (a server stopping): the union serves
-            return
-        try:
-            self._store(key, future.result())
-        except Exception:  # noqa: BLE001 - the union grid is always a correct fallback
-            log.exception("building the occupancy grid of parameters %s failed", key)
+    def _finish(self, build: GridBuild, space: EmptySpace | None) -> None:
+        """End ``build``: store its grid (None: nothing to store) and free the one build slot."""
+        with self._lock:
+            if self._pending is not build:
+                return
+            self._pending = None
+            if space is not None:
+                self.builds += 1
+                self._grids[build.key] = space
+                while len(self._grids) > self.cfg.capacity:
+                    self._grids.popitem(last=False)
+            self._idle.notify_all()
 
     def wait(self) -> None:
-        """Block until a background build has finished and is stored (tests, benchmarks)."""
-        if self._pending is not None:
-            with contextlib.suppress(CancelledError):  # dropped by its runner: nothing to wait for
-                self._pending[1].exception()
-            self._collect()
+        """Block until no build is running (tests, benchmarks)."""
+        with self._lock:
+            self._idle.wait_for(lambda: self._pending is None)
 
-    def lookup(
-        self, params: Float[Tensor, " k"], step: float, background: BackgroundRunner | None = None
-    ) -> EmptySpace | None:
-        """The empty space of ``params``, or None (use the union) while the tuple has asked fewer
-        than ``build_after`` times or its grid is being built, when the cache is off, or when the
-        field has no grid. A background build runs on ``background`` when given, else on this
-        cache's own worker thread."""
+    def lookup(self, params: Float[Tensor, " k"], step: float) -> tuple[EmptySpace | None, GridBuild | None]:
+        """(the grid of ``params`` or None: march the union, the build now due or None). No grid
+        while the tuple has asked fewer than ``build_after`` times or its grid is being built, when
+        the cache is off, or when the field has no grid; no build while another one runs."""
         if self.cfg.capacity == 0 or self.field.occupancy is None:
-            return None
-        self._collect()
+            return None, None
         key = param_key(params)
-        hit = self._grids.get(key)
-        if hit is not None:
-            self._grids.move_to_end(key)
-            return hit
-        if self._pending is not None and self._pending[0] == key:
-            return None
-        asked = self._asked.pop(key, 0) + 1
-        if asked < self.cfg.build_after:
-            self._asked[key] = asked
-            while len(self._asked) > 4 * self.cfg.capacity:
-                self._asked.popitem(last=False)
-            return None
-        if not self.cfg.background:
-            return self._store(key, self.build(params, step))
-        if self._pending is None:  # one build at a time; a busy worker leaves this tuple for later
-            build = partial(self.build, params.detach().clone(), step)
-            try:
-                self._pending = (key, background(build) if background is not None else self._own_pool().submit(build))
-            except RuntimeError:  # the runner takes no work now: a later frame asks again
+        with self._lock:
+            hit = self._grids.get(key)
+            if hit is not None:
+                self._grids.move_to_end(key)
+                return hit, None
+            if self._pending is not None and self._pending.key == key:
+                return None, None
+            asked = self._asked.pop(key, 0) + 1
+            if asked < self.cfg.build_after or self._pending is not None:
                 self._asked[key] = asked
-        else:
-            self._asked[key] = asked
-        return None
+                while len(self._asked) > 4 * self.cfg.capacity:
+                    self._asked.popitem(last=False)
+                return None, None
+            self._pending = GridBuild(self, key, params.detach().clone(), step)
+            return None, self._pending
+
+    def run_own(self, build: GridBuild) -> EmptySpace | None:
+        """Run a due build here: on this cache's worker thread (``background``; None: the frame
+        marches the union meanwhile), or at once, returning the grid it stored."""
+        if self.cfg.background:
+            self._own_pool().submit(build.run)
+            return None
+        build.run()
+        with self._lock:
+            return self._grids.get(build.key)
 
     def _own_pool(self) -> ThreadPoolExecutor:
         if self._pool is None:

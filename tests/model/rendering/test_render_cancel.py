@@ -161,31 +161,31 @@ def test_a_scene_render_cancelled_before_it_starts_renders_nothing(tmp_path) -> 
     assert image.shape == (16, 16, 3)
 
 
-def test_grid_builds_go_to_the_runner_given_and_a_refusal_or_a_drop_is_harmless() -> None:
+def test_a_due_build_goes_to_its_caller_and_a_drop_or_a_failure_is_harmless() -> None:
     field, _ = make_tiny_field([("a", [0.0, 1.0])], seed=3, resolution=8)
     field.eval()
     field.set_occupancy(torch.ones(8, 8, 8, dtype=torch.bool))  # a union grid to narrow
     step = field.voxel_size()
     cache = SettingOccupancy(field, SettingOccupancyConfig(capacity=4, build_after=1))
-    a = torch.tensor([0.5])
+    a, b = torch.tensor([0.5]), torch.tensor([0.25])
+    space, build = cache.lookup(a, step)
+    assert space is None and build is not None
+    assert cache.lookup(a, step) == (None, None)  # being built: the union serves, no second build
+    assert cache.lookup(b, step) == (None, None)  # one build at a time: b asks again later
+    build.drop()  # e.g. a render queue that takes no work now
+    space, build = cache.lookup(a, step)  # a new build is handed out
+    assert space is None and build is not None
+    build.run()
+    build.drop()  # a drop after the build ended changes nothing
+    space, again = cache.lookup(a, step)
+    assert space is not None and again is None and cache.builds == 1
 
-    def refuse(build):  # noqa: ANN001, ANN202
-        raise RuntimeError("render queue is full")
+    def fail(params, step):  # noqa: ANN001, ANN202
+        raise RuntimeError("out of memory")
 
-    assert cache.lookup(a, step, refuse) is None  # the union serves; asked again later
-    dropped: Future = Future()
-    assert cache.lookup(a, step, lambda build: dropped) is None
-    dropped.cancel()  # e.g. the server stopping
-    cache.wait()
-    assert cache.lookup(a, step, lambda build: dropped) is None  # not stored; a new build is handed out
-    runs: list[Future] = []
+    cache.build = fail  # type: ignore[method-assign]
+    _, build = cache.lookup(b, step)
+    assert build is not None
+    build.run()  # logged; nothing stored, and the slot is free again
+    assert cache.builds == 1 and cache.lookup(b, step)[1] is not None
 
-    def run_now(build):  # noqa: ANN001, ANN202
-        future: Future = Future()
-        future.set_result(build())
-        runs.append(future)
-        return future
-
-    cache = SettingOccupancy(field, SettingOccupancyConfig(capacity=4, build_after=1))
-    assert cache.lookup(a, step, run_now) is None
-    assert cache.lookup(a, step, run_now) is not None and len(runs) == 1 and cache.builds == 1

@@ -43,6 +43,12 @@ def field():
     return f
 
 
+def serve(cache: SettingOccupancy, params: torch.Tensor, step: float) -> EmptySpace | None:
+    """A frame's lookup, a due build run by the cache itself (as ``SceneRenderer.render`` does)."""
+    space, build = cache.lookup(params, step)
+    return cache.run_own(build) if build is not None else space
+
+
 def grid_of(space: EmptySpace) -> torch.Tensor:
     return space.occupied.bool().reshape(space.shape)
 
@@ -53,17 +59,17 @@ def test_each_tuple_gets_its_own_grid_and_no_other(field) -> None:
     a, b = torch.tensor([-1.0]), torch.tensor([1.0])
     own_a, own_b = (build_setting_grid(field, p, step, 1e-4) for p in (a, b))
     assert not torch.equal(own_a, own_b), "the test needs settings whose grids differ"
-    assert cache.lookup(a, step) is None  # asked once: the union serves
-    first = cache.lookup(a, step)
+    assert serve(cache, a, step) is None  # asked once: the union serves
+    first = serve(cache, a, step)
     assert first is not None and torch.equal(grid_of(first), own_a)
-    assert cache.lookup(b, step) is None
-    assert torch.equal(grid_of(cache.lookup(b, step)), own_b)
-    again = cache.lookup(a, step)
+    assert serve(cache, b, step) is None
+    assert torch.equal(grid_of(serve(cache, b, step)), own_b)
+    again = serve(cache, a, step)
     assert again is first and torch.equal(grid_of(again), own_a)
     # A tuple that differs by the least amount is another key: not served A's grid.
     nudged = torch.tensor([math.nextafter(-1.0, 0.0)], dtype=torch.float64)
     assert param_key(nudged) != param_key(a)
-    assert cache.lookup(nudged, step) is None
+    assert serve(cache, nudged, step) is None
     assert cache.builds == 2
 
 
@@ -71,16 +77,16 @@ def test_background_builds_serve_the_union_until_ready_then_their_own_tuple(fiel
     step = field.voxel_size() * STEP_RATIO
     cache = SettingOccupancy(field, SettingOccupancyConfig(capacity=4, build_after=2, background=True))
     a, b = torch.tensor([-1.0]), torch.tensor([1.0])
-    assert cache.lookup(a, step) is None
-    assert cache.lookup(a, step) is None  # the build has started; the union serves meanwhile
-    assert cache.lookup(b, step) is None
-    assert cache.lookup(b, step) is None  # the worker is busy with a: b waits for a later frame
+    assert serve(cache, a, step) is None
+    assert serve(cache, a, step) is None  # the build has started; the union serves meanwhile
+    assert serve(cache, b, step) is None
+    assert serve(cache, b, step) is None  # the worker is busy with a: b waits for a later frame
     cache.wait()
     assert cache.builds == 1
-    assert torch.equal(grid_of(cache.lookup(a, step)), build_setting_grid(field, a, step, 1e-4))
-    assert cache.lookup(b, step) is None  # now b's build starts
+    assert torch.equal(grid_of(serve(cache, a, step)), build_setting_grid(field, a, step, 1e-4))
+    assert serve(cache, b, step) is None  # now b's build starts
     cache.wait()
-    assert torch.equal(grid_of(cache.lookup(b, step)), build_setting_grid(field, b, step, 1e-4))
+    assert torch.equal(grid_of(serve(cache, b, step)), build_setting_grid(field, b, step, 1e-4))
     assert cache.builds == 2
 
 
@@ -88,14 +94,14 @@ def test_least_recently_used_grid_is_dropped(field) -> None:
     step = field.voxel_size() * STEP_RATIO
     cache = SettingOccupancy(field, SettingOccupancyConfig(capacity=2, build_after=1, background=False))
     a, b, c = torch.tensor([-1.0]), torch.tensor([0.0]), torch.tensor([1.0])
-    cache.lookup(a, step)
-    cache.lookup(b, step)
-    cache.lookup(a, step)  # a is now the most recent
-    cache.lookup(c, step)  # drops b
+    serve(cache, a, step)
+    serve(cache, b, step)
+    serve(cache, a, step)  # a is now the most recent
+    serve(cache, c, step)  # drops b
     assert len(cache) == 2 and cache.builds == 3
-    cache.lookup(a, step)
+    serve(cache, a, step)
     assert cache.builds == 3
-    assert torch.equal(grid_of(cache.lookup(b, step)), build_setting_grid(field, b, step, 1e-4))
+    assert torch.equal(grid_of(serve(cache, b, step)), build_setting_grid(field, b, step, 1e-4))
     assert cache.builds == 4
 
 
@@ -127,8 +133,8 @@ def test_frames_with_a_setting_grid_match_frames_with_the_union(field) -> None:
 
 def test_cache_off_and_bad_configs() -> None:
     f, _ = make_tiny_field([("a", [0.0, 1.0])], seed=1, resolution=8)
-    assert SettingOccupancy(f, SettingOccupancyConfig(capacity=0)).lookup(torch.tensor([0.0]), 0.1) is None
-    assert SettingOccupancy(f, SettingOccupancyConfig(build_after=1)).lookup(torch.tensor([0.0]), 0.1) is None  # no grid
+    assert SettingOccupancy(f, SettingOccupancyConfig(capacity=0)).lookup(torch.tensor([0.0]), 0.1) == (None, None)
+    assert SettingOccupancy(f, SettingOccupancyConfig(build_after=1)).lookup(torch.tensor([0.0]), 0.1) == (None, None)  # no grid
     with pytest.raises(ValueError, match="capacity"):
         SettingOccupancyConfig(capacity=-1)
     with pytest.raises(ValueError, match="no occupancy grid"):
