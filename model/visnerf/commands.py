@@ -11,6 +11,8 @@ from typing import TYPE_CHECKING
 from visnerf.arg_types import add_device_option
 from visnerf.checkpoint import CheckpointError, read_checkpoint
 from visnerf.cinema_options import add_cinema_options, cinema_camera
+from visnerf.config import FramesConfig
+from visnerf.config_options import add_config_options, frames_config
 from visnerf.data.cameras import orbit_c2w
 from visnerf.holdout_options import add_holdout_options, holdout_config
 from visnerf.runtime import pick_device
@@ -40,7 +42,7 @@ def _render(args: argparse.Namespace) -> int:
             print(f"error: --param {item!r} must be NAME=NUMBER", file=sys.stderr)
             return 2
     try:
-        scene = load_scene(args.checkpoint, pick_device(args.device))
+        scene = load_scene(args.checkpoint, pick_device(args.device), frames_config(args))
         cam = scene.info.camera
         distance = args.distance if args.distance is not None else cam.get("distance", 2.0)
         fov, view_height = choose_lens(cam, args.fov, args.view_height)
@@ -140,6 +142,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.add_argument("--quality", choices=("full", "preview"), default="full")
     add_device_option(r)
     r.add_argument("-o", "--output", required=True)
+    add_config_options(r, (FramesConfig,))
     r.set_defaults(func=_render)
 
     c = sub.add_parser("calibrate", help="choose a checkpoint's full-quality sample spacing on held-out frames "

@@ -1,7 +1,7 @@
 """Command-line options generated from the typed configuration (``visnerf.config``).
 
 Every field of ``TrainConfig``, ``FieldConfig`` and ``RenderConfig`` is an option of ``visnerf
-train``: ``--field-name``, typed by the field's annotation, its help the field's docstring, so that
+train``, and every field of ``FramesConfig`` one of ``visnerf render`` and ``visnerf animate``: ``--field-name``, typed by the field's annotation, its help the field's docstring, so that
 a new setting needs no command-line code. The exceptions are named: ``--time-budget`` (minutes) is
 declared by the command itself (``HAND_WRITTEN``), a few options answer to a shorter name too
 (``ALIASES``), and the fields the data or the end of training decide are no options
@@ -17,7 +17,7 @@ import types
 import typing
 from typing import Any
 
-from visnerf.config import FieldConfig, RenderConfig, TrainConfig
+from visnerf.config import FieldConfig, FramesConfig, RenderConfig, TrainConfig
 from visnerf.field_docs import field_docs
 from visnerf.training.recipe import CHOSEN_FIELDS
 
@@ -107,14 +107,20 @@ def _parser_for(annotation: Any) -> tuple[Any, str]:
     raise TypeError(f"no command-line form for a field of type {annotation!r}")
 
 
-def add_config_options(parser: argparse.ArgumentParser) -> None:
-    """One option for every configuration field that is neither hand-written nor left out, in a
+TITLES = {"TrainConfig": ("training (TrainConfig)", "the recipe's values unless given"),
+          "FieldConfig": ("field (FieldConfig)", "the recipe's values unless given"),
+          "RenderConfig": ("renderer (RenderConfig)", "the recipe's values unless given"),
+          "FramesConfig": ("frames on this machine (FramesConfig)", "the defaults unless given")}
+"""Each configuration's option group: its title and where a value not given comes from."""
+
+
+def add_config_options(parser: argparse.ArgumentParser, classes: tuple[type, ...] = CONFIG_CLASSES) -> None:
+    """One option for every field of ``classes`` that is neither hand-written nor left out, in a
     group per configuration, each defaulting to "not given"."""
-    titles = {"TrainConfig": "training (TrainConfig)", "FieldConfig": "field (FieldConfig)",
-              "RenderConfig": "renderer (RenderConfig)"}
-    for cls in CONFIG_CLASSES:
+    for cls in classes:
         docs, hints = field_docs(cls), typing.get_type_hints(cls)
-        group = parser.add_argument_group(titles[cls.__name__], "the recipe's values unless given; see model/visnerf/config/")
+        title, source = TITLES[cls.__name__]
+        group = parser.add_argument_group(title, f"{source}; see model/visnerf/config/")
         for f in dataclasses.fields(cls):
             key = (cls.__name__, f.name)
             if key in HAND_WRITTEN or key in NOT_OPTIONS:
@@ -139,3 +145,9 @@ def given_options(args: argparse.Namespace, cls: type) -> dict[str, Any]:
     """The generated options of ``cls`` given on the command line, by field name."""
     return {f.name: getattr(args, _dest(cls, f.name)) for f in dataclasses.fields(cls)
             if getattr(args, _dest(cls, f.name), None) is not None}
+
+
+def frames_config(args: argparse.Namespace) -> FramesConfig:
+    """The ``FramesConfig`` the options of ``add_config_options(parser, (FramesConfig,))`` give;
+    ValueError names a field whose value its checks refuse."""
+    return FramesConfig(**given_options(args, FramesConfig))

@@ -20,13 +20,14 @@ import numpy as np
 import torch
 
 from visnerf.checkpoint import CheckpointError, CheckpointMeta, ParamAxis, load_checkpoint
+from visnerf.config import FramesConfig
 from visnerf.data.cameras import Intrinsics, check_rigid_c2w
 from visnerf.lens import Projection, choose_lens
 from visnerf.rendering.cancel import CancelCheck, RenderCancelled
 from visnerf.rendering.empty_space import EmptySpace
 from visnerf.rendering.render_settings import Quality, RenderSettings
 from visnerf.rendering.renderer import render_image_scaled
-from visnerf.rendering.setting_occupancy import GridBuild, SettingOccupancy, SettingOccupancyConfig
+from visnerf.rendering.setting_occupancy import GridBuild, SettingOccupancy
 from visnerf.representation import output_kernel, vm_kernel
 from visnerf.representation.field import VisNerfField
 from visnerf.runtime import release_free_memory
@@ -118,7 +119,7 @@ class SceneRenderer:
         field: VisNerfField,
         meta: CheckpointMeta,
         device: torch.device,
-        setting_occupancy: SettingOccupancyConfig | None = None,
+        frames: FramesConfig | None = None,
     ) -> None:
         self.field = field.eval()
         if vm_kernel.available(device):
@@ -127,8 +128,9 @@ class SceneRenderer:
         self.meta = meta
         self.device = device
         self.info = _scene_info(meta)
-        cfg = setting_occupancy or SettingOccupancyConfig(threshold=meta.render.occupancy_threshold)
-        self.setting_occupancy = SettingOccupancy(self.field, cfg)
+        self.frames = frames or FramesConfig()
+        """This machine's chunks of rays and per-setting grids (``config.FramesConfig``)."""
+        self.setting_occupancy = SettingOccupancy(self.field, self.frames, meta.render.occupancy_threshold)
         """Full-quality frames at a parameter tuple asked for more than once march that tuple's own
         occupancy grid (``rendering.setting_occupancy``); previews march the union grid."""
 
@@ -192,7 +194,7 @@ class SceneRenderer:
         """(the occupancy grid of the view's parameter setting, or None: march the union grid; the
         build of that grid when one is due, for the caller to run or drop, or None). Full-quality
         frames only (``rendering.setting_occupancy``)."""
-        settings = RenderSettings.from_meta(self.meta, view.quality)
+        settings = RenderSettings.from_meta(self.meta, view.quality, self.frames)
         if view.quality != "full" or not settings.use_occupancy:
             return None, None
         return self.setting_occupancy.lookup(self._params(view), self.field.voxel_size() * settings.step_ratio)
@@ -202,7 +204,7 @@ class SceneRenderer:
         (``setting_grid``), None for the union. ``preview`` renders at a fraction of the resolution
         with a longer step and upsamples. RenderCancelled once ``cancel`` answers True (asked
         between chunks of rays)."""
-        settings = RenderSettings.from_meta(self.meta, view.quality)
+        settings = RenderSettings.from_meta(self.meta, view.quality, self.frames)
         intrinsics = (Intrinsics.from_fov(view.width, view.height, math.radians(view.fov_deg))
                       if view.fov_deg is not None
                       else Intrinsics.from_view_height(view.width, view.height, float(view.view_height)))  # type: ignore[arg-type]
@@ -236,8 +238,9 @@ class SceneRenderer:
         return self.draw(frame, own, cancel)
 
 
-def load_scene(path: str | Path, device: torch.device | None = None) -> SceneRenderer:
-    """Load and fully validate a checkpoint; raises CheckpointError naming the problem."""
+def load_scene(path: str | Path, device: torch.device | None = None, frames: FramesConfig | None = None) -> SceneRenderer:
+    """Load and fully validate a checkpoint; raises CheckpointError naming the problem. ``frames``:
+    how this machine renders its frames (default ``FramesConfig()``)."""
     device = device or torch.device("cpu")
     field, meta = load_checkpoint(path, device)
-    return SceneRenderer(field, meta, device)
+    return SceneRenderer(field, meta, device, frames)

@@ -57,7 +57,7 @@ def _lifespan(settings: Settings, metrics: Metrics):
     @asynccontextmanager
     async def lifespan(app: FastAPI) -> AsyncIterator[None]:
         token = resolve_token(settings)
-        registry = SceneRegistry(settings.checkpoints_dir, torch.device(settings.device))
+        registry = SceneRegistry(settings.checkpoints_dir, torch.device(settings.device), settings.frames())
         if not settings.checkpoints_dir.is_dir():
             logger.warning(
                 "checkpoints folder %s does not exist yet; serving no scenes", settings.checkpoints_dir

@@ -85,7 +85,8 @@ def serve_command(args: argparse.Namespace) -> int:
     try:
         settings = Settings(**overrides)
     except ValidationError as exc:  # a value out of its range: name the option and the rule
-        problems = "; ".join(f"{option_name(str(e['loc'][0]))}: {e['msg']}" for e in exc.errors())
+        problems = "; ".join(f"{option_name(str(e['loc'][0]))}: {e['msg']}" if e["loc"] else
+                             e["msg"].removeprefix("Value error, ") for e in exc.errors())
         print(f"visnerf serve: error: {problems}", file=sys.stderr)
         return 2
     configure_logging(args.log_level, settings.log_format)

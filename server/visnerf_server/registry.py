@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from visnerf.config import FramesConfig
 from visnerf.data.cameras import orbit_c2w
 from visnerf.inference import SceneRenderer, choose_lens, load_scene
 
@@ -84,9 +85,9 @@ def probe_render(renderer: SceneRenderer) -> None:
         raise ValueError(f"test render returned {image.dtype} {list(image.shape)}, expected uint8 [8, 8, 3]")
 
 
-def load_and_check(path: Path, device: torch.device) -> SceneRenderer:
+def load_and_check(path: Path, device: torch.device, frames: FramesConfig | None = None) -> SceneRenderer:
     """Load a checkpoint with every check ``load_scene`` runs, then a test render."""
-    renderer = load_scene(path, device)
+    renderer = load_scene(path, device, frames)
     probe_render(renderer)
     return renderer
 
@@ -94,9 +95,11 @@ def load_and_check(path: Path, device: torch.device) -> SceneRenderer:
 class SceneRegistry:
     """Scenes by id. Reads are lock-free snapshots; writes hold ``mutation_lock``."""
 
-    def __init__(self, checkpoints_dir: Path, device: torch.device) -> None:
+    def __init__(self, checkpoints_dir: Path, device: torch.device, frames: FramesConfig | None = None) -> None:
         self.checkpoints_dir = checkpoints_dir
         self.device = device
+        self.frames = frames or FramesConfig()
+        """How this server renders frames: chunks of rays, per-setting grids (``Settings.frames``)."""
         self.mutation_lock = threading.Lock()
         self._scenes: dict[str, Scene] = {}
         self._lock = threading.Lock()
@@ -107,6 +110,11 @@ class SceneRegistry:
         served yet is on its way too."""
         self.unservable: frozenset[str] = frozenset()
         """Ids whose file failed its checks (the watcher keeps this): not on their way."""
+
+    def load(self, path: Path, check: bool = True) -> SceneRenderer:
+        """The scene in ``path`` as this server renders it; ``check``: and a test render
+        (``load_and_check``)."""
+        return load_and_check(path, self.device, self.frames) if check else load_scene(path, self.device, self.frames)
 
     def path_for(self, scene_id: str) -> Path:
         if not is_valid_scene_id(scene_id):
@@ -136,7 +144,7 @@ class SceneRegistry:
                 break
             try:
                 version = file_digest(path)
-                renderer = load_and_check(path, self.device) if warmup else load_scene(path, self.device)
+                renderer = self.load(path, warmup)
             except Exception as exc:  # a bad file on disk must not stop the others from loading
                 errors[scene_id] = public_error(exc, self.checkpoints_dir)
                 logger.error("scene %r not loaded from %s: %s", scene_id, path, exc)

@@ -4,14 +4,16 @@
 overrides it with the settings the app was built with.
 """
 
+import dataclasses
 import ipaddress
 from functools import lru_cache
 from pathlib import Path
 from typing import Annotated, Literal
 
-from pydantic import Field, SecretStr, field_validator
+from pydantic import Field, SecretStr, field_validator, model_validator
 from pydantic_settings import BaseSettings, NoDecode, SettingsConfigDict
 
+from visnerf.config import FramesConfig
 from visnerf.token_file import default_state_dir
 from visnerf_server.origins import normalize_origin
 
@@ -72,6 +74,20 @@ class Settings(BaseSettings):
     """Per-request limit, waiting included: 503 if still queued, 504 if still rendering."""
     retry_after_s: int = Field(default=1, ge=1)
     """``Retry-After`` sent with 503 answers."""
+    # How a frame is cut into work, and the per-setting grids kept (``FramesConfig``: its defaults)
+    chunk_rays: int = FramesConfig.chunk_rays
+    """Rays per chunk of a frame; on the CPU the chunks go one per render thread."""
+    segment_samples: int = FramesConfig.segment_samples
+    """Samples marched per segment of a chunk before its finished rays are dropped."""
+    first_segment_samples: int = FramesConfig.first_segment_samples
+    """Samples in a ray's first segment (each later one doubles, up to ``segment_samples``)."""
+    setting_grids: int = FramesConfig.setting_grids
+    """Per-setting occupancy grids kept per scene (0: none, every frame marches the union grid)."""
+    setting_grid_after: int = FramesConfig.setting_grid_after
+    """Full-quality frames at one parameter setting before its grid is built (in the background lane)."""
+    setting_grid_samples: int = FramesConfig.setting_grid_samples
+    """Density samples per cell and axis of a per-setting grid."""
+
     # Costs per request and per client
     # (ms per megapixel from bench/results/render_speed.md, 2-core AMD EPYC, 256x256 frames,
     # slowest scenes: full quality 4490 median / 4920 p95 (cosmo_sim), preview 1650 / 2170
@@ -169,6 +185,15 @@ class Settings(BaseSettings):
     networks: ``VISNERF_TRUSTED_PROXIES=127.0.0.1,10.0.0.0/8`` (``*``: any peer). Behind nginx every
     request comes from the proxy; from a trusted one the client's address (the rate limit's key) is
     the last one in ``X-Forwarded-For`` that is not a trusted proxy. Empty: nobody is believed."""
+
+    @model_validator(mode="after")
+    def _frames_fit(self) -> "Settings":
+        self.frames()  # ValueError names the setting
+        return self
+
+    def frames(self) -> FramesConfig:
+        """How this server cuts frames into work and keeps per-setting grids."""
+        return FramesConfig(**{f.name: getattr(self, f.name) for f in dataclasses.fields(FramesConfig)})
 
     @field_validator("allowed_origins", mode="before")
     @classmethod

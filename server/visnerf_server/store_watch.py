@@ -27,9 +27,8 @@ import threading
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from visnerf.inference import load_scene
 from visnerf_server.dependencies import ServerState
-from visnerf_server.registry import Scene, file_digest, load_and_check, public_error
+from visnerf_server.registry import Scene, file_digest, public_error
 
 logger = logging.getLogger(__name__)
 
@@ -123,10 +122,7 @@ class StoreWatcher:
         registry = self.server.registry
         try:
             version = file_digest(path)
-            if self.server.settings.warmup:
-                renderer = load_and_check(path, registry.device)
-            else:
-                renderer = load_scene(path, registry.device)
+            renderer = registry.load(path, self.server.settings.warmup)
         except Exception as exc:  # the file's fault: report it, serve nothing of it
             if signature(path) != sig:  # changed while being read: settle again
                 self.settling.pop(scene_id, None)

@@ -5,12 +5,14 @@ import dataclasses
 import json
 import subprocess
 import sys
+from pathlib import Path
 
+import numpy as np
 import pytest
 
 from visnerf.checkpoint import read_checkpoint
 from visnerf.cli import build_parser
-from visnerf.config import FieldConfig, RenderConfig, TrainConfig
+from visnerf.config import FieldConfig, FramesConfig, RenderConfig, TrainConfig
 from visnerf.config.recipe import RECIPE
 from visnerf.config_options import CONFIG_CLASSES, NOT_OPTIONS, field_docs, option_of
 
@@ -115,3 +117,38 @@ def test_a_resumed_run_refuses_to_change_its_field(tangle, tmp_path) -> None:
     info = json.loads(subprocess.run([sys.executable, "-m", "visnerf.cli", "info", str(first)],
                                      capture_output=True, text=True, check=True).stdout)
     assert info["provenance"]["recipe"]["batch_rays"] == TrainConfig.batch_rays
+
+
+def command_parser(name: str) -> argparse.ArgumentParser:
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction))
+    return sub.choices[name]
+
+
+@pytest.mark.parametrize("command", ["render", "animate"])
+def test_every_frames_field_is_an_option_of_render_and_animate(command: str) -> None:
+    options = {s for action in command_parser(command)._actions for s in action.option_strings}
+    for f in dataclasses.fields(FramesConfig):
+        assert option_of(FramesConfig, f.name) in options, f.name
+
+
+def test_render_takes_its_chunks_from_the_options_and_refuses_bad_ones(tmp_path) -> None:
+    """Chunks and segments change how a frame is cut into work, not the frame (a ray's samples
+    are the same whatever its segments; early termination is judged at segment ends, so a level
+    of 8 bits apart at most); a value FramesConfig refuses is an error naming the field."""
+    from PIL import Image
+
+    checkpoint = sorted((Path(__file__).parents[2] / "checkpoints").glob("*.safetensors"))[0]
+
+    def render(out, *options):
+        return subprocess.run([sys.executable, "-m", "visnerf.cli", "render", str(checkpoint), "--size", "48x40",
+                               "-o", str(out), *options], capture_output=True, text=True)
+
+    plain, cut = tmp_path / "plain.png", tmp_path / "cut.png"
+    assert render(plain).returncode == 0
+    run = render(cut, "--chunk-rays", "100", "--segment-samples", "32", "--first-segment-samples", "4")
+    assert run.returncode == 0, run.stderr
+    a, b = (np.asarray(Image.open(p), dtype=int) for p in (plain, cut))
+    assert a.shape == b.shape == (40, 48, 3) and int(abs(a - b).max()) <= 1
+    bad = render(tmp_path / "bad.png", "--segment-samples", "32", "--first-segment-samples", "64")
+    assert bad.returncode == 2 and "first_segment_samples (64) must not exceed segment_samples (32)" in bad.stderr
+    assert not (tmp_path / "bad.png").exists()

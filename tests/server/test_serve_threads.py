@@ -7,7 +7,10 @@ import re
 from pathlib import Path
 
 import pytest
+from fastapi.testclient import TestClient
+from server_helpers import make_settings
 
+from visnerf_server.app import create_app
 from visnerf_server.commands import register, serve_command
 from visnerf_server.settings import Settings
 from visnerf_server.settings_options import HAND_WRITTEN, NOT_OPTIONS, given_settings
@@ -49,6 +52,23 @@ def test_a_value_of_the_wrong_kind_or_out_of_range_is_refused_naming_the_option(
     assert serve_command(args) == 2
     err = capsys.readouterr().err
     assert "--threads" in err and "--jpeg-quality" in err
+    # The frames' settings are checked by FramesConfig, which names the field.
+    args = parser.parse_args(["serve", "--segment-samples", "32", "--first-segment-samples", "64"])
+    assert serve_command(args) == 2
+    assert "first_segment_samples (64) must not exceed segment_samples (32)" in capsys.readouterr().err
+
+
+def test_the_frames_settings_reach_every_scene(ckpt_dir: Path, tmp_path: Path) -> None:
+    """``--chunk-rays`` and the setting-grid options become the registry's ``FramesConfig``, which
+    every scene it loads renders with."""
+    given = given_settings(_parser().parse_args(["serve", "--chunk-rays", "512", "--setting-grids", "0",
+                                                 "--setting-grid-after", "3"]))
+    with TestClient(create_app(make_settings(ckpt_dir, tmp_path / "state", **given))) as client:
+        registry = client.app.state.server.registry
+        frames = registry.frames
+        assert (frames.chunk_rays, frames.setting_grids, frames.setting_grid_after) == (512, 0, 3)
+        assert registry.list() and all(scene.renderer.frames is frames for scene in registry.list())
+        assert client.post("/api/scenes/tiny/render", json={"width": 16, "height": 16}).status_code == 200
 
 
 def test_threads_setting_from_the_environment(monkeypatch: pytest.MonkeyPatch) -> None:

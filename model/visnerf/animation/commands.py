@@ -16,6 +16,8 @@ from typing import TYPE_CHECKING
 
 from visnerf.arg_types import add_device_option, whole_number_at_least
 from visnerf.arg_types import number as parse_number
+from visnerf.config import FramesConfig
+from visnerf.config_options import add_config_options, frames_config
 
 if TYPE_CHECKING:
     from visnerf.animation.movie import MovieSettings
@@ -54,7 +56,7 @@ def _animate(args: argparse.Namespace) -> int:
         from visnerf.inference import load_scene
         from visnerf.runtime import pick_device
 
-        scene = load_scene(args.checkpoint, pick_device(args.device))
+        scene = load_scene(args.checkpoint, pick_device(args.device), frames_config(args))
         path = _build_path(args, scene, path_doc)
         from visnerf.animation.path import sample_frames
 
@@ -192,6 +194,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     a.add_argument("--quiet", action="store_true", help="no progress bar")
     a.add_argument("-o", "--output", required=True, metavar="OUT",
                    help="movie.mp4 (H.264), movie.gif, or any other name: a folder of numbered PNG frames")
+    add_config_options(a, (FramesConfig,))
     a.set_defaults(func=_animate)
 
 

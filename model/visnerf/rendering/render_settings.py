@@ -6,7 +6,7 @@ from typing import TYPE_CHECKING, Literal
 
 import torch
 
-from visnerf.config import RenderConfig
+from visnerf.config import FramesConfig, RenderConfig
 from visnerf.runtime import batch_factor
 
 if TYPE_CHECKING:
@@ -18,12 +18,14 @@ Quality = Literal["preview", "full"]
 RenderQuality = Literal["preview", "full", "exhaustive"]
 """The qualities of a render call: those, and the exhaustive reference (evaluation, calibration)."""
 
+DEFAULT_FRAMES = FramesConfig()
+"""Chunks and segments of a render call that is given none."""
 EXHAUSTIVE_STEP_RATIO = 0.5
 """Sample spacing of the exhaustive reference, in voxels, at most: the paper's training spacing."""
 
 
 EXHAUSTIVE_CHUNK_RAYS = 1024
-"""Rays per chunk of an exhaustive frame: every sample of every ray is shaded, so a chunk's
+"""Rays per chunk of an exhaustive frame, at most: every sample of every ray is shaded, so a chunk's
 buffers grow with its rays times its segment; fewer rays bound the memory and cost no time (the
 end of training renders such frames to choose the spacing; docs/decisions.md, "Rendering")."""
 
@@ -50,15 +52,10 @@ class RenderSettings:
     """Samples whose compositing weight is at most this times ``step_ratio`` skip colour decoding
     (``RenderConfig.full_weight_threshold_per_voxel``); 0 decodes every sample."""
     early_stop_eps: float = 1e-4
-    chunk_rays: int = 4096
-    """Rays per chunk of a frame (inference); chunks are marched one per thread on the CPU."""
-    segment_samples: int = 128
-    """Samples marched per segment before finished rays are dropped (inference); 4096 rays by 128
-    samples was the fastest chunk (docs/decisions.md, "Rendering"). The chunk size belongs to the
-    machine, not the model: a value stored in an older checkpoint is dropped by its migration."""
-    first_segment_samples: int = 16
-    """Samples in a ray's first segment; each later one doubles, up to ``segment_samples``. Rays
-    that turn opaque early (surfaces) then stop without marching a whole long segment."""
+    chunk_rays: int = FramesConfig.chunk_rays
+    """Rays per chunk of a frame (inference; ``FramesConfig``, the machine's, not the model's)."""
+    segment_samples: int = FramesConfig.segment_samples
+    first_segment_samples: int = FramesConfig.first_segment_samples
     resolution_scale: float = 1.0
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
     use_occupancy: bool = True
@@ -70,11 +67,12 @@ class RenderSettings:
 
     @classmethod
     def from_config(
-        cls, cfg: RenderConfig, background: tuple[float, float, float], quality: RenderQuality = "full"
+        cls, cfg: RenderConfig, background: tuple[float, float, float], quality: RenderQuality = "full",
+        frames: FramesConfig = DEFAULT_FRAMES,
     ) -> "RenderSettings":
         """``full``: as the server renders; ``preview``: smaller and coarser; ``exhaustive``: the
         plain reference (``exhaustive_step_ratio``, every sample in the model's occupancy grid,
-        float32).
+        float32). ``frames``: this machine's chunks and segments.
 
         The reference marches the grid because the grid is part of the model: training fits only
         the cells it keeps, and outside them the density has had no photometric loss since the grid
@@ -89,10 +87,14 @@ class RenderSettings:
             early_stop_eps=cfg.early_stop_eps,
             background=background,
             bf16=cfg.bf16,
+            chunk_rays=frames.chunk_rays,
+            segment_samples=frames.segment_samples,
+            first_segment_samples=frames.first_segment_samples,
         )
         if quality == "exhaustive":
             settings = replace(settings, step_ratio=exhaustive_step_ratio(cfg), early_termination=False,
-                               weight_threshold_per_voxel=0.0, bf16=False, chunk_rays=EXHAUSTIVE_CHUNK_RAYS)
+                               weight_threshold_per_voxel=0.0, bf16=False,
+                               chunk_rays=min(frames.chunk_rays, EXHAUSTIVE_CHUNK_RAYS))
         elif quality == "preview":
             settings = replace(
                 settings,
@@ -102,5 +104,6 @@ class RenderSettings:
         return settings
 
     @classmethod
-    def from_meta(cls, meta: "CheckpointMeta", quality: RenderQuality = "full") -> "RenderSettings":
-        return cls.from_config(meta.render, tuple(meta.background), quality)  # type: ignore[arg-type]
+    def from_meta(cls, meta: "CheckpointMeta", quality: RenderQuality = "full",
+                  frames: FramesConfig = DEFAULT_FRAMES) -> "RenderSettings":
+        return cls.from_config(meta.render, tuple(meta.background), quality, frames)  # type: ignore[arg-type]

@@ -5,9 +5,9 @@ content at any setting. At one setting, part of that union is empty (on ``tangle
 surfaces of the other isovalues), and a frame still walks it. ``SettingOccupancy`` narrows the
 union to the cells visible at one setting, ``build_occupancy`` evaluated only on the union's
 cells and intersected with it, so it never holds a cell the union lacks, and keeps the grids of
-the last ``capacity`` tuples.
+the last ``FramesConfig.setting_grids`` tuples.
 
-A grid is built only for a tuple that asks ``build_after`` times: a parameter path (a slider
+A grid is built only for a tuple that asks ``FramesConfig.setting_grid_after`` times: a parameter path (a slider
 being dragged, a test path) asks once per tuple and never pays for a build it cannot amortise;
 orbiting at one setting builds once, from the second frame on. One build runs at a time, and the
 frames go on with the union grid until it is stored, so no frame waits for it. The key is the
@@ -15,7 +15,7 @@ exact tuple of normalised values (Python floats): two tuples that differ at all 
 
 ``lookup`` answers the grid to march now and, when one is due, a ``GridBuild`` that its caller
 runs where it bounds its work (the render server's background lane), or hands to ``run_own``: on
-this cache's worker thread (``background``) or at once.
+this cache's worker thread or at once.
 """
 
 import logging
@@ -28,32 +28,13 @@ import torch
 from jaxtyping import Float
 from torch import Tensor
 
+from visnerf.config import FramesConfig
 from visnerf.rendering.empty_space import EmptySpace
 from visnerf.rendering.occupancy import build_occupancy
 from visnerf.representation.field import VisNerfField
 
 ParamKey = tuple[float, ...]
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True)
-class SettingOccupancyConfig:
-    capacity: int = 8
-    """Grids kept (least recently used dropped first); 0 turns the cache off."""
-    build_after: int = 2
-    """Requests of one tuple before its grid is built (1: at once)."""
-    threshold: float = 1e-4
-    """Alpha over one marching step above which a cell counts as occupied."""
-    samples_per_axis: int = 2
-    """Density samples per cell and axis (as the union grid is built: structure thinner than a
-    cell between two cell centres is still seen)."""
-    background: bool = True
-    """``run_own`` builds on a worker thread and uses the grid once it is ready (False: at once)."""
-
-    def __post_init__(self) -> None:
-        if self.capacity < 0 or self.build_after < 1 or self.samples_per_axis < 1:
-            raise ValueError(f"capacity must be >= 0, build_after and samples_per_axis >= 1, got "
-                             f"{self.capacity}, {self.build_after}, {self.samples_per_axis}")
 
 
 def param_key(params: Float[Tensor, " k"]) -> ParamKey:
@@ -100,10 +81,13 @@ class GridBuild:
 
 class SettingOccupancy:
     """LRU of ``EmptySpace`` per parameter tuple for one field; thread safe (a build only reads the
-    field)."""
+    field). ``cfg``: how many grids, after how many asks, sampled how finely (``FramesConfig``);
+    ``threshold``: the alpha over one marching step above which a cell counts as occupied (the
+    checkpoint's ``RenderConfig.occupancy_threshold``); ``background``: ``run_own`` builds on a
+    worker thread and the frame marches the union meanwhile (False: at once)."""
 
-    def __init__(self, field: VisNerfField, cfg: SettingOccupancyConfig) -> None:
-        self.field, self.cfg = field, cfg
+    def __init__(self, field: VisNerfField, cfg: FramesConfig, threshold: float, background: bool = True) -> None:
+        self.field, self.cfg, self.threshold, self.background = field, cfg, threshold, background
         self._grids: OrderedDict[ParamKey, EmptySpace] = OrderedDict()
         self._asked: OrderedDict[ParamKey, int] = OrderedDict()
         self._pending: GridBuild | None = None
@@ -118,7 +102,7 @@ class SettingOccupancy:
     def build(self, params: Tensor, step: float) -> EmptySpace:
         """The empty space of ``params`` as the cache builds it, not stored (benchmarks time it)."""
         with torch.inference_mode():
-            grid = build_setting_grid(self.field, params, step, self.cfg.threshold, self.cfg.samples_per_axis)
+            grid = build_setting_grid(self.field, params, step, self.threshold, self.cfg.setting_grid_samples)
             return EmptySpace.of(grid, self.field.aabb)
 
     def _finish(self, build: GridBuild, space: EmptySpace | None) -> None:
@@ -130,7 +114,7 @@ class SettingOccupancy:
             if space is not None:
                 self.builds += 1
                 self._grids[build.key] = space
-                while len(self._grids) > self.cfg.capacity:
+                while len(self._grids) > self.cfg.setting_grids:
                     self._grids.popitem(last=False)
             self._idle.notify_all()
 
@@ -141,9 +125,9 @@ class SettingOccupancy:
 
     def lookup(self, params: Float[Tensor, " k"], step: float) -> tuple[EmptySpace | None, GridBuild | None]:
         """(the grid of ``params`` or None: march the union, the build now due or None). No grid
-        while the tuple has asked fewer than ``build_after`` times or its grid is being built, when
+        while the tuple has asked fewer than ``setting_grid_after`` times or its grid is being built, when
         the cache is off, or when the field has no grid; no build while another one runs."""
-        if self.cfg.capacity == 0 or self.field.occupancy is None:
+        if self.cfg.setting_grids == 0 or self.field.occupancy is None:
             return None, None
         key = param_key(params)
         with self._lock:
@@ -154,9 +138,9 @@ class SettingOccupancy:
             if self._pending is not None and self._pending.key == key:
                 return None, None
             asked = self._asked.pop(key, 0) + 1
-            if asked < self.cfg.build_after or self._pending is not None:
+            if asked < self.cfg.setting_grid_after or self._pending is not None:
                 self._asked[key] = asked
-                while len(self._asked) > 4 * self.cfg.capacity:
+                while len(self._asked) > 4 * self.cfg.setting_grids:
                     self._asked.popitem(last=False)
                 return None, None
             self._pending = GridBuild(self, key, params.detach().clone(), step)
@@ -165,7 +149,7 @@ class SettingOccupancy:
     def run_own(self, build: GridBuild) -> EmptySpace | None:
         """Run a due build here: on this cache's worker thread (``background``; None: the frame
         marches the union meanwhile), or at once, returning the grid it stored."""
-        if self.cfg.background:
+        if self.background:
             self._own_pool().submit(build.run)
             return None
         build.run()

@@ -13,13 +13,14 @@ from dataclasses import replace
 import pytest
 import torch
 
+from visnerf.config import FramesConfig
 from visnerf.data.cameras import Intrinsics, image_rays, orbit_c2w
 from visnerf.inference import RenderCancelled, load_scene
 from visnerf.rendering import renderer
 from visnerf.rendering.parallel import map_chunks
 from visnerf.rendering.render_settings import RenderSettings
 from visnerf.rendering.renderer import empty_space_of, ray_windows, render_image
-from visnerf.rendering.setting_occupancy import SettingOccupancy, SettingOccupancyConfig
+from visnerf.rendering.setting_occupancy import SettingOccupancy
 from visnerf.testing import make_tiny_checkpoint, make_tiny_field
 
 
@@ -166,7 +167,7 @@ def test_a_due_build_goes_to_its_caller_and_a_drop_or_a_failure_is_harmless() ->
     field.eval()
     field.set_occupancy(torch.ones(8, 8, 8, dtype=torch.bool))  # a union grid to narrow
     step = field.voxel_size()
-    cache = SettingOccupancy(field, SettingOccupancyConfig(capacity=4, build_after=1))
+    cache = SettingOccupancy(field, FramesConfig(setting_grids=4, setting_grid_after=1), 1e-4)
     a, b = torch.tensor([0.5]), torch.tensor([0.25])
     space, build = cache.lookup(a, step)
     assert space is None and build is not None

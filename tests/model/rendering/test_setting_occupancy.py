@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from visnerf.checkpoint import CheckpointMeta, ParamAxis, save_checkpoint
-from visnerf.config import RenderConfig
+from visnerf.config import FramesConfig, RenderConfig
 from visnerf.data.cameras import Intrinsics, orbit_c2w
 from visnerf.inference import load_scene
 from visnerf.rendering.empty_space import EmptySpace
@@ -18,7 +18,6 @@ from visnerf.rendering.render_settings import RenderSettings
 from visnerf.rendering.renderer import render_image
 from visnerf.rendering.setting_occupancy import (
     SettingOccupancy,
-    SettingOccupancyConfig,
     build_setting_grid,
     param_key,
 )
@@ -55,7 +54,7 @@ def grid_of(space: EmptySpace) -> torch.Tensor:
 
 def test_each_tuple_gets_its_own_grid_and_no_other(field) -> None:
     step = field.voxel_size() * STEP_RATIO
-    cache = SettingOccupancy(field, SettingOccupancyConfig(capacity=4, build_after=2, background=False))
+    cache = SettingOccupancy(field, FramesConfig(setting_grids=4, setting_grid_after=2), 1e-4, background=False)
     a, b = torch.tensor([-1.0]), torch.tensor([1.0])
     own_a, own_b = (build_setting_grid(field, p, step, 1e-4) for p in (a, b))
     assert not torch.equal(own_a, own_b), "the test needs settings whose grids differ"
@@ -75,7 +74,7 @@ def test_each_tuple_gets_its_own_grid_and_no_other(field) -> None:
 
 def test_background_builds_serve_the_union_until_ready_then_their_own_tuple(field) -> None:
     step = field.voxel_size() * STEP_RATIO
-    cache = SettingOccupancy(field, SettingOccupancyConfig(capacity=4, build_after=2, background=True))
+    cache = SettingOccupancy(field, FramesConfig(setting_grids=4, setting_grid_after=2), 1e-4)
     a, b = torch.tensor([-1.0]), torch.tensor([1.0])
     assert serve(cache, a, step) is None
     assert serve(cache, a, step) is None  # the build has started; the union serves meanwhile
@@ -92,7 +91,7 @@ def test_background_builds_serve_the_union_until_ready_then_their_own_tuple(fiel
 
 def test_least_recently_used_grid_is_dropped(field) -> None:
     step = field.voxel_size() * STEP_RATIO
-    cache = SettingOccupancy(field, SettingOccupancyConfig(capacity=2, build_after=1, background=False))
+    cache = SettingOccupancy(field, FramesConfig(setting_grids=2, setting_grid_after=1), 1e-4, background=False)
     a, b, c = torch.tensor([-1.0]), torch.tensor([0.0]), torch.tensor([1.0])
     serve(cache, a, step)
     serve(cache, b, step)
@@ -133,10 +132,14 @@ def test_frames_with_a_setting_grid_match_frames_with_the_union(field) -> None:
 
 def test_cache_off_and_bad_configs() -> None:
     f, _ = make_tiny_field([("a", [0.0, 1.0])], seed=1, resolution=8)
-    assert SettingOccupancy(f, SettingOccupancyConfig(capacity=0)).lookup(torch.tensor([0.0]), 0.1) == (None, None)
-    assert SettingOccupancy(f, SettingOccupancyConfig(build_after=1)).lookup(torch.tensor([0.0]), 0.1) == (None, None)  # no grid
-    with pytest.raises(ValueError, match="capacity"):
-        SettingOccupancyConfig(capacity=-1)
+    assert SettingOccupancy(f, FramesConfig(setting_grids=0), 1e-4).lookup(torch.tensor([0.0]), 0.1) == (None, None)
+    assert SettingOccupancy(f, FramesConfig(setting_grid_after=1), 1e-4).lookup(torch.tensor([0.0]), 0.1) == (None, None)  # no grid
+    with pytest.raises(ValueError, match="setting_grids"):
+        FramesConfig(setting_grids=-1)
+    with pytest.raises(ValueError, match="setting_grid_after"):
+        FramesConfig(setting_grid_after=0)
+    with pytest.raises(ValueError, match="must not exceed segment_samples"):
+        FramesConfig(segment_samples=32, first_segment_samples=64)
     with pytest.raises(ValueError, match="no occupancy grid"):
         build_setting_grid(f, torch.tensor([0.0]), 0.1, 1e-4)
 

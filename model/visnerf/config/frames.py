@@ -1,0 +1,46 @@
+"""``FramesConfig``: how this machine cuts a frame into work and which per-setting occupancy grids
+it keeps. The machine's, not the model's: no checkpoint stores it; the server (``Settings``),
+``visnerf render`` and ``visnerf animate`` set it."""
+
+from dataclasses import dataclass
+
+from visnerf.config.checks import check_types, check_whole_in, require
+
+MAX_CHUNK_RAYS = 1 << 20
+"""Largest ``chunk_rays``: a chunk's buffers grow with its rays times its segment."""
+MAX_SEGMENT_SAMPLES = 4096
+"""Largest ``segment_samples`` and ``first_segment_samples``."""
+
+
+@dataclass(frozen=True)
+class FramesConfig:
+    """Chunks of rays and segments of samples of a frame, and the cache of per-setting grids."""
+
+    chunk_rays: int = 4096
+    """Rays per chunk of a frame; on the CPU the chunks go one per thread (a GPU takes a multiple,
+    ``runtime.batch_factor``)."""
+    segment_samples: int = 128
+    """Samples marched per segment before finished rays are dropped; 4096 rays by 128 samples was
+    the fastest chunk (docs/decisions.md, "Rendering")."""
+    first_segment_samples: int = 16
+    """Samples in a ray's first segment; each later one doubles, up to ``segment_samples``: rays
+    that turn opaque early (surfaces) stop without marching a whole long segment."""
+    setting_grids: int = 8
+    """Per-setting occupancy grids kept, least recently used dropped first; 0 builds none
+    (``rendering.setting_occupancy``)."""
+    setting_grid_after: int = 2
+    """Full-quality frames at one parameter setting before its grid is built: 1 builds at once; 2
+    spares a slider being dragged, which asks once per setting."""
+    setting_grid_samples: int = 2
+    """Density samples per cell and axis of a setting grid (as the union grid is built)."""
+
+    def __post_init__(self) -> None:
+        check_types(type(self), self.__dict__)
+        check_whole_in(self, 1, MAX_CHUNK_RAYS, "chunk_rays")
+        check_whole_in(self, 1, MAX_SEGMENT_SAMPLES, "segment_samples", "first_segment_samples")
+        check_whole_in(self, 0, 1024, "setting_grids")
+        check_whole_in(self, 1, 1024, "setting_grid_after")
+        check_whole_in(self, 1, 8, "setting_grid_samples")
+        require(self.first_segment_samples <= self.segment_samples,
+                f"first_segment_samples ({self.first_segment_samples}) must not exceed segment_samples "
+                f"({self.segment_samples})")
