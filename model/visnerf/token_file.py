@@ -23,3 +23,17 @@ def read_token_file(path: Path) -> str:
     if not token:
         raise ValueError(f"the upload token file {path} is empty")
     return token
+
+
+def configured_token(token: str | None, token_file: Path | None, state_dir: Path) -> str | None:
+    """The upload token, looked up in one order by the server and its clients: ``token``
+    (``VISNERF_TOKEN``), else the file ``token_file`` (``VISNERF_TOKEN_FILE``), else ``token`` in
+    ``state_dir`` where that file exists; None where none is configured (the server then makes
+    one). ValueError names a file that cannot be read or is empty."""
+    if token is not None and token.strip():
+        return token.strip()
+    if token_file is not None:
+        return read_token_file(token_file)
+    path = state_dir / TOKEN_FILE_NAME
+    return read_token_file(path) if path.is_file() else None
+

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import httpx
 
-from visnerf.token_file import TOKEN_FILE_NAME, default_state_dir, read_token_file
+from visnerf.token_file import configured_token, default_state_dir
 
 
 class UploadError(Exception):
@@ -27,19 +27,14 @@ class Uploaded:
 
 
 def find_token(explicit: str | None = None) -> str | None:
-    """The upload token: ``explicit``, else ``$VISNERF_TOKEN``, else the file ``$VISNERF_TOKEN_FILE``,
-    else ``token`` in the state folder (``token_file.default_state_dir``), as the server looks for
-    it. UploadError for a named or found token file that cannot be read or is empty."""
+    """The upload token: ``explicit``, else as the server looks for it (``token_file.configured_token``:
+    ``$VISNERF_TOKEN``, the file ``$VISNERF_TOKEN_FILE``, ``token`` in the state folder).
+    UploadError for a named or found token file that cannot be read or is empty."""
     if explicit:
         return explicit
-    if os.environ.get("VISNERF_TOKEN", "").strip():
-        return os.environ["VISNERF_TOKEN"].strip()
     named = os.environ.get("VISNERF_TOKEN_FILE")
-    path = Path(named) if named else default_state_dir() / TOKEN_FILE_NAME
-    if not named and not path.is_file():
-        return None
     try:
-        return read_token_file(path)
+        return configured_token(os.environ.get("VISNERF_TOKEN"), Path(named) if named else None, default_state_dir())
     except ValueError as exc:
         raise UploadError(str(exc)) from None
 

@@ -11,7 +11,7 @@ from pathlib import Path
 
 from fastapi import HTTPException, status
 
-from visnerf.token_file import TOKEN_FILE_NAME, read_token_file
+from visnerf.token_file import TOKEN_FILE_NAME, configured_token, read_token_file
 from visnerf_server.settings import Settings
 
 logger = logging.getLogger(__name__)
@@ -38,18 +38,21 @@ def _create_token_file(path: Path) -> str:
 
 
 def resolve_token(settings: Settings) -> str:
-    """The token uploads and deletes need: from the settings, the token file, or a generated one."""
-    if settings.token is not None and settings.token.get_secret_value().strip():
-        return settings.token.get_secret_value().strip()
-    if settings.token_file is not None:
-        return _read_token_file(settings.token_file)
+    """The token uploads and deletes need: configured (``token_file.configured_token``, the order
+    the clients look in too), else a generated one, written to the state folder."""
     path = settings.state_dir / TOKEN_FILE_NAME
-    if path.exists():
+    secret = settings.token.get_secret_value() if settings.token is not None else None
+    try:
+        token = configured_token(secret, settings.token_file, settings.state_dir)
+    except ValueError as exc:  # the server does not start without its token
+        raise RuntimeError(str(exc)) from None
+    if token is None:
+        return _create_token_file(path)
+    if not (secret or "").strip() and settings.token_file is None:
         mode = stat.S_IMODE(path.stat().st_mode)
         if mode & 0o077:
             logger.warning("upload token file %s is readable by others (mode %o); use chmod 600", path, mode)
-        return _read_token_file(path)
-    return _create_token_file(path)
+    return token
 
 
 def check_bearer(authorization: str | None, expected: str) -> None:

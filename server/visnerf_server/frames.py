@@ -20,7 +20,7 @@ from visnerf.runtime import release_free_memory
 from visnerf_server.costs import FrameLimits
 from visnerf_server.frame_cache import CachedFrame, FrameCache
 from visnerf_server.metrics import Metrics
-from visnerf_server.rate_limit import ClientRateLimiter, RateLimited
+from visnerf_server.rate_limit import ClientRateLimiter
 from visnerf_server.registry import Scene, default_view
 from visnerf_server.render_queue import Lane, QueueFullError, RenderQueue
 from visnerf_server.schemas import MEDIA_TYPES, MatrixCamera, RenderRequest
@@ -181,14 +181,10 @@ class FrameRenderer:
         return Frame(cached.data, cached.media_type, cached.width, cached.height, 0.0, 0.0, 0.0, True)
 
     def _charge(self, job: FrameJob, client: str | None) -> None:
-        """Take the frame's cost from the client's bucket (a cache hit costs nothing)."""
-        if self.limiter is None or client is None:
-            return
-        try:
+        """Take the frame's cost from the client's bucket (a cache hit costs nothing); RateLimited
+        when it holds too little (the caller refuses the frame or waits, and counts which)."""
+        if self.limiter is not None and client is not None:
             self.limiter.take(client, job.cost)
-        except RateLimited:
-            self.metrics.rate_limited.inc()
-            raise
 
     def _refund(self, job: FrameJob, client: str | None) -> None:
         """The queue refused the frame: nothing was rendered, so nothing is owed."""

@@ -17,7 +17,7 @@ from starlette.requests import ClientDisconnect
 
 from visnerf.inference import SceneRenderer
 from visnerf_server.dependencies import ServerState
-from visnerf_server.registry import Scene, SceneRegistry
+from visnerf_server.registry import Scene, SceneRegistry, load_and_check
 
 logger = logging.getLogger(__name__)
 
@@ -132,7 +132,7 @@ async def _receive_alone(request: Request, server: ServerState, scene_id: str, a
 async def _validated(path: Path, registry: SceneRegistry, scene_id: str) -> SceneRenderer:
     """Every checkpoint check and a test render, in a worker thread; 422 naming the problem."""
     try:
-        return await run_in_threadpool(registry.load, path)
+        return await run_in_threadpool(load_and_check, path, registry.device, registry.frames)
     except Exception as exc:  # whatever the file does to the loader, it is the file's fault: 422
         logger.info("rejected upload for scene %r: %s", scene_id, exc)
         raise HTTPException(422, f"invalid checkpoint: {exc}") from None

@@ -90,14 +90,14 @@ def slow_validation(monkeypatch: pytest.MonkeyPatch) -> SlowValidation:
     real = uploads.load_and_check
     seen = SlowValidation()
 
-    def slow(path, device):  # noqa: ANN001, ANN202
+    def slow(path, device, frames):  # noqa: ANN001, ANN202
         with seen.lock:
             seen.running += 1
             seen.most_at_once = max(seen.most_at_once, seen.running)
         seen.set()
         try:
             time.sleep(0.3)
-            return real(path, device)
+            return real(path, device, frames)
         finally:
             with seen.lock:
                 seen.running -= 1

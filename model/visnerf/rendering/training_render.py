@@ -150,6 +150,7 @@ def drop_occluded(
     params: Float[Tensor, "n k"],
     stop_eps: float,
     first_segment: int = RenderSettings.first_segment_samples,
+    q_density: Float[Tensor, "n d"] | None = None,
 ) -> RaySamples:
     """``samples`` without those a ray reaches with transmittance below ``stop_eps`` (hidden
     behind opaque content), with the densities of the samples kept, evaluated without a graph.
@@ -161,14 +162,15 @@ def drop_occluded(
     of it. The rays are marched in segments (``first_segment`` samples, then doubling, as the
     inference renderer does) and a ray's densities are evaluated only up to the segment in which
     it turns opaque. ``stop_eps`` 0 keeps every sample and evaluates none: ``samples`` come back as
-    they are (the shading pass evaluates their densities itself)."""
+    they are (the shading pass evaluates their densities itself). ``q_density``: the rays' density
+    parameter features where the caller has them (else computed from ``params``)."""
     if stop_eps <= 0.0:
         return samples
     n, s = samples.valid.shape
     dtype, device = samples.points.dtype, samples.points.device
     sigma = torch.zeros(n, s, dtype=dtype, device=device)
     visible = torch.zeros_like(samples.valid)
-    q_d, _ = field.param_features(params)
+    q_d = field.param_features(params)[0] if q_density is None else q_density
     tau_stop = -math.log(stop_eps) if stop_eps > 0.0 else math.inf
     tau_before = torch.zeros(n, dtype=dtype, device=device)
     active = samples.valid.any(dim=1).nonzero()[:, 0]  # [a] rays still marching
@@ -205,12 +207,14 @@ def shade_rays(
     weight_threshold: float = 1e-4,
     density_grads: DensityGradientSampling | None = None,
     colour_sampling: ColourSampling | None = None,
+    features: tuple[Float[Tensor, "n d"], Float[Tensor, "n c"]] | None = None,
 ) -> dict[str, Tensor]:
     """Differentiable colour of rays at their ``samples``. ``density_grads`` back-propagates
     near-empty samples at random, unbiased (``rendering.density_gradients``); ``colour_sampling``
     colours light samples at random, unbiased (``rendering.colour_sampling``). Returns ``rgb``
-    [n, 3], ``opacity`` [n] and ``n_samples`` (valid samples evaluated)."""
-    q_d, q_a = field.param_features(params)
+    [n, 3], ``opacity`` [n] and ``n_samples`` (valid samples evaluated). ``features``: the rays'
+    (density, appearance) parameter features where the caller has them (else from ``params``)."""
+    q_d, q_a = field.param_features(params) if features is None else features
     tau0 = torch.zeros(rays_d.shape[0], dtype=rays_d.dtype, device=rays_d.device)
     rgb, tau, _ = _shade_samples(field, rays_d, samples.points, samples.deltas, samples.valid, q_d, q_a, tau0,
                                  weight_threshold, density_grads, samples.sigma, colour_sampling)

@@ -171,3 +171,36 @@ def level_spacing(field: VisNerfField, max_ratio: float) -> Tensor:
     rise = torch.log1p(levels.sharpness().detach() * slope)  # [m - 1]
     excess = ((rise[1:] - rise[:-1]).abs() - math.log(max_ratio)).clamp_min(0.0)  # [m - 2]
     return excess.pow(2).mean()
+
+
+@dataclass(frozen=True)
+class LevelPriorWeights:
+    """A level axis's priors (``TrainConfig.level_*``); a weight of 0 leaves its prior out."""
+
+    curvature: float
+    curvature_points: int
+    """Rays of the batch at whose parameter values the curvature is taken."""
+    spacing: float
+    spacing_ratio: float
+
+
+def backward_level_priors(field: VisNerfField, params: Float[Tensor, "n k"], w: LevelPriorWeights,
+                          generator: torch.Generator, raw_density: RawDensity | None = None) -> dict[str, float]:
+    """A level axis's curvature and spacing priors back-propagated into ``.grad``; their values (none
+    for a field without a level axis). The curvature is taken at the parameter values of random
+    rays of the batch (the other axes' density features); ``raw_density``: the fused step's."""
+    terms: dict[str, float] = {}
+    if field.levels is None:
+        return terms
+    if w.curvature > 0:
+        pick = torch.randint(0, params.shape[0], (w.curvature_points,), generator=generator)
+        curvature = w.curvature * level_curvature(field, params[pick.to(params.device)], generator, raw_density=raw_density)
+        curvature.backward()
+        terms["level_curvature"] = float(curvature.detach())
+    if w.spacing > 0:
+        spacing = w.spacing * level_spacing(field, w.spacing_ratio)
+        if spacing.requires_grad:  # fewer than three levels: no neighbouring bands to hold
+            spacing.backward()
+            terms["level_spacing"] = float(spacing.detach())
+    return terms
+

@@ -21,7 +21,12 @@ from visnerf.representation.field import VisNerfField
 from visnerf.runtime import bf16_native
 from visnerf.training.fused_step import Sampling, StepBatch
 from visnerf.training.ray_batches import micro_batches
-from visnerf.training.regularizers import RegularizerWeights, backward_regularization, level_curvature, level_spacing
+from visnerf.training.regularizers import (
+    LevelPriorWeights,
+    RegularizerWeights,
+    backward_level_priors,
+    backward_regularization,
+)
 from visnerf.training.sparse_adam import RowSparseAdam
 
 FUSED_ADAM_DEVICES = ("cpu", "cuda")
@@ -147,39 +152,35 @@ class Stepping:
                         cfg.micro_batch_samples)
 
     def _render_backward(self, batch: StepBatch, sampling: Sampling) -> tuple[float, int]:
-        """The torch path of ``FusedStep.render_backward`` (every device)."""
+        """The torch path of ``FusedStep.render_backward`` (every device). The rays' parameter
+        features are computed once: the chunks back-propagate into detached copies, whose gradient
+        then goes back through the parameter factors in one pass."""
         samples = place_samples(self.field, batch.rays_o, batch.rays_d, sampling.step, sampling.max_samples,
                                 sampling.occupancy, self.generator, sampling.windows)
-        samples = drop_occluded(self.field, samples, batch.params, sampling.stop_eps)
+        features = self.field.param_features(batch.params)  # ([n, d], [n, c]) with their graph
+        leaves = tuple(f.detach().requires_grad_(f.requires_grad) for f in features)
+        samples = drop_occluded(self.field, samples, batch.params, sampling.stop_eps, q_density=leaves[0].detach())
         per_ray = samples.per_ray()
         sq_error = 0.0
         for sl in micro_batches(per_ray, sampling.micro_batch_rays, sampling.micro_batch_samples):
             out = shade_rays(self.field, batch.rays_d[sl], batch.params[sl], batch.background[sl], samples.of_rays(sl),
-                             sampling.weight_threshold, sampling.density_grads, sampling.colour_sampling)
+                             sampling.weight_threshold, sampling.density_grads, sampling.colour_sampling,
+                             features=(leaves[0][sl], leaves[1][sl]))
             part = ((out["rgb"] - batch.target[sl]) ** 2).mean(-1).sum() / batch.divisor  # this chunk's share
             if not torch.isfinite(part):
                 raise FloatingPointError(f"non-finite loss at iteration {self.state.iteration}")
             if part.requires_grad:  # a chunk whose rays meet no occupied cell has nothing to learn
                 part.backward()
             sq_error += float(part.detach())
+        reached = [(f, leaf.grad) for f, leaf in zip(features, leaves, strict=True) if leaf.grad is not None]
+        if reached:
+            torch.autograd.backward([f for f, _ in reached], [g for _, g in reached])
         return sq_error, int(per_ray.sum())
 
     def _level_priors(self, params: Tensor) -> dict[str, float]:
-        """A level axis's curvature and spacing priors, back-propagated; their values."""
-        cfg, terms = self.cfg, {}
-        if self.field.levels is None:
-            return terms
-        if cfg.level_curvature_weight > 0:
-            # at the parameter values of random rays of the batch (the other axes' density features)
-            pick = torch.randint(0, params.shape[0], (cfg.level_curvature_points,), generator=self.generator)
-            raw = None if self.fused is None else self.fused.raw_density
-            curvature = cfg.level_curvature_weight * level_curvature(self.field, params[pick.to(self.device)],
-                                                                     self.generator, raw_density=raw)
-            curvature.backward()
-            terms["level_curvature"] = float(curvature.detach())
-        if cfg.level_spacing_weight > 0:
-            spacing = cfg.level_spacing_weight * level_spacing(self.field, cfg.level_spacing_ratio)
-            if spacing.requires_grad:  # fewer than three levels: no neighbouring bands to hold
-                spacing.backward()
-                terms["level_spacing"] = float(spacing.detach())
-        return terms
+        """``regularizers.backward_level_priors`` with this run's weights."""
+        cfg = self.cfg
+        weights = LevelPriorWeights(cfg.level_curvature_weight, cfg.level_curvature_points, cfg.level_spacing_weight,
+                                    cfg.level_spacing_ratio)
+        raw = None if self.fused is None else self.fused.raw_density
+        return backward_level_priors(self.field, params, weights, self.generator, raw)

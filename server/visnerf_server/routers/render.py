@@ -67,6 +67,7 @@ async def render_response(
     except ClientDisconnected:
         return Response(status_code=CLIENT_CLOSED_REQUEST)
     except RateLimited as exc:
+        frames.metrics.rate_limited.inc()
         raise HTTPException(429, str(exc), {"Retry-After": exc.retry_after_header}) from None
     except RenderCancelled:
         raise HTTPException(503, "render cancelled; retry shortly", retry) from None

@@ -257,6 +257,7 @@ class StreamSession:
                 return frame
             except RateLimited as exc:  # the client's pixel budget (``rate_limit``)
                 if exc.retry_after_s > RATE_WAIT_MAX_S or loop.time() + exc.retry_after_s >= deadline:
+                    self.metrics.rate_limited.inc()
                     await self.send_error(seq, RATE_LIMITED, str(exc), retry_after=round(exc.retry_after_s, 3))
                     return None
                 self.metrics.stream_rate_waits.inc()
