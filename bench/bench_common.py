@@ -298,7 +298,7 @@ def late_trainer(ckpt: Path, scene: SceneData, batch_rays: int, fused: bool | No
     device = device or torch.device("cpu")
     field, meta = load_checkpoint(ckpt, device)
     res = max(field.resolution)
-    recipe = dict(meta.provenance.get("recipe", {}))
+    recipe = dict(meta.provenance.recipe)
     late = dict(iterations=10**9, time_budget_s=None, resolution_init=res, resolution_final=res, upsample_at=(),
                 occupancy_at=(), occupancy_refine_at=(), trim_every=10**9, batch_rays=batch_rays,
                 l1_switch_iteration=0, weight_average_span=0.0)

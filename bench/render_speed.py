@@ -65,15 +65,12 @@ from visnerf.rendering.render_settings import RenderSettings
 from visnerf.rendering.renderer import render_image_scaled
 from visnerf.runtime import configure
 
-MODES = ("fast", "fast_own", "fast_intraop", "plain", "preview")
+MODES = ("fast", "fast_own", "plain", "preview")
 """Render order within each view. ``fast`` marches the checkpoint's occupancy grid, the union over
 its parameter space: a frame at a setting seen for the first time (a slider being dragged).
 ``fast_own`` is the same frame marching the grid of the view's own setting
 (``rendering.setting_occupancy``, built beforehand and timed apart): what the server serves from
-the second frame at one setting on (orbiting). ``fast_intraop`` is ``fast`` with the frame's
-chunks marched one after another, the torch threads sharing each operation
-(``threaded_chunks=False``): the same frame, timed to show what marching chunks on one thread per
-core pays."""
+the second frame at one setting on (orbiting)."""
 TARGET_FULL_256_MS = 200.0
 """Full-quality 256x256 median on two threads: the target of the Nyx issue (0.2 s; it was 500 ms)."""
 TARGET_PREVIEW_128_MS = 80.0
@@ -179,8 +176,7 @@ def default_cases() -> tuple[Case, ...]:
 def render_settings(scene: SceneRenderer) -> dict[str, RenderSettings]:
     full = RenderSettings.from_meta(scene.meta, "full")
     plain = RenderSettings.from_meta(scene.meta, "exhaustive")
-    return {"fast": full, "fast_own": full, "fast_intraop": dataclasses.replace(full, threaded_chunks=False),
-            "plain": plain,
+    return {"fast": full, "fast_own": full, "plain": plain,
             "preview": RenderSettings.from_meta(scene.meta, "preview")}
 
 
@@ -327,20 +323,19 @@ def psnr_delta(case: CaseResult, size: int) -> float | None:
 
 def table_rows(case: CaseResult, sizes: tuple[int, ...]) -> list[str]:
     if case.skipped:
-        return [f"| {case.name} | skipped: {case.skipped} |" + " |" * 12]
+        return [f"| {case.name} | skipped: {case.skipped} |" + " |" * 11]
     rows = []
     for size in sizes:
         plain, fast, prev = (case.result(m, size) for m in ("plain", "fast", "preview"))
         if plain is None or fast is None or prev is None:
             continue
-        intra, own = case.result("fast_intraop", size), case.result("fast_own", size)
+        own = case.result("fast_own", size)
         gt = " / ".join(fmt(r.psnr_vs_gt, 2) for r in (plain, fast, prev))
         rows.append(
             f"| {case.name} | {size}x{size} | {fmt(plain.ms_median)} / {fmt(plain.ms_p95)} | "
             f"{fmt(fast.ms_median)} / {fmt(fast.ms_p95)} | {fmt(ratio(plain, fast), 2)} | "
             f"{fmt(own.ms_median if own else None)} / {fmt(own.ms_p95 if own else None)} "
             f"({fmt(ratio(fast, own), 2)}x) | "
-            f"{fmt(intra.ms_median if intra else None)} ({fmt(ratio(intra, fast), 2)}x) | "
             f"{fmt(prev.ms_median)} / {fmt(prev.ms_p95)} ({prev.render_size}px) | {fmt(ratio(plain, prev), 2)} | "
             f"{fmt(fast.psnr_vs_plain, 2)} | {fmt(fast.max_abs_diff_vs_plain, 4)} | {fmt(prev.psnr_vs_plain, 2)} | "
             f"{gt} | {fmt(psnr_delta(case, size), 3)} |"
@@ -376,10 +371,8 @@ def write_markdown(path: Path, record: dict, cases: list[CaseResult], sizes: tup
         *markdown_header("Render speed: plain exhaustive renderer against the fast one", record),
         "",
         f"{record['views']} held-out views per checkpoint (camera and parameters of those frames), rendered at each "
-        "size by each setting, interleaved per view (fast, own grid, chunks in turn, plain, preview), one untimed warm-up render per setting "
+        "size by each setting, interleaved per view (fast, own grid, plain, preview), one untimed warm-up render per setting "
         "and size first. ms per frame: median / p95 of the render call (the preview's upsampling included). "
-        "\"Chunks in turn\": the fast setting with the frame's chunks of rays marched one after another, the torch "
-        "threads sharing each operation, instead of one chunk per thread (the same frame). "
         "\"Own grid\": the fast setting marching the occupancy grid of the view's own parameter setting instead of "
         "the union over the parameter space, as the server does from the second frame at one setting on "
         "(fast / own grid in brackets; the grids' build is timed apart, below the table). "
@@ -388,11 +381,11 @@ def write_markdown(path: Path, record: dict, cases: list[CaseResult], sizes: tup
         "ground truth is the mean over views and is given only at the dataset's native image size (the frames "
         "are not resampled for it); delta = fast minus plain, against ground truth.",
         "",
-        "| checkpoint | size | plain ms | fast ms | plain/fast | fast, own grid ms | fast, chunks in turn ms (/fast) "
+        "| checkpoint | size | plain ms | fast ms | plain/fast | fast, own grid ms "
         "| preview ms "
         "| plain/preview | fast vs plain dB | fast max abs diff | preview vs plain dB "
         "| vs ground truth dB: plain / fast / preview | delta dB |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for case in cases:
         lines += table_rows(case, sizes)
@@ -429,14 +422,12 @@ def plot(path: Path, cases: list[CaseResult]) -> None:
     """PSNR against median ms per frame: against ground truth (native size) and against plain."""
     fig = Figure(figsize=(12, 4.6), layout="constrained")
     ax_gt, ax_plain = fig.subplots(1, 2)
-    markers = {"plain": "s", "fast": "o", "fast_own": "D", "fast_intraop": "x", "preview": "^"}
+    markers = {"plain": "s", "fast": "o", "fast_own": "D", "preview": "^"}
     colours = [f"C{i}" for i in range(10)]
     measured = [c for c in cases if not c.skipped]
     for i, case in enumerate(measured):
         colour = colours[i % len(colours)]
         for r in case.results:
-            if r.mode == "fast_intraop":  # the fast frame, timed another way
-                continue
             label = f"{case.name} {r.mode}"
             if r.psnr_vs_gt is not None:
                 ax_gt.scatter(r.ms_median, r.psnr_vs_gt, marker=markers[r.mode], color=colour, label=label)

@@ -21,6 +21,7 @@ from safetensors.torch import save as save_safetensors_bytes
 from visnerf.config import FACTOR_STORAGE_DTYPES, FieldConfig, RenderConfig
 from visnerf.factor_codec import ROW_SCALE_SUFFIX, decode_rows, encode_rows
 from visnerf.meta_checks import MetadataError, check_metadata, parse_metadata_json
+from visnerf.provenance import Provenance, ProvenanceError
 from visnerf.representation.field import VisNerfField
 
 FORMAT_VERSION = 2
@@ -71,13 +72,14 @@ class CheckpointMeta:
     title: str = ""
     kind: Literal["dvr", "ir"] = "dvr"
     occupancy_resolution: tuple[int, int, int] | None = None
-    provenance: dict[str, Any] = field(default_factory=dict)
+    provenance: Provenance = field(default_factory=Provenance)
     format_version: int = FORMAT_VERSION
 
     def to_json(self) -> str:
         data = asdict(self)
         data["field"] = self.field.to_dict()
         data["render"] = self.render.to_dict()
+        data["provenance"] = self.provenance.to_dict()
         return json.dumps(data, allow_nan=False)
 
     @classmethod
@@ -101,6 +103,10 @@ class CheckpointMeta:
         except MetadataError as exc:
             raise CheckpointError(f"checkpoint metadata: {exc}") from None
         field_cfg = _config_from(FieldConfig, data["field"], "field")
+        try:
+            provenance = Provenance.from_dict(data.get("provenance", {}))
+        except ProvenanceError as exc:
+            raise CheckpointError(f"checkpoint metadata: {exc}") from None
         render_cfg = _config_from(RenderConfig, data.get("render", {}), "render")
         try:
             axes = tuple(
@@ -121,7 +127,7 @@ class CheckpointMeta:
                 title=str(data.get("title", "")),
                 kind=str(data.get("kind", "dvr")),
                 occupancy_resolution=None if occ is None else tuple(int(r) for r in occ),  # type: ignore[arg-type]
-                provenance=dict(data.get("provenance", {})),
+                provenance=provenance,
             )
         except (KeyError, TypeError, ValueError) as exc:
             raise CheckpointError(f"checkpoint metadata is incomplete or malformed: {exc!r}") from None

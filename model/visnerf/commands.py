@@ -106,7 +106,7 @@ def _calibrate(args: argparse.Namespace) -> int:
     if args.dry_run:
         return 0
     render = dataclasses.replace(meta.render, full_step_ratio=choice.ratio)
-    prov = dict(meta.provenance, full_spacing=note)
+    prov = dataclasses.replace(meta.provenance, full_spacing=note)
     save_checkpoint(field, dataclasses.replace(meta, render=render, provenance=prov), args.checkpoint)
     print(f"wrote full_step_ratio {choice.ratio:g} into {args.checkpoint}")
     return 0

@@ -80,7 +80,7 @@ def _scene_info(meta: CheckpointMeta) -> SceneInfo:
         bbox=(tuple(meta.bbox[0]), tuple(meta.bbox[1])),  # type: ignore[arg-type]
         image_size=(meta.image_width, meta.image_height),
         background=tuple(meta.background),  # type: ignore[arg-type]
-        training=dict(meta.provenance),
+        training=meta.provenance.to_dict(),
     )
 
 

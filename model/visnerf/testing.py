@@ -11,6 +11,7 @@ from visnerf.checkpoint import CheckpointMeta, ParamAxis, save_checkpoint
 from visnerf.config import FieldConfig, RenderConfig
 from visnerf.data.cameras import Intrinsics, orbit_c2w
 from visnerf.data.scene import SceneData, axes_from_values
+from visnerf.provenance import Provenance
 from visnerf.representation.field import VisNerfField
 
 
@@ -77,7 +78,7 @@ def make_tiny_checkpoint(
         image_height=64,
         title=title,
         kind=kind,
-        provenance={"dataset": "random", "iterations": 0, "train_seconds": 0.0, "val_psnr": None},
+        provenance=Provenance(dataset="random"),
     )
     return save_checkpoint(field, meta, path)
 

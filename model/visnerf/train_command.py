@@ -236,16 +236,14 @@ def _trainer_from_checkpoint(path: Path, train: "SceneData", val: "SceneData | N
     init_field, meta = load_checkpoint(path, device)
     prov = meta.provenance
     try:
-        cfg = TrainConfig.from_dict({**prov.get("recipe", {}), **train_given})
+        cfg = TrainConfig.from_dict({**prov.recipe, **train_given})
     except (TypeError, ValueError) as exc:
         raise CheckpointError(f"{path}: its recorded training configuration cannot be read back: {exc}") from None
     render_cfg = dataclasses.replace(meta.render, **render_given)  # the resumed model's, unless given
-    start = TrainState(iteration=int(prov.get("iterations", 0)), train_seconds=float(prov.get("train_seconds", 0.0)),
-                       upsamples_done=int(prov.get("upsamples_done", 0)),
-                       occupancy_done=int(prov.get("occupancy_done", 0)),
-                       refines_done=int(prov.get("refines_done", 0)))
+    start = TrainState(iteration=prov.iterations, train_seconds=prov.train_seconds, upsamples_done=prov.upsamples_done,
+                       occupancy_done=prov.occupancy_done, refines_done=prov.refines_done)
     trainer = Trainer(train, val, cfg, device, render_cfg=render_cfg, init_field=init_field, start=start)
-    trainer.recipe_choices = list(prov.get("choices", []))
+    trainer.recipe_choices = [dataclasses.asdict(c) for c in prov.choices]
     return trainer
 
 

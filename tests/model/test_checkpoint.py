@@ -160,6 +160,11 @@ METADATA_DEFECTS = [
     (_set(background=[1.0, float("nan"), 1.0]), "background[1] is NaN"),
     (_in("camera", distance=float("inf")), "camera.distance is Infinity"),
     (_in("provenance", val_psnr=float("-inf")), "provenance.val_psnr is -Infinity"),
+    # the provenance record (``provenance.Provenance``)
+    (_in("provenance", colour="red"), "provenance: unknown key(s) ['colour']"),
+    (_in("provenance", iterations=-3), "provenance: iterations must be a whole number of at least 0"),
+    (_in("provenance", val_psnr="high"), "provenance: val_psnr must be a finite number"),
+    (_in("provenance", choices=[{"name": "x"}]), "provenance: choices[0] must have a name, a value and a reason"),
     (_axis(1, values=[0.0, float("nan")]), "param_axes[1].values[1] is NaN"),
     # parameter axes
     (_axis(0, default=1.5), "param_axes[0].default 1.5 is outside [0, 1]"),

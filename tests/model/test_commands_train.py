@@ -29,13 +29,13 @@ def test_step_ratio_is_stored_and_kept_on_resume(plume, tmp_path) -> None:
                    "--step-ratio", "1.25", "--carve-min-seen-fraction", "0.5", "--occupancy-refine-at", "0.5,0.9", "--occupancy-refine-dilation", "0", "--device", "cpu", "--quiet")
     assert run.returncode == 0, run.stderr
     meta, _ = read_checkpoint(first)
-    assert meta.render.step_ratio == 1.25 and meta.provenance["iterations"] == 6
+    assert meta.render.step_ratio == 1.25 and meta.provenance.iterations == 6
     resumed = tmp_path / "r.safetensors"
     run = _visnerf("train", str(plume), "--out", str(resumed), "--iterations", "9", "--resume", str(first),
                    "--device", "cpu", "--quiet")
     assert run.returncode == 0, run.stderr
     meta, _ = read_checkpoint(resumed)
-    assert meta.render.step_ratio == 1.25 and meta.provenance["iterations"] == 9
+    assert meta.render.step_ratio == 1.25 and meta.provenance.iterations == 9
 
 
 def test_factor_storage_and_sampled_density_gradients(plume, tmp_path) -> None:
@@ -48,7 +48,7 @@ def test_factor_storage_and_sampled_density_gradients(plume, tmp_path) -> None:
     assert run.returncode == 0, run.stderr
     meta, tensors = read_checkpoint(first)
     assert meta.field.factor_storage == "int8" and tensors["density_grid.planes.0"].dtype == torch.int8
-    recipe = meta.provenance["recipe"]
+    recipe = meta.provenance.recipe
     assert recipe["tv_weight_appearance"] == 0.0 and recipe["density_grad_keep"] == 0.25
     assert recipe["tv_weight_density"] == TrainConfig.tv_weight_density and recipe["batch_rays"] == TrainConfig.batch_rays
     assert recipe["lr_factors"] == 0.03 and recipe["lr_decay_ratio"] == 0.05
@@ -109,7 +109,7 @@ def test_an_isovalue_sweep_trains_with_a_level_axis_unless_the_user_says(tmp_pat
     assert run.returncode == 0, run.stderr
     meta, tensors = read_checkpoint(chosen)
     assert meta.field.level_set_axis == 0 and meta.field.facing_vectors > 0 and "levels.table" in tensors
-    reasons = {c["name"]: c["reason"] for c in meta.provenance["choices"]}
+    reasons = {c.name: c.reason for c in meta.provenance.choices}
     assert "nested along 'isovalue'" in reasons["level_set_axis"]
     # Field options given on the command line are kept, not chosen again (the facing vectors were
     # overridden by the recipe before).
@@ -119,5 +119,5 @@ def test_an_isovalue_sweep_trains_with_a_level_axis_unless_the_user_says(tmp_pat
     assert run.returncode == 0, run.stderr
     meta, tensors = read_checkpoint(given)
     assert meta.field.level_set_axis == -1 and meta.field.facing_vectors == 0 and "levels.table" not in tensors
-    reasons = {c["name"]: c["reason"] for c in meta.provenance["choices"]}
+    reasons = {c.name: c.reason for c in meta.provenance.choices}
     assert reasons["level_set_axis"] == reasons["facing_vectors"] == "set by the user"

@@ -48,7 +48,7 @@ def test_a_checkpoint_keeps_the_whole_training_configuration(tmp_path) -> None:
                       upsample_at=(0.5,), occupancy_refine_at=(0.3, 0.6), lr_factors=0.03, stop_eps=1e-3, seed=7)
     trainer = Trainer(make_noise_scene(), None, cfg, torch.device("cpu"))
     meta, _ = read_checkpoint(trainer.save(tmp_path / "m.safetensors"))
-    recorded = meta.provenance["recipe"]
+    recorded = meta.provenance.recipe
     assert set(recorded) == {f.name for f in dataclasses.fields(TrainConfig)}
     assert TrainConfig.from_dict(recorded) == cfg
 

@@ -60,10 +60,10 @@ def test_given_options_round_trip_through_the_checkpoint(tangle, tmp_path) -> No
     meta, _ = read_checkpoint(out)
     assert (meta.field.hidden_width, meta.field.sh_degree, meta.field.density_scale) == (32, 1, 40.0)
     assert (meta.render.max_samples, meta.render.full_weight_threshold_per_voxel) == (512, 0.001)
-    recipe = TrainConfig.from_dict(meta.provenance["recipe"])
+    recipe = TrainConfig.from_dict(meta.provenance.recipe)
     assert recipe.l1_weight_rest == 2e-5 and recipe.mixed_precision is False and recipe.stop_eps == 1e-3
     assert recipe.upsample_at == (0.1, 0.2) and recipe.betas == (0.8, 0.95)
-    chosen = {c["name"]: c["reason"] for c in meta.provenance["choices"]}
+    chosen = {c.name: c.reason for c in meta.provenance.choices}
     assert chosen["density_scale"] == "set by the user"  # the recipe keeps a given density scale
     assert meta.field.facing_vectors > 0 and "opaque" in chosen["facing_vectors"]  # and chooses the rest
     # Whole configurations: every field of each, as given or as the recipe and the run set them.
@@ -85,7 +85,7 @@ def test_options_not_given_keep_the_recipe(tangle, tmp_path) -> None:
     out = tmp_path / "d.safetensors"
     assert train(tangle, out).returncode == 0
     meta, _ = read_checkpoint(out)
-    recipe = TrainConfig.from_dict(meta.provenance["recipe"])
+    recipe = TrainConfig.from_dict(meta.provenance.recipe)
     assert recipe.stop_eps == TrainConfig.stop_eps and recipe.betas == TrainConfig.betas
     assert meta.field.hidden_width == FieldConfig.hidden_width and meta.render.max_samples == RenderConfig.max_samples
     assert meta.field.density_scale > 1.0  # tangle_static is opaque: the recipe's surface density

@@ -76,8 +76,8 @@ def test_torchrun_train_writes_one_checkpoint_from_rank_0(tmp_path) -> None:
     assert run.stdout.count("saved ") == 1 and run.stderr.count("training on ") == 1, log  # rank 0 alone
     meta, _ = read_checkpoint(out / "m.safetensors")
     prov = meta.provenance
-    assert prov["ranks"] == 2 and prov["backend"] == "gloo" and prov["recipe"]["batch_rays"] == 512
-    assert prov["iterations"] > 0 and prov["train_seconds"] >= 3.0 and prov["val_psnr"] is not None, prov
+    assert prov.ranks == 2 and prov.backend == "gloo" and prov.recipe["batch_rays"] == 512
+    assert prov.iterations > 0 and prov.train_seconds >= 3.0 and prov.val_psnr is not None, prov
     scene = load_scene(out / "m.safetensors", torch.device("cpu"))
     image = scene.render(orbit_c2w(30.0, 20.0, scene.info.camera.get("distance", 2.0)), 30.0, 24, 24)
     assert image.shape == (24, 24, 3) and image.dtype == np.uint8 and image.std() > 0, image

@@ -128,7 +128,7 @@ def build_summary(result: EvalResult, cfg: EvalConfig, out: Path) -> dict:
         "scene": {"title": meta.title, "kind": meta.kind, "K": k,
                   "param_axes": [{"name": a.name, "min": a.min, "max": a.max, "values": list(a.values)}
                                  for a in meta.param_axes]},
-        "provenance": meta.provenance,
+        "provenance": meta.provenance.to_dict(),
         "metrics": {**overall, "lpips_note": result.lpips_note,
                     "note": "means over frames; SSIM: scikit-image, Gaussian window, data range 1, colour; "
                             "render ms: median after one untimed warm-up, 8-bit output"},

@@ -62,8 +62,6 @@ class RenderSettings:
     early_termination: bool = True
     bf16: bool = False
     """Decoder matrix products in bfloat16 where the device has bf16 matrix units (inference)."""
-    threaded_chunks: bool = True
-    """On the CPU, march chunks of rays on one thread per core (``rendering.parallel``)."""
 
     @classmethod
     def from_config(

@@ -72,7 +72,7 @@ def _shade_frame_samples(
     weights = weights_from_optical_depth(tau, tau_before)  # [a, s]
     valid_weights = weights.view(-1).index_select(0, flat)  # [m]
     shade = (valid_weights > weight_threshold).nonzero()[:, 0]  # into the valid samples
-    _add_shaded_colours(frame, ray_terms, rays, samples, flat, s, valid_weights, shade, rgbw)
+    _add_shaded_colours(frame, ray_terms, rays, samples, flat, s, valid_weights, shade, rgbw, compiled=False)
     return tau.sum(dim=-1)
 
 
@@ -86,14 +86,16 @@ def _add_shaded_colours(
     weights: Float[Tensor, " m"],
     shade: Int[Tensor, " k"],
     rgbw: Float[Tensor, "n 4"],
+    compiled: bool,
 ) -> None:
     """Add the weighted colour and the weight of samples ``shade`` (indices into the segment's
-    valid ``samples``, whose flat indices are ``flat``: ``ray * seg + j``) into ``rgbw``."""
+    valid ``samples``, whose flat indices are ``flat``: ``ray * seg + j``) into ``rgbw``;
+    ``compiled``: by ``march_kernel.accumulate`` (the frame's march chose the compiled loops)."""
     if shade.numel() == 0:
         return
     ray_idx = rays.index_select(0, flat.index_select(0, shade) // seg)
     colors = frame.color_at(samples.select(shade), ray_terms.index_select(0, ray_idx))  # [k, 3]
-    if march_kernel.available(rgbw.device) and rgbw.dtype == torch.float32:
+    if compiled:
         march_kernel.accumulate(rgbw, ray_idx, weights, shade, colors)
         return
     shaded = weights.index_select(0, shade)[:, None]  # [k, 1]
@@ -119,7 +121,7 @@ def _shade_placed_samples(
         return
     samples = frame.lookup(points)
     weights, shade = march_kernel.composite(flat, frame.density_at(samples), seg, step, tau, weight_threshold)
-    _add_shaded_colours(frame, ray_terms, rays, samples, flat, seg, weights, shade, rgbw)
+    _add_shaded_colours(frame, ray_terms, rays, samples, flat, seg, weights, shade, rgbw, compiled=True)
 
 
 _EMPTY_SPACE: "weakref.WeakKeyDictionary[VisNerfField, tuple[Tensor, EmptySpace]]" = weakref.WeakKeyDictionary()
@@ -209,7 +211,7 @@ def render_image(
     step = field.voxel_size() * settings.step_ratio
     out = torch.empty(height * width, 3, dtype=ray_dtype, device=device)
     chunk = rays_per_chunk(settings, device)
-    workers = chunk_workers(device) if settings.threaded_chunks else 1
+    workers = chunk_workers(device)
     rows_per_block = max(1, BLOCK_RAYS * batch_factor(device) // width)
     for start in range(0, height, rows_per_block):
         stop = min(height, start + rows_per_block)

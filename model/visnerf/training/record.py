@@ -14,6 +14,7 @@ from visnerf.checkpoint import CheckpointMeta, save_checkpoint
 from visnerf.config import RenderConfig
 from visnerf.data.scene import SceneData
 from visnerf.evaluation.metrics import psnr, ssim
+from visnerf.provenance import Provenance
 from visnerf.rendering.render_settings import RenderSettings
 from visnerf.rendering.renderer import render_image
 from visnerf.representation.field import VisNerfField
@@ -125,17 +126,16 @@ class Recording:
             image_height=s.intrinsics.height,
             title=s.title,
             kind=s.kind,
-            provenance={"dataset": dataset or s.source, "iterations": self.state.iteration,
-                        "train_seconds": round(self.state.train_seconds, 1),
-                        "val_psnr": last.get("val_psnr"), "val_ssim": last.get("val_ssim"),
-                        "seed": self.cfg.seed, "upsamples_done": self.state.upsamples_done,
-                        "occupancy_done": self.state.occupancy_done,
-                        "refines_done": self.state.refines_done, "full_spacing": self.spacing_note,
-                        "run_states": {"written": self.state.states_written,
-                                       "seconds": round(self.state.state_seconds, 2)},
-                        "recipe": self.cfg.to_dict(),  # the whole TrainConfig (visnerf info shows it)
-                        "choices": self.recipe_choices, "dataset_notes": self.dataset_notes,
-                        **self.ranks.provenance()},
+            provenance=Provenance.from_dict({
+                "dataset": dataset or s.source, "iterations": self.state.iteration,
+                "train_seconds": round(self.state.train_seconds, 1),
+                "val_psnr": last.get("val_psnr"), "val_ssim": last.get("val_ssim"),
+                "seed": self.cfg.seed, "upsamples_done": self.state.upsamples_done,
+                "occupancy_done": self.state.occupancy_done,
+                "refines_done": self.state.refines_done, "full_spacing": self.spacing_note,
+                "run_states": {"written": self.state.states_written, "seconds": round(self.state.state_seconds, 2)},
+                "recipe": self.cfg.to_dict(), "choices": self.recipe_choices, "dataset_notes": self.dataset_notes,
+                **self.ranks.provenance()}),
         )
         save_checkpoint(self.field, meta, path)
         write_log(self.state.log, path.with_suffix(".log.csv"))

@@ -160,7 +160,7 @@ def test_calibrate_writes_the_spacing_and_nothing_else(plume, tmp_path) -> None:
     meta, after = read_checkpoint(ckpt)
     chosen = float(run.stdout.split("wrote full_step_ratio ")[1].split()[0])
     assert meta.render.full_step_ratio == chosen and chosen in (*spacing.CANDIDATES, 0.5)
-    assert "full_spacing" in meta.provenance
+    assert meta.provenance.full_spacing is not None
     assert meta.render == RenderConfig(**{**before_meta.render.__dict__, "full_step_ratio": chosen})
     assert after.keys() == before.keys() and all(torch.equal(after[k], before[k]) for k in before)
 
@@ -176,8 +176,8 @@ def test_calibrate_without_held_out_frames_chooses_on_the_training_frames(plume,
     meta, _ = read_checkpoint(ckpt)
     chosen = float(run.stdout.split("wrote full_step_ratio ")[1].split()[0])
     assert meta.render.full_step_ratio == chosen
-    assert meta.provenance["full_spacing"].endswith(", training frames (none held out)")
-    assert meta.provenance["full_spacing"] in run.stdout
+    assert meta.provenance.full_spacing.endswith(", training frames (none held out)")
+    assert meta.provenance.full_spacing in run.stdout
 
 
 @pytest.mark.parametrize(("extra", "message"), [

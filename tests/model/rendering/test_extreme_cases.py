@@ -364,8 +364,8 @@ def test_training_shading(case: str, shading: str, monkeypatch: pytest.MonkeyPat
 
 MARCH_SETTINGS = {
     "exhaustive": RenderSettings(step_ratio=1.0, use_occupancy=False, early_termination=False,
-                                 weight_threshold_per_voxel=0.0, threaded_chunks=False),
-    "fast": RenderSettings(step_ratio=1.0, use_occupancy=False, threaded_chunks=False),
+                                 weight_threshold_per_voxel=0.0),
+    "fast": RenderSettings(step_ratio=1.0, use_occupancy=False),
 }
 
 
@@ -566,7 +566,7 @@ def test_geometry_inference(rays: str, density: str) -> None:
     with the frame renderer's defaults (occupancy windows, segments, early stop, colour threshold)."""
     field, rays_o, rays_d, sigma = _geometry_setup(rays, density)
     bg = torch.tensor(GEOMETRY_BACKGROUND)
-    fast = RenderSettings(background=GEOMETRY_BACKGROUND, threaded_chunks=False)
+    fast = RenderSettings(background=GEOMETRY_BACKGROUND)
     exhaustive = replace(fast, use_occupancy=False, early_termination=False, weight_threshold_per_voxel=0.0)
     step = field.voxel_size() * fast.step_ratio
     expected = _expected_range(field, rays_o, rays_d, step, jittered=False)
@@ -679,8 +679,7 @@ def test_parameters_at_range_ends(param_field: VisNerfField, param: str) -> None
     value, end = PARAMS[param]
     value32 = float(torch.tensor(value, dtype=torch.float32))
     assert value32 != end or param.startswith("end")  # the hair survives float32
-    exhaustive = RenderSettings(use_occupancy=False, early_termination=False, weight_threshold_per_voxel=0.0,
-                                threaded_chunks=False)
+    exhaustive = RenderSettings(use_occupancy=False, early_termination=False, weight_threshold_per_voxel=0.0)
     for settings in (exhaustive, replace(exhaustive, use_occupancy=True, early_termination=True,
                                          weight_threshold_per_voxel=1e-4)):
         rgb = _param_frame(param_field, value, settings)

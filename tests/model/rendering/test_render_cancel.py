@@ -8,7 +8,6 @@ import math
 import threading
 import time
 from concurrent.futures import Future
-from dataclasses import replace
 
 import pytest
 import torch
@@ -47,7 +46,7 @@ def test_a_cancelled_render_stops_after_the_chunk_it_was_in(two_threads, monkeyp
     field.eval()
     intr = Intrinsics.from_fov(64, 64, math.radians(40.0))
     c2w = torch.from_numpy(orbit_c2w(20.0, 30.0, 2.2)).float()
-    settings = replace(RenderSettings(chunk_rays=128), threaded_chunks=threaded)  # 32 chunks
+    settings = RenderSettings(chunk_rays=128)  # 32 chunks
     params = torch.tensor([0.3])
     torch.set_num_threads(2 if threaded else 1)  # one after another: on one thread, as a worker would
     marched = {"chunks": 0}
@@ -136,7 +135,7 @@ def test_a_cancelled_render_leaves_nothing_for_the_garbage_collector(two_threads
     field.eval()
     intr = Intrinsics.from_fov(64, 64, math.radians(40.0))
     c2w = torch.from_numpy(orbit_c2w(20.0, 30.0, 2.2)).float()
-    settings = replace(RenderSettings(chunk_rays=128), threaded_chunks=threaded)
+    settings = RenderSettings(chunk_rays=128)
     torch.set_num_threads(2 if threaded else 1)
     gc.collect()
     gc.disable()

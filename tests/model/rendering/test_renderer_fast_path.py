@@ -165,7 +165,7 @@ def test_the_colour_threshold_skips_the_same_part_of_a_medium_at_any_spacing(she
     params = torch.tensor([0.3])
 
     def unshaded(ratio: float, per_voxel: float) -> torch.Tensor:
-        base = RenderSettings(use_occupancy=False, early_termination=False, step_ratio=ratio, threaded_chunks=False)
+        base = RenderSettings(use_occupancy=False, early_termination=False, step_ratio=ratio)
         with torch.inference_mode():
             every = render_image(shell_field, c2w, intr, params, replace(base, weight_threshold_per_voxel=0.0))
             skipping = render_image(shell_field, c2w, intr, params, replace(base, weight_threshold_per_voxel=per_voxel))

@@ -12,6 +12,7 @@ from visnerf.checkpoint import CheckpointMeta, ParamAxis, save_checkpoint
 from visnerf.config import FramesConfig, RenderConfig
 from visnerf.data.cameras import Intrinsics, orbit_c2w
 from visnerf.inference import load_scene
+from visnerf.provenance import Provenance
 from visnerf.rendering.empty_space import EmptySpace
 from visnerf.rendering.occupancy import build_occupancy, parameter_settings
 from visnerf.rendering.render_settings import RenderSettings
@@ -152,7 +153,7 @@ def test_scene_renderer_builds_once_per_repeated_tuple_and_frames_agree(field, t
         field=field.current_config(), render=RenderConfig(step_ratio=0.5), param_axes=(ParamAxis("a", 0.0, 1.0, (0.0, 0.5, 1.0), 0.5),),
         bbox=((-0.5, -0.5, -0.5), (0.5, 0.5, 0.5)), camera={"azimuth": 30.0, "elevation": 20.0, "distance": 1.6, "fov_deg": 40.0},
         image_width=32, image_height=32, title="Tiny", kind="dvr",
-        provenance={"dataset": "random", "iterations": 0, "train_seconds": 0.0, "val_psnr": None},
+        provenance=Provenance(dataset="random"),
     )
     scene = load_scene(save_checkpoint(field, meta, tmp_path / "tiny.safetensors"))
     c2w = orbit_c2w(40.0, 20.0, 1.6)

@@ -141,7 +141,7 @@ def _has_validated(state: Path) -> bool:
 
 def _psnr_of(checkpoint: Path) -> float:
     meta, _ = read_checkpoint(checkpoint)
-    return float(meta.provenance["val_psnr"])
+    return float(meta.provenance.val_psnr)
 
 
 @pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "Ctrl-C"])
@@ -173,7 +173,7 @@ def test_visnerf_train_stopped_by_a_signal_saves_and_resumes(scene_split, tmp_pa
     assert f"resuming {state} at iteration {stopped_at}" in resumed.stderr
     assert not state.exists()  # the run is done: its state is gone, its checkpoint written
     meta, _ = read_checkpoint(out)
-    assert meta.provenance["iterations"] == 240 and meta.provenance["run_states"]["written"] >= 2
+    assert meta.provenance.iterations == 240 and meta.provenance.run_states.written >= 2
     log = json.loads(out.with_suffix(".log.json").read_text())
     assert any(row["iteration"] <= stopped_at for row in log) and log[-1]["iteration"] == 240  # one log
 
@@ -183,7 +183,7 @@ def test_visnerf_train_stopped_by_a_signal_saves_and_resumes(scene_split, tmp_pa
     uninterrupted = subprocess.run(_train_command(data, whole, "--checkpoint-every-s", "0"), capture_output=True,
                                    text=True, env=env)
     assert uninterrupted.returncode == 0, uninterrupted.stderr
-    assert read_checkpoint(whole)[0].provenance["iterations"] == 240
+    assert read_checkpoint(whole)[0].provenance.iterations == 240
     assert abs(_psnr_of(out) - _psnr_of(whole)) < 0.1
 
 
@@ -208,7 +208,7 @@ def test_a_job_killed_outright_goes_on_from_its_last_periodic_state(scene_split,
     resumed = subprocess.run(_train_command(data, out, "--resume"), capture_output=True, text=True, env=env)
     assert resumed.returncode == 0, resumed.stderr
     assert f"resuming {state} at iteration {kept}" in resumed.stderr
-    assert read_checkpoint(out)[0].provenance["iterations"] == 240 and not state.exists()
+    assert read_checkpoint(out)[0].provenance.iterations == 240 and not state.exists()
 
 
 def test_resume_without_a_state_names_what_is_missing(scene_split, tmp_path) -> None:
