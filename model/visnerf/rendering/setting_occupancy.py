@@ -76,7 +76,8 @@ class GridBuild:
         self.cache._finish(self, space)
 
     def drop(self) -> None:
-        self.cache._finish(self, None)
+        """Nothing will run it (a queue that takes no work now): the tuple's next frame asks again."""
+        self.cache._finish(self, None, ask_again=True)
 
 
 class SettingOccupancy:
@@ -105,12 +106,15 @@ class SettingOccupancy:
             grid = build_setting_grid(self.field, params, step, self.threshold, self.cfg.setting_grid_samples)
             return EmptySpace.of(grid, self.field.aabb)
 
-    def _finish(self, build: GridBuild, space: EmptySpace | None) -> None:
-        """End ``build``: store its grid (None: nothing to store) and free the one build slot."""
+    def _finish(self, build: GridBuild, space: EmptySpace | None, ask_again: bool = False) -> None:
+        """End ``build``: store its grid (None: nothing to store) and free the one build slot;
+        ``ask_again``: the tuple's next ask hands out a new build."""
         with self._lock:
             if self._pending is not build:
                 return
             self._pending = None
+            if ask_again and self.cfg.setting_grid_after > 1:
+                self._asked[build.key] = self.cfg.setting_grid_after - 1
             if space is not None:
                 self.builds += 1
                 self._grids[build.key] = space

@@ -189,3 +189,15 @@ def test_a_due_build_goes_to_its_caller_and_a_drop_or_a_failure_is_harmless() ->
     build.run()  # logged; nothing stored, and the slot is free again
     assert cache.builds == 1 and cache.lookup(b, step)[1] is not None
 
+    # A dropped build is handed out again at the tuple's next ask; a failed one after the usual asks.
+    cache = SettingOccupancy(field, FramesConfig(setting_grids=4, setting_grid_after=2), 1e-4)
+    assert cache.lookup(a, step) == (None, None)
+    _, build = cache.lookup(a, step)
+    assert build is not None
+    build.drop()
+    _, build = cache.lookup(a, step)
+    assert build is not None
+    cache.build = fail  # type: ignore[method-assign]
+    build.run()
+    assert cache.lookup(a, step) == (None, None) and cache.lookup(a, step)[1] is not None
+
