@@ -51,9 +51,12 @@ def _train(args: argparse.Namespace) -> int:
     from visnerf.training.distributed import leave_process_group
 
     try:
-        return _train_as_rank(args)
-    finally:
+        status = _train_as_rank(args)
+    except BaseException:
         leave_process_group()
+        raise
+    leave_process_group(together=True)
+    return status
 
 
 class _Refused(Exception):

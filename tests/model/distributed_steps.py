@@ -129,8 +129,10 @@ def main(out: Path) -> int:
         stopped = train(batches, ranks, stop_at=2)  # every rank stops where the last one is asked to
         stop = {"stopped_at": torch.tensor([stopped.state.iteration, int(stopped.stopped)])}
         save_file({**results(trainer), **stop}, str(out / f"rank{ranks.rank}.safetensors"))
-    finally:
+    except BaseException:
         leave_process_group()
+        raise
+    leave_process_group(together=True)  # as ``visnerf train`` leaves it
     if ranks.is_main:
         solo = Trainer(scene, None, CONFIG, device, field_cfg=FIELD, fused=FUSED)
         save_file(parameters(solo), str(out / "init.safetensors"))

@@ -224,7 +224,14 @@ class Ranks:
                 dist.broadcast(tensor, src=0)
 
 
-def leave_process_group() -> None:
-    """Leave this process's process group, if it joined one (``Ranks.start``)."""
-    if dist.is_available() and dist.is_initialized():
-        dist.destroy_process_group()
+def leave_process_group(together: bool = False) -> None:
+    """Leave this process's process group, if it joined one (``Ranks.start``). ``together``: wait at
+    a barrier first, so that every rank leaves at once. A rank that left while rank 0 still wrote
+    its checkpoint aborted now and then in gloo's teardown ("terminate called without an active
+    exception", 1 of 12 two-rank runs on a loaded machine), and torchrun then stopped rank 0. A
+    rank that fails leaves alone: the others may never reach the barrier."""
+    if not (dist.is_available() and dist.is_initialized()):
+        return
+    if together:
+        dist.barrier()
+    dist.destroy_process_group()
