@@ -48,15 +48,9 @@ def with_bbox(scene: "SceneData", box: tuple[tuple[float, ...], tuple[float, ...
 def _train(args: argparse.Namespace) -> int:
     """``visnerf train``: one process, or one of the ranks a launcher started (torchrun, srun),
     which train one model together and leave their process group at the end."""
-    from visnerf.training.distributed import leave_process_group
+    from visnerf.training.distributed import run_then_leave
 
-    try:
-        status = _train_as_rank(args)
-    except BaseException:
-        leave_process_group()
-        raise
-    leave_process_group(together=True)
-    return status
+    return run_then_leave(lambda: _train_as_rank(args))
 
 
 class _Refused(Exception):

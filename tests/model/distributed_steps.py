@@ -27,7 +27,7 @@ import visnerf.training.fused_step as fused_step_module
 import visnerf.training.step as step_module
 from visnerf.config import FieldConfig, TrainConfig
 from visnerf.testing import make_noise_scene
-from visnerf.training.distributed import Launch, Ranks, leave_process_group
+from visnerf.training.distributed import Launch, Ranks, run_then_leave
 from visnerf.training.ray_batches import RayBatch, RayBatchSampler
 from visnerf.training.trainer import Trainer
 
@@ -124,15 +124,14 @@ def main(out: Path) -> int:
     sampler.set_aabb(scene.bbox)
     batches = [sampler.sample(BATCH) for _ in range(STEPS)]
     ranks = Ranks.start(Launch.from_environment(), device)
-    try:
+
+    def ranks_part() -> None:
         trainer = train(batches, ranks)
         stopped = train(batches, ranks, stop_at=2)  # every rank stops where the last one is asked to
         stop = {"stopped_at": torch.tensor([stopped.state.iteration, int(stopped.stopped)])}
         save_file({**results(trainer), **stop}, str(out / f"rank{ranks.rank}.safetensors"))
-    except BaseException:
-        leave_process_group()
-        raise
-    leave_process_group(together=True)  # as ``visnerf train`` leaves it
+
+    run_then_leave(ranks_part)  # as ``visnerf train`` leaves its process group
     if ranks.is_main:
         solo = Trainer(scene, None, CONFIG, device, field_cfg=FIELD, fused=FUSED)
         save_file(parameters(solo), str(out / "init.safetensors"))

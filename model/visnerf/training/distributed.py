@@ -16,9 +16,10 @@ The backend follows the device: gloo on CPU, nccl on CUDA.
 """
 
 import os
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from datetime import timedelta
+from typing import TypeVar
 
 import numpy as np
 import torch
@@ -29,6 +30,7 @@ from visnerf.runtime import available_cores, configure
 
 DEFAULT_PORT = 29500
 """``MASTER_PORT`` where the launcher sets none (srun does not): torchrun's default."""
+T = TypeVar("T")
 BACKENDS = {"cpu": "gloo", "cuda": "nccl"}
 """torch.distributed backend for each device type."""
 TIMEOUT = timedelta(minutes=30)
@@ -222,6 +224,18 @@ class Ranks:
                 tensor.copy_(carrier.bool())
             else:
                 dist.broadcast(tensor, src=0)
+
+
+def run_then_leave(run: "Callable[[], T]") -> "T":
+    """``run()``, then leave the process group (``leave_process_group``): together when it returned,
+    alone when it raised."""
+    try:
+        result = run()
+    except BaseException:
+        leave_process_group()
+        raise
+    leave_process_group(together=True)
+    return result
 
 
 def leave_process_group(together: bool = False) -> None:
