@@ -87,6 +87,10 @@ class Settings(BaseSettings):
     """Full-quality frames at one parameter setting before its grid is built (in the background lane)."""
     setting_grid_samples: int = FramesConfig.setting_grid_samples
     """Density samples per cell and axis of a per-setting grid."""
+    refine_spacing: int = FramesConfig.refine_spacing
+    """Largest spacing of the pixel lattice a large full-quality frame is marched on first (1: every pixel)."""
+    refine_spread: float = FramesConfig.refine_spread
+    """Colour difference over a lattice cell's corners above which its pixels are marched, not blended."""
 
     # Costs per request and per client
     # (ms per megapixel from bench/results/render_speed.md, 2-core AMD EPYC, 256x256 frames,

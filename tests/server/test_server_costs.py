@@ -270,9 +270,11 @@ def test_shutdown_stops_running_renders_and_fails_queued_ones() -> None:
 def test_a_request_past_its_deadline_frees_the_worker_for_the_next(ckpt_dir: Path, tmp_path: Path) -> None:
     """The large frame takes many seconds (tens on a busy 2-core machine); past the limit of 1.5 s
     it is answered 504 and stopped. With one worker, the next request can only be rendered once the
-    large one is off it: it is, and the large one never finished."""
+    large one is off it: it is, and the large one never finished. Every pixel is marched
+    (``refine_spacing=1``): the tiny field's frame refined from a lattice would end in time."""
     settings = make_settings(
-        ckpt_dir, tmp_path / "state", render_timeout_s=1.5, max_full_pixels=BIG_PIXELS, rate_limit_pixels_per_s=0
+        ckpt_dir, tmp_path / "state", render_timeout_s=1.5, max_full_pixels=BIG_PIXELS, rate_limit_pixels_per_s=0,
+        refine_spacing=1,
     )
     with TestClient(create_app(settings)) as client:
         late = client.post("/api/scenes/tiny/render", json={**SMALL, "width": BIG, "height": BIG, "format": "jpeg"})

@@ -56,6 +56,10 @@ class RenderSettings:
     """Rays per chunk of a frame (inference; ``FramesConfig``, the machine's, not the model's)."""
     segment_samples: int = FramesConfig.segment_samples
     first_segment_samples: int = FramesConfig.first_segment_samples
+    refine_spacing: int = 1
+    """Largest lattice spacing of a full-scale frame (``FramesConfig.refine_spacing``; 1: every
+    pixel marched, as the exhaustive reference always is)."""
+    refine_spread: float = FramesConfig.refine_spread
     resolution_scale: float = 1.0
     background: tuple[float, float, float] = (1.0, 1.0, 1.0)
     use_occupancy: bool = True
@@ -88,10 +92,12 @@ class RenderSettings:
             chunk_rays=frames.chunk_rays,
             segment_samples=frames.segment_samples,
             first_segment_samples=frames.first_segment_samples,
+            refine_spacing=frames.refine_spacing,
+            refine_spread=frames.refine_spread,
         )
         if quality == "exhaustive":
             settings = replace(settings, step_ratio=exhaustive_step_ratio(cfg), early_termination=False,
-                               weight_threshold_per_voxel=0.0, bf16=False,
+                               weight_threshold_per_voxel=0.0, bf16=False, refine_spacing=1,
                                chunk_rays=min(frames.chunk_rays, EXHAUSTIVE_CHUNK_RAYS))
         elif quality == "preview":
             settings = replace(

@@ -12,28 +12,26 @@ same steps as torch operations.
 
 import math
 import weakref
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import torch
 import torch.nn.functional as F
 from jaxtyping import Bool, Float, Int
 from torch import Tensor
 
-from visnerf.data.cameras import Intrinsics, image_rays
+from visnerf.data.cameras import Intrinsics, image_rays, rays_from_pixels
 from visnerf.rendering import march_kernel
 from visnerf.rendering.aabb import intersect_aabb
 from visnerf.rendering.cancel import CancelCheck, raise_if_cancelled
 from visnerf.rendering.empty_space import EmptySpace
 from visnerf.rendering.parallel import chunk_workers, map_chunks
+from visnerf.rendering.refine import refine_frame, refinement_spacing
+from visnerf.rendering.render_settings import RenderSettings, rays_per_chunk
 from visnerf.rendering.volume import weights_from_optical_depth
 from visnerf.representation.field import VisNerfField
 from visnerf.representation.frame_field import FrameField, SampleTaps
 from visnerf.runtime import batch_factor, bf16_native
-
-if TYPE_CHECKING:
-    pass
-from visnerf.rendering.render_settings import RenderSettings, rays_per_chunk
 
 BLOCK_RAYS = 262144
 """Rays of a frame made, walked and marched at a time (``render_image``), 512x512 pixels: the
@@ -178,6 +176,49 @@ def ray_windows(
     return RayWindows(t_near, t_far, first, last)
 
 
+@dataclass(frozen=True)
+class _FrameMarch:
+    """What every ray of one frame is marched with: the frame's field at its parameters, the
+    sample spacing, the background, the occupancy and the chunks."""
+
+    field: VisNerfField
+    frame: FrameField
+    background: Float[Tensor, " 3"]
+    settings: RenderSettings
+    empty: EmptySpace | None
+    step: float
+    chunk: int
+    workers: int
+    cancel: CancelCheck | None
+
+    def march(self, rays_o: Float[Tensor, "b 3"], rays_d: Float[Tensor, "b 3"], out: Float[Tensor, "b 3"]) -> None:
+        """March a block of rays, chunk by chunk on the frame's threads, into ``out``."""
+        windows = ray_windows(self.field, rays_o, rays_d, self.step, self.settings.max_samples, self.empty,
+                              cancel=self.cancel)
+
+        def march_chunk(i: int) -> None:
+            raise_if_cancelled(self.cancel)
+            sl = slice(i * self.chunk, (i + 1) * self.chunk)
+            out[sl] = march_rays(self.field, rays_o[sl], rays_d[sl], self.frame, self.background, self.settings,
+                                 self.empty, windows[sl])
+
+        map_chunks(march_chunk, math.ceil(rays_o.shape[0] / self.chunk), self.workers)
+
+
+def _frame_march(field: VisNerfField, c2w: Tensor, params: Float[Tensor, " k"], settings: RenderSettings,
+                 empty_space: EmptySpace | None, cancel: CancelCheck | None) -> _FrameMarch:
+    ray_dtype, device = c2w.dtype, c2w.device
+    background = torch.tensor(settings.background, dtype=ray_dtype, device=device)
+    empty = None
+    if settings.use_occupancy:
+        empty = empty_space if empty_space is not None else empty_space_of(field)
+    q_d, q_a = field.param_features(params[None].to(ray_dtype))  # [1, c] each
+    dtype = torch.bfloat16 if settings.bf16 and bf16_native(device) else ray_dtype
+    return _FrameMarch(field, FrameField(field, q_d, q_a, dtype), background, settings, empty,
+                       field.voxel_size() * settings.step_ratio, rays_per_chunk(settings, device),
+                       chunk_workers(device), cancel)
+
+
 def render_image(
     field: VisNerfField,
     c2w: Float[Tensor, "4 4"],
@@ -187,7 +228,8 @@ def render_image(
     empty_space: EmptySpace | None = None,
     cancel: CancelCheck | None = None,
 ) -> Float[Tensor, "h w 3"]:
-    """Render one image at normalised parameters (inference; call under ``torch.inference_mode``).
+    """Render one image at normalised parameters (inference; call under ``torch.inference_mode``),
+    every pixel marched.
 
     ``empty_space`` replaces the field's union grid (a grid for these parameters,
     ``rendering.setting_occupancy``); it is ignored when the settings use no occupancy.
@@ -200,33 +242,40 @@ def render_image(
     output does not grow with the frame."""
     height, width = intrinsics.height, intrinsics.width
     raise_if_cancelled(cancel)
-    ray_dtype, device = c2w.dtype, c2w.device
-    background = torch.tensor(settings.background, dtype=ray_dtype, device=device)
-    empty = None
-    if settings.use_occupancy:
-        empty = empty_space if empty_space is not None else empty_space_of(field)
-    q_d, q_a = field.param_features(params[None].to(ray_dtype))  # [1, c] each
-    dtype = torch.bfloat16 if settings.bf16 and bf16_native(device) else ray_dtype
-    frame = FrameField(field, q_d, q_a, dtype)
-    step = field.voxel_size() * settings.step_ratio
-    out = torch.empty(height * width, 3, dtype=ray_dtype, device=device)
-    chunk = rays_per_chunk(settings, device)
-    workers = chunk_workers(device)
-    rows_per_block = max(1, BLOCK_RAYS * batch_factor(device) // width)
+    marcher = _frame_march(field, c2w, params, settings, empty_space, cancel)
+    out = torch.empty(height * width, 3, dtype=c2w.dtype, device=c2w.device)
+    rows_per_block = max(1, BLOCK_RAYS * batch_factor(c2w.device) // width)
     for start in range(0, height, rows_per_block):
         stop = min(height, start + rows_per_block)
         rays_o, rays_d = (r.reshape(-1, 3) for r in image_rays(c2w, intrinsics, (start, stop)))  # [b, 3]
-        windows = ray_windows(field, rays_o, rays_d, step, settings.max_samples, empty, cancel=cancel)
-        block = out[start * width:stop * width]  # [b, 3], a view
-
-        def march_chunk(i: int, rays_o: Tensor = rays_o, rays_d: Tensor = rays_d, windows: RayWindows = windows,
-                        block: Tensor = block) -> None:
-            raise_if_cancelled(cancel)
-            sl = slice(i * chunk, (i + 1) * chunk)
-            block[sl] = march_rays(field, rays_o[sl], rays_d[sl], frame, background, settings, empty, windows[sl])
-
-        map_chunks(march_chunk, math.ceil(rays_o.shape[0] / chunk), workers)
+        marcher.march(rays_o, rays_d, out[start * width:stop * width])
     return out.reshape(height, width, 3)
+
+
+def render_pixels(
+    field: VisNerfField,
+    c2w: Float[Tensor, "4 4"],
+    intrinsics: Intrinsics,
+    params: Float[Tensor, " k"],
+    settings: RenderSettings,
+    empty_space: EmptySpace | None = None,
+    cancel: CancelCheck | None = None,
+) -> Callable[[Int[Tensor, " n"], Int[Tensor, " n"]], Float[Tensor, "n 3"]]:
+    """A function that marches the pixels at columns ``u`` and rows ``v`` of the frame
+    ``render_image`` would make (the same rays; in blocks of ``BLOCK_RAYS``)."""
+    marcher = _frame_march(field, c2w, params, settings, empty_space, cancel)
+    block = BLOCK_RAYS * batch_factor(c2w.device)
+
+    def render(u: Int[Tensor, " n"], v: Int[Tensor, " n"]) -> Float[Tensor, "n 3"]:
+        out = torch.empty(u.shape[0], 3, dtype=c2w.dtype, device=c2w.device)
+        for start in range(0, u.shape[0], block):
+            sl = slice(start, start + block)
+            uu, vv = (x[sl].to(c2w.dtype) + 0.5 for x in (u, v))
+            rays_o, rays_d = rays_from_pixels(c2w.expand(uu.shape[0], 4, 4), intrinsics, uu, vv)
+            marcher.march(rays_o, rays_d, out[sl])
+        return out
+
+    return render
 
 
 def render_image_scaled(
@@ -238,13 +287,23 @@ def render_image_scaled(
     empty_space: EmptySpace | None = None,
     cancel: CancelCheck | None = None,
 ) -> Float[Tensor, "h w 3"]:
-    """``render_image`` marched at ``settings.resolution_scale`` of the camera's size and upsampled
-    bilinearly to that size (the preview quality); the full size itself when the scale is 1."""
+    """The frame as the server shows it: with ``settings.resolution_scale`` below 1 (the preview)
+    ``render_image`` at that scale, upsampled bilinearly; at full scale, where a voxel spans two
+    pixels or more (``refine.refinement_spacing``, at most ``settings.refine_spacing``), a lattice
+    of pixels and the cells whose corners differ by more than ``settings.refine_spread``
+    (``refine.refine_frame``); else every pixel."""
     width, height = intrinsics.width, intrinsics.height
     w_r = max(1, round(width * settings.resolution_scale))
     h_r = max(1, round(height * settings.resolution_scale))
     if (w_r, h_r) == (width, height):
-        return render_image(field, c2w, intrinsics, params, settings, empty_space, cancel)
+        spacing = 1
+        if settings.refine_spacing > 1:
+            spacing = refinement_spacing(field.aabb, field.voxel_size(), c2w, intrinsics, settings.refine_spacing)
+        if spacing <= 1:
+            return render_image(field, c2w, intrinsics, params, settings, empty_space, cancel)
+        raise_if_cancelled(cancel)
+        render = render_pixels(field, c2w, intrinsics, params, settings, empty_space, cancel)
+        return refine_frame(render, height, width, spacing, settings.refine_spread, c2w.device, c2w.dtype)
     rgb = render_image(field, c2w, intrinsics.scaled(w_r, h_r), params, settings, empty_space, cancel)  # [h_r, w_r, 3]
     return F.interpolate(rgb.permute(2, 0, 1)[None], size=(height, width), mode="bilinear",
                          align_corners=False)[0].permute(1, 2, 0)
