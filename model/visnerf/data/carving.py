@@ -27,6 +27,7 @@ from torch import Tensor
 
 from visnerf.data.cameras import project_points
 from visnerf.data.scene import SceneData
+from visnerf.representation.param_axes import distinct_rows
 
 
 def foreground_masks(
@@ -52,7 +53,7 @@ def setting_groups(params: Float[Tensor, "n k"]) -> list[Tensor]:
     """Frame indices grouped by identical parameter setting (one group when K = 0)."""
     if params.shape[1] == 0:
         return [torch.arange(params.shape[0])]
-    _, inverse = torch.unique(params, dim=0, return_inverse=True)
+    _, inverse = distinct_rows(params)
     return [(inverse == g).nonzero()[:, 0] for g in range(int(inverse.max()) + 1)]
 
 

@@ -4,7 +4,6 @@ import functools
 import math
 
 import torch
-import torch.nn.functional as F
 from jaxtyping import Float
 from torch import Tensor, nn
 
@@ -108,7 +107,9 @@ class Decoder(nn.Module):
         if self.bf16 and x.device.type in ("cpu", "cuda"):
             n = x.shape[0]
             if x.device.type == "cpu":  # a few shapes for oneDNN's bf16 kernels (``padded_rows``)
-                x = F.pad(x, (0, 0, 0, padded_rows(n) - n))
+                padded = x.new_zeros((padded_rows(n), x.shape[1]), dtype=torch.bfloat16)
+                padded[:n] = x  # cast once, into the padded rows (autocast would cast a padded copy)
+                x = padded
             with torch.autocast(x.device.type, dtype=torch.bfloat16):
                 return self.out(torch.relu(self.hidden(x)))[:n].float()
         return self.out(torch.relu(self.hidden(x)))

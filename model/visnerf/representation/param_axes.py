@@ -14,8 +14,23 @@ the paper's piecewise-linear interpolant between training values (docs/decisions
 """
 
 import torch
-from jaxtyping import Float
+from jaxtyping import Float, Int
 from torch import Tensor, nn
+
+
+def distinct_rows(params: Float[Tensor, "n k"]) -> tuple[Float[Tensor, "s k"], Int[Tensor, " n"]]:
+    """``torch.unique(params, dim=0, return_inverse=True)`` (rows sorted, k >= 1) by one sort per
+    column and one of a whole-number key: unique over rows sorts them as rows, 2.9 ms for a
+    training batch of 2048 rays where this takes a few hundredths of that."""
+    n = params.shape[0]
+    key = torch.zeros(n, dtype=torch.long, device=params.device)
+    for k in range(params.shape[1]):
+        values, rank = torch.unique(params[:, k], return_inverse=True)
+        key = key * values.numel() + rank
+    keys, which = torch.unique(key, return_inverse=True)
+    first = torch.empty(keys.numel(), dtype=torch.long, device=params.device)
+    first.scatter_(0, which, torch.arange(n, device=params.device))  # any row of a group: they are equal
+    return params.index_select(0, first), which
 
 
 def pchip_slopes(table: Float[Tensor, "m c"], knots: Float[Tensor, " m"]) -> Float[Tensor, "m c"]:

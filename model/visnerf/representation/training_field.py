@@ -14,6 +14,7 @@ from torch import Tensor
 
 from visnerf.representation.decoders import encode_sh
 from visnerf.representation.field import N_PROBES, VisNerfField, facing_cosines, level_cosines, probe_points
+from visnerf.representation.param_axes import distinct_rows
 from visnerf.representation.table_gradients import RowGradients
 from visnerf.representation.vm_rows import GridRows, TakenRows
 
@@ -44,7 +45,7 @@ class TrainingField:
         thousand times less arithmetic, and its backward a sum per setting."""
         if params.shape[1] == 0:
             return self.field.param_features(params)
-        settings, which = torch.unique(params, dim=0, return_inverse=True)
+        settings, which = distinct_rows(params)
         q_d, q_a = self.field.param_features(settings)
         return q_d.index_select(0, which), q_a.index_select(0, which)
 

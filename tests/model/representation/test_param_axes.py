@@ -8,6 +8,7 @@ from scipy.interpolate import CubicSpline, PchipInterpolator
 
 from visnerf.representation.param_axes import (
     ParamAxes,
+    distinct_rows,
     interpolate_knots,
     interpolate_natural_spline,
     natural_spline_curvatures,
@@ -165,3 +166,17 @@ def test_level_axis_refuses_knots_that_do_not_fit():
         axis.set_knots(torch.tensor([-1.0, 1.0]))
     with pytest.raises(ValueError, match="strictly increasing"):
         axis.set_knots(torch.tensor([-1.0, 0.5, 0.5]))
+
+
+@pytest.mark.parametrize("k", [1, 2, 3])
+def test_distinct_rows_is_unique_over_rows(k) -> None:
+    """Against ``torch.unique(dim=0)``: the same sorted rows and the same inverse, with values
+    repeated across columns and rows, and signed zeros and extremes among them."""
+    g = torch.Generator().manual_seed(k)
+    pool = torch.tensor([-1.0, -0.25, 0.0, 1e-7, 0.5, 1.0])
+    params = pool[torch.randint(0, pool.numel(), (2048, k), generator=g)]
+    settings, which = distinct_rows(params)
+    expected, inverse = torch.unique(params, dim=0, return_inverse=True)
+    assert torch.equal(settings, expected)
+    assert torch.equal(which, inverse)
+    assert torch.equal(settings[which], params)
