@@ -12,6 +12,9 @@ with the camera and parameters of those frames, are rendered at each size with t
   checkpoint's full-quality spacing, chosen by ``evaluation.spacing`` on held-out frames, or on
   training frames when none were held out; empty-space skipping, early termination, colour decoded
   only above a weight threshold, bf16 lookups and decoders where the CPU has bf16 instructions);
+- every pixel: the fast settings with every pixel marched (``refine_spacing`` 1), the fast frame
+  before ``rendering.refine``; at a size where a voxel spans two pixels or more the fast frame
+  marches a lattice and the cells that differ;
 - preview: quality ``preview`` (half resolution, larger steps), bilinearly upsampled to the size.
 
 Per view the three run back to back (fast, plain, preview, then the next view), so machine noise
@@ -65,15 +68,17 @@ from visnerf.rendering.render_settings import RenderSettings
 from visnerf.rendering.renderer import render_image_scaled
 from visnerf.runtime import configure
 
-MODES = ("fast", "fast_own", "plain", "preview")
+MODES = ("fast", "fast_own", "every", "plain", "preview")
 """Render order within each view. ``fast`` marches the checkpoint's occupancy grid, the union over
 its parameter space: a frame at a setting seen for the first time (a slider being dragged).
 ``fast_own`` is the same frame marching the grid of the view's own setting
 (``rendering.setting_occupancy``, built beforehand and timed apart): what the server serves from
-the second frame at one setting on (orbiting)."""
+the second frame at one setting on (orbiting). ``every``: the fast frame with every pixel marched."""
 TARGET_FULL_256_MS = 100.0
 """Full-quality 256x256 median on two threads: the target of the learning-speed issue (0.1 s; the
 Nyx issue's 0.2 s before it)."""
+TARGET_FULL_800_MS = 1000.0
+"""Full-quality 800x800 median on two threads (the learning-speed issue)."""
 TARGET_PREVIEW_128_MS = 80.0
 TARGET_PSNR_DROP_DB = 0.1
 
@@ -177,7 +182,7 @@ def default_cases() -> tuple[Case, ...]:
 def render_settings(scene: SceneRenderer) -> dict[str, RenderSettings]:
     full = RenderSettings.from_meta(scene.meta, "full")
     plain = RenderSettings.from_meta(scene.meta, "exhaustive")
-    return {"fast": full, "fast_own": full, "plain": plain,
+    return {"fast": full, "fast_own": full, "every": dataclasses.replace(full, refine_spacing=1), "plain": plain,
             "preview": RenderSettings.from_meta(scene.meta, "preview")}
 
 
@@ -324,11 +329,11 @@ def psnr_delta(case: CaseResult, size: int) -> float | None:
 
 def table_rows(case: CaseResult, sizes: tuple[int, ...]) -> list[str]:
     if case.skipped:
-        return [f"| {case.name} | skipped: {case.skipped} |" + " |" * 11]
+        return [f"| {case.name} | skipped: {case.skipped} |" + " |" * 12]
     rows = []
     for size in sizes:
-        plain, fast, prev = (case.result(m, size) for m in ("plain", "fast", "preview"))
-        if plain is None or fast is None or prev is None:
+        plain, fast, prev, every = (case.result(m, size) for m in ("plain", "fast", "preview", "every"))
+        if plain is None or fast is None or prev is None or every is None:
             continue
         own = case.result("fast_own", size)
         gt = " / ".join(fmt(r.psnr_vs_gt, 2) for r in (plain, fast, prev))
@@ -337,6 +342,7 @@ def table_rows(case: CaseResult, sizes: tuple[int, ...]) -> list[str]:
             f"{fmt(fast.ms_median)} / {fmt(fast.ms_p95)} | {fmt(ratio(plain, fast), 2)} | "
             f"{fmt(own.ms_median if own else None)} / {fmt(own.ms_p95 if own else None)} "
             f"({fmt(ratio(fast, own), 2)}x) | "
+            f"{fmt(every.ms_median)} ({fmt(ratio(every, fast), 2)}x, {fmt(every.psnr_vs_plain, 2)} dB) | "
             f"{fmt(prev.ms_median)} / {fmt(prev.ms_p95)} ({prev.render_size}px) | {fmt(ratio(plain, prev), 2)} | "
             f"{fmt(fast.psnr_vs_plain, 2)} | {fmt(fast.max_abs_diff_vs_plain, 4)} | {fmt(prev.psnr_vs_plain, 2)} | "
             f"{gt} | {fmt(psnr_delta(case, size), 3)} |"
@@ -349,6 +355,7 @@ def target_rows(case: CaseResult) -> list[str]:
     if case.skipped:
         return []
     fast256, prev128, own256 = case.result("fast", 256), case.result("preview", 128), case.result("fast_own", 256)
+    fast800 = case.result("fast", 800)
     native = case.native_size[0] if case.native_size and case.native_size[0] == case.native_size[1] else None
     delta = psnr_delta(case, native) if native else None
 
@@ -358,12 +365,15 @@ def target_rows(case: CaseResult) -> list[str]:
     full_ok = None if fast256 is None else fast256.ms_median <= TARGET_FULL_256_MS
     prev_ok = None if prev128 is None else prev128.ms_median <= TARGET_PREVIEW_128_MS
     delta_ok = None if delta is None else delta >= -TARGET_PSNR_DROP_DB
+    big_ok = None if fast800 is None else fast800.ms_median <= TARGET_FULL_800_MS
     return [
         f"| {case.name} | {fmt(fast256.ms_median if fast256 else None)} ms: {verdict(full_ok)} | "
         f"{fmt(own256.ms_median if own256 else None)} ms | "
         f"{fmt(delta, 3)} dB at {native or '-'}px: {verdict(delta_ok)} | "
         f"{fmt(fast256.psnr_vs_plain if fast256 else None, 2)} dB | "
-        f"{fmt(prev128.ms_median if prev128 else None)} ms: {verdict(prev_ok)} |"
+        f"{fmt(prev128.ms_median if prev128 else None)} ms: {verdict(prev_ok)} | "
+        f"{fmt(fast800.ms_median if fast800 else None)} ms: {verdict(big_ok)} | "
+        f"{fmt(fast800.psnr_vs_plain if fast800 else None, 2)} dB |"
     ]
 
 
@@ -372,21 +382,23 @@ def write_markdown(path: Path, record: dict, cases: list[CaseResult], sizes: tup
         *markdown_header("Render speed: plain exhaustive renderer against the fast one", record),
         "",
         f"{record['views']} held-out views per checkpoint (camera and parameters of those frames), rendered at each "
-        "size by each setting, interleaved per view (fast, own grid, plain, preview), one untimed warm-up render per setting "
+        "size by each setting, interleaved per view (fast, own grid, every pixel, plain, preview), one untimed warm-up render per setting "
         "and size first. ms per frame: median / p95 of the render call (the preview's upsampling included). "
         "\"Own grid\": the fast setting marching the occupancy grid of the view's own parameter setting instead of "
         "the union over the parameter space, as the server does from the second frame at one setting on "
-        "(fast / own grid in brackets; the grids' build is timed apart, below the table). "
+        "(fast / own grid in brackets; the grids' build is timed apart, below the table). \"Every pixel\": the fast "
+        "setting with every pixel marched, where the fast frame marches a lattice and the cells that differ "
+        "(``rendering.refine``) once a voxel spans two pixels or more. "
         "Ratios are plain median / other median. PSNR against plain pools the squared error of all views "
         "(\"identical\": no difference at all); max |diff| is the largest channel difference in [0, 1]. PSNR against "
         "ground truth is the mean over views and is given only at the dataset's native image size (the frames "
         "are not resampled for it); delta = fast minus plain, against ground truth.",
         "",
         "| checkpoint | size | plain ms | fast ms | plain/fast | fast, own grid ms "
-        "| preview ms "
+        "| every pixel ms (every / fast, vs plain) | preview ms "
         "| plain/preview | fast vs plain dB | fast max abs diff | preview vs plain dB "
         "| vs ground truth dB: plain / fast / preview | delta dB |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for case in cases:
         lines += table_rows(case, sizes)
@@ -399,11 +411,12 @@ def write_markdown(path: Path, record: dict, cases: list[CaseResult], sizes: tup
         "",
         f"Targets: full quality 256x256 median at most {TARGET_FULL_256_MS:.0f} ms, within "
         f"{TARGET_PSNR_DROP_DB} dB of the plain renderer (against ground truth, at the native size), "
-        f"preview 128x128 median at most {TARGET_PREVIEW_128_MS:.0f} ms.",
+        f"preview 128x128 median at most {TARGET_PREVIEW_128_MS:.0f} ms, full quality 800x800 median at most "
+        f"{TARGET_FULL_800_MS:.0f} ms (no ground truth at that size: the fast frame against the plain one).",
         "",
         "| checkpoint | fast 256x256 median | with the setting's own grid | fast minus plain vs ground truth "
-        "| fast vs plain at 256x256 | preview 128x128 median |",
-        "| --- | --- | --- | --- | --- | --- |",
+        "| fast vs plain at 256x256 | preview 128x128 median | fast 800x800 median | fast vs plain at 800x800 |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for case in cases:
         lines += target_rows(case)
@@ -423,7 +436,7 @@ def plot(path: Path, cases: list[CaseResult]) -> None:
     """PSNR against median ms per frame: against ground truth (native size) and against plain."""
     fig = Figure(figsize=(12, 4.6), layout="constrained")
     ax_gt, ax_plain = fig.subplots(1, 2)
-    markers = {"plain": "s", "fast": "o", "fast_own": "D", "preview": "^"}
+    markers = {"plain": "s", "fast": "o", "fast_own": "D", "every": "x", "preview": "^"}
     colours = [f"C{i}" for i in range(10)]
     measured = [c for c in cases if not c.skipped]
     for i, case in enumerate(measured):
@@ -440,6 +453,7 @@ def plot(path: Path, cases: list[CaseResult]) -> None:
     for ax, title in ((ax_gt, "against ground truth (native size)"), (ax_plain, "fast and preview against plain")):
         ax.axvline(TARGET_PREVIEW_128_MS, color="gray", ls=":", lw=0.8, label="preview 128px target")
         ax.axvline(TARGET_FULL_256_MS, color="gray", ls="--", lw=0.8, label="full 256px target")
+        ax.axvline(TARGET_FULL_800_MS, color="gray", ls="-.", lw=0.8, label="full 800px target")
         ax.set_xscale("log")
         ax.xaxis.set_minor_formatter(NullFormatter())
         ax.set_xlabel("ms per frame (median)")
