@@ -73,7 +73,7 @@ MODES = ("fast", "fast_own", "every", "plain", "preview")
 its parameter space: a frame at a setting seen for the first time (a slider being dragged).
 ``fast_own`` is the same frame marching the grid of the view's own setting
 (``rendering.setting_occupancy``, built beforehand and timed apart): what the server serves from
-the second frame at one setting on (orbiting). ``every``: the fast frame with every pixel marched."""
+a setting asked for a few times (orbiting). ``every``: the fast frame with every pixel marched."""
 TARGET_FULL_256_MS = 100.0
 """Full-quality 256x256 median on two threads: the target of the learning-speed issue (0.1 s; the
 Nyx issue's 0.2 s before it)."""
@@ -385,7 +385,7 @@ def write_markdown(path: Path, record: dict, cases: list[CaseResult], sizes: tup
         "size by each setting, interleaved per view (fast, own grid, every pixel, plain, preview), one untimed warm-up render per setting "
         "and size first. ms per frame: median / p95 of the render call (the preview's upsampling included). "
         "\"Own grid\": the fast setting marching the occupancy grid of the view's own parameter setting instead of "
-        "the union over the parameter space, as the server does from the second frame at one setting on "
+        "the union over the parameter space, as the server does once a setting has been asked for a few times "
         "(fast / own grid in brackets; the grids' build is timed apart, below the table). \"Every pixel\": the fast "
         "setting with every pixel marched, where the fast frame marches a lattice and the cells that differ "
         "(``rendering.refine``) once a voxel spans two pixels or more. "

@@ -18,7 +18,7 @@ export const HELD_IDLE_MS = 600;
  * after this long at the latest. */
 const FIRST_FULL_WAIT_MS = 1500;
 /** After a full frame at the chosen resolution is drawn, the wait before one at the view's size. */
-export const SCREEN_IDLE_MS = 250;
+export const SCREEN_IDLE_MS = 50;
 const MAX_IN_FLIGHT = 2;
 const OPEN_WAIT_MS = 1000; // how long a request waits for the socket before going over HTTP
 

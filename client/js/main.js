@@ -153,7 +153,7 @@ function viewBox(set) {
  * null when that is not larger). */
 function requestBuilder(set) {
   return (stage) => {
-    let size = stage === "preview" ? sizer.size(state) : state.frameSize();
+    let size = stage === "preview" ? sizer.size(state) : state.fullSize();
     if (stage === "screen") {
       size = state.screenSize(viewBox(set), frameLimits);
       if (!size) return null;

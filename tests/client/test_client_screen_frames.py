@@ -1,5 +1,5 @@
 """Frames at the size of the screen: on a 1280x860 page the view settles on a full-quality frame
-at its own size (times devicePixelRatio), after the one at the chosen resolution; a chosen pixel
+at its own size (times devicePixelRatio), after one at the training images' size; a chosen pixel
 size keeps frames at that size."""
 
 from urllib.parse import urlencode
@@ -34,7 +34,8 @@ def test_the_view_settles_at_its_own_size(page, base_url):
     assert width > 256, "the view is larger than the default full frame"
     shown = stages(page)
     assert shown[-1] == ("screen", width, height), shown
-    assert ("full", 256, 256) in shown[:-1], "the frame at the chosen resolution comes first"
+    trained = tuple(page.evaluate("window.__visnerfState.scene.image_size"))
+    assert ("full", *trained) in shown[:-1], "the frame at the training images' size comes first"
     assert page.input_value("#resolution") == "screen"
     camera = page.evaluate("window.__visnerfState.camera")
     query = {"azimuth": camera["azimuth"], "elevation": camera["elevation"], "distance": camera["distance"],

@@ -339,7 +339,8 @@ def test_occupancy_grid_builds_run_in_the_render_queue(client: TestClient) -> No
         return build(*args, **kwargs)
 
     renderer.setting_occupancy.build = recording_build
-    for azimuth in (10.0, 20.0):  # the second frame at one setting starts the build (build_after 2)
+    after = renderer.setting_occupancy.cfg.setting_grid_after
+    for azimuth in (10.0 * (i + 1) for i in range(after)):  # the after-th frame at one setting starts the build
         body = {**SMALL, "camera": {**ORBIT, "azimuth": azimuth}, "params": {"a": 0.25}}
         assert client.post("/api/scenes/tiny/render", json=body).status_code == 200
     renderer.setting_occupancy.wait()

@@ -9,7 +9,7 @@ the last ``FramesConfig.setting_grids`` tuples.
 
 A grid is built only for a tuple that asks ``FramesConfig.setting_grid_after`` times: a parameter path (a slider
 being dragged, a test path) asks once per tuple and never pays for a build it cannot amortise;
-orbiting at one setting builds once, from the second frame on. One build runs at a time, and the
+orbiting at one setting builds once, after a few frames. One build runs at a time, and the
 frames go on with the union grid until it is stored, so no frame waits for it. The key is the
 exact tuple of normalised values (Python floats): two tuples that differ at all never share a grid.
 

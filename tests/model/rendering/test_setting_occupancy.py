@@ -146,9 +146,9 @@ def test_cache_off_and_bad_configs() -> None:
 
 
 def test_scene_renderer_builds_once_per_repeated_tuple_and_frames_agree(field, tmp_path) -> None:
-    """Through the public inference API, as the server renders: the first full frame at a tuple
-    uses the union, the second starts the build, later ones use the tuple's grid; previews never
-    build; the frames agree to within a level of 8 bits."""
+    """Through the public inference API, as the server renders: the first full frames at a tuple
+    use the union, the ``setting_grid_after``-th starts the build, later ones use the tuple's grid;
+    previews never build; the frames agree to within a level of 8 bits."""
     meta = CheckpointMeta(
         field=field.current_config(), render=RenderConfig(step_ratio=0.5), param_axes=(ParamAxis("a", 0.0, 1.0, (0.0, 0.5, 1.0), 0.5),),
         bbox=((-0.5, -0.5, -0.5), (0.5, 0.5, 0.5)), camera={"azimuth": 30.0, "elevation": 20.0, "distance": 1.6, "fov_deg": 40.0},
@@ -160,7 +160,10 @@ def test_scene_renderer_builds_once_per_repeated_tuple_and_frames_agree(field, t
     for _ in range(3):
         scene.render(c2w, 40.0, 32, 32, {"a": 0.2}, "preview")
     assert scene.setting_occupancy.builds == 0 and len(scene.setting_occupancy._asked) == 0
-    frames = [scene.render(c2w, 40.0, 32, 32, {"a": 0.2}, "full")]
+    frames = []
+    for _ in range(FramesConfig().setting_grid_after - 1):
+        frames.append(scene.render(c2w, 40.0, 32, 32, {"a": 0.2}, "full"))
+        assert scene.setting_occupancy.builds == 0
     frames.append(scene.render(c2w, 40.0, 32, 32, {"a": 0.2}, "full"))
     scene.setting_occupancy.wait()
     assert scene.setting_occupancy.builds == 1
