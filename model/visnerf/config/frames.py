@@ -32,7 +32,7 @@ class FramesConfig:
     """Full-quality frames at one parameter setting before its grid is built: 1 builds at once. The
     web client asks twice when a view settles (the training images' size, then the view's), so 3
     builds at the next view of a setting a slider stopped at, not beside the frame at the view's
-    size (a slider's settled 708x708 frame: 1097 against 912 ms with the build beside it)."""
+    size, which it slowed (docs/decisions.md, "Frames at the screen's size")."""
     setting_grid_samples: int = 2
     """Density samples per cell and axis of a setting grid (as the union grid is built)."""
     refine_spacing: int = 4
@@ -41,8 +41,8 @@ class FramesConfig:
     refine_spread: float = 8.0 / 255.0
     """A lattice cell whose four corners differ by more than this in some channel (colours in
     [0, 1]) has its inner pixels marched; the others are blended from the corners. 8 levels of
-    255 kept 708x708 and 800x800 frames of five models within 58 to 64 dB of every pixel marched,
-    2.1 to 3.7 times faster except Nyx's (1.2; docs/decisions.md, "Frames at the screen's size")."""
+    255: as close to the plain renderer as every pixel marched, and the fastest such
+    (docs/decisions.md, "Frames at the screen's size")."""
 
     def __post_init__(self) -> None:
         check_types(type(self), self.__dict__)

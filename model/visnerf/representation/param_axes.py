@@ -20,8 +20,8 @@ from torch import Tensor, nn
 
 def distinct_rows(params: Float[Tensor, "n k"]) -> tuple[Float[Tensor, "s k"], Int[Tensor, " n"]]:
     """``torch.unique(params, dim=0, return_inverse=True)`` (rows sorted, k >= 1) by one sort per
-    column and one of a whole-number key: unique over rows sorts them as rows, 2.9 ms for a
-    training batch of 2048 rays where this takes a few hundredths of that."""
+    column and one of a whole-number key: unique over rows sorts whole rows, a measurable part of
+    a training step (docs/decisions.md, "Frames at the screen's size")."""
     n = params.shape[0]
     key = torch.zeros(n, dtype=torch.long, device=params.device)
     for k in range(params.shape[1]):
