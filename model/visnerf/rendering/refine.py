@@ -89,17 +89,15 @@ def refine_frame(render: PixelRenderer, height: int, width: int, spacing: int, s
         known = _on_lattice(rows, fine_rows)[:, None] & _on_lattice(cols, fine_cols)[None, :]  # [fr, fc]
         march: Bool[Tensor, "fr fc"] = flagged[cell_r][:, cell_c] & ~known
         blend = ~march & ~known
-        fr, fc = torch.meshgrid(torch.arange(fine_rows.numel(), device=device),
-                                torch.arange(fine_cols.numel(), device=device), indexing="ij")
         if bool(blend.any()):
-            i, j = fr[blend], fc[blend]
+            i, j = blend.nonzero(as_tuple=True)
             a, b = cell_r[i], cell_c[j]
             ty, tx = frac_r[i, None], frac_c[j, None]
             top = corners[a, b] * (1 - tx) + corners[a, b + 1] * tx
             bottom = corners[a + 1, b] * (1 - tx) + corners[a + 1, b + 1] * tx
             image[fine_rows[i], fine_cols[j]] = top * (1 - ty) + bottom * ty
         if bool(march.any()):
-            i, j = fr[march], fc[march]
+            i, j = march.nonzero(as_tuple=True)
             image[fine_rows[i], fine_cols[j]] = render(fine_cols[j], fine_rows[i])
         rows, cols = fine_rows, fine_cols
     return image
