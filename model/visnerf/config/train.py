@@ -60,6 +60,10 @@ class TrainConfig:
     resolution_final: int = 120
     """Voxels per axis (cube root of the voxel count) at the end. ``visnerf train`` chooses it
     from the pixel size at the content (``training.recipe``); 120 is for callers that do not."""
+    rays_per_voxel: float = 0.0
+    """Under a time budget, at each upsampling the final grid is cut to at most the rays the budget
+    will see over this many voxels (``training.grid_budget``), never under the grid reached; 0
+    keeps ``resolution_final``. ``visnerf train`` sets it unless the grid is given."""
     upsample_at: tuple[float, ...] = (0.067, 0.1, 0.133, 0.183, 0.233)
     """Progress fractions at which planes and lines are upsampled (log-spaced resolutions)."""
     occupancy_at: tuple[float, ...] = (0.067, 0.133)
@@ -223,6 +227,8 @@ class TrainConfig:
         require(0.0 < self.lr_decay_ratio <= 1.0, f"lr_decay_ratio must be in (0, 1], got {self.lr_decay_ratio!r}")
         require(len(self.betas) == 2 and all(0.0 <= b < 1.0 for b in self.betas),
                  f"betas must be two numbers in [0, 1), got {self.betas!r}")
+        require(math.isfinite(self.rays_per_voxel) and self.rays_per_voxel >= 0.0,
+                f"rays_per_voxel must be a finite number >= 0 (0: off), got {self.rays_per_voxel!r}")
         check_non_negative(self, "checkpoint_every_s", "l1_weight_initial", "l1_weight_rest", "param_l1_weight",
                             "tv_weight_density", "tv_weight_appearance", "tv_weight_params",
                             "level_curvature_weight", "level_spacing_weight")

@@ -7,6 +7,13 @@ the images and cameras alone, each choice with the reason ``visnerf info`` shows
 - the final grid: voxels ``RECIPE.voxel_per_pixel`` of the pixel footprint at the content (the world
   size one pixel spans there, from the focal length and the cameras' distance), over the box the
   space carving leaves, rounded to a multiple of 8 and kept within ``RECIPE.resolution_range``;
+- under a time budget, a final grid no larger than the budget can fill: at each upsampling the
+  trainer cuts it to at most the rays the run will see over ``RECIPE.rays_per_voxel`` voxels
+  (``training.grid_budget``), from the rays a second it measured; a 512x512 series would otherwise
+  see less than one ray a voxel in 20 minutes;
+- the parameter factors' rank (``FieldConfig.n_param_components``): 4, or a
+  ``RECIPE.values_per_param_component``-th of the longest axis's training values where that is
+  more (a 30-timestep series: 8);
 - the carving's ``min_seen_fraction``: where every training image shows its content whole (no
   foreground pixel on the image border), every cell of the content is in every view's image, and a
   cell that a quarter of its setting's views do not have in frame is camera-box corner, not
@@ -73,7 +80,8 @@ CHOSEN_FIELDS = frozenset({("TrainConfig", "resolution_final"), ("TrainConfig", 
                            ("FieldConfig", "level_set_axis"), ("TrainConfig", "tv_weight_density"),
                            ("TrainConfig", "tv_weight_appearance"), ("TrainConfig", "colour_weight_floor"),
                            ("TrainConfig", "carve_dilation"), ("TrainConfig", "occupancy_refine_dilation"),
-                           ("TrainConfig", "silhouette_ray_fraction")})
+                           ("TrainConfig", "silhouette_ray_fraction"), ("FieldConfig", "n_param_components"),
+                           ("TrainConfig", "rays_per_voxel")})
 """The configuration fields ``choose_recipe`` sets from the data unless the user gives them
 (``RULES``, and ``density_shift`` with ``density_scale``)."""
 
@@ -133,6 +141,8 @@ class _Context:
     field: dict[str, object] = dataclasses.field(default_factory=dict)
     carved: tuple[torch.Tensor, torch.Tensor] | None = None
     box: torch.Tensor | None = None
+    fixed: frozenset[str] = frozenset()
+    """The settings the user gave."""
 
     def value(self, name: str) -> object:
         """The value of setting ``name`` now: chosen, else the base configuration's."""
@@ -185,6 +195,37 @@ def _resolution(ctx: _Context) -> tuple[object, str]:
     return voxels_for(extent, RECIPE.voxel_per_pixel * footprint), (
         f"a pixel spans {footprint:.5f} world units at the content; voxels of {RECIPE.voxel_per_pixel} pixel over the "
         f"content box ({sizes})")
+
+
+def _grid_budget(ctx: _Context) -> Decision:
+    if ctx.base.time_budget_s is None:
+        return None, "no time budget: the final grid is the pixel footprint's"
+    if "resolution_final" in ctx.fixed:
+        return None, "the final grid is the user's"
+    return RECIPE.rays_per_voxel, (
+        f"a time budget: at each upsampling the final grid is cut to at most the rays the budget will see (from "
+        f"the rays a second measured at the grid before) over {RECIPE.rays_per_voxel:g} voxels, never under the "
+        "grid reached")
+
+
+def param_rank(value_counts: list[int], components: tuple[int, int]) -> int:
+    """Parameter components for axes of ``value_counts`` training values: the smallest count that
+    divides both VM component counts and is at least 4 and a ``RECIPE.values_per_param_component``-th
+    of the longest axis's values (the largest common divisor where none is that large)."""
+    want = max(4, math.ceil(max(value_counts) / RECIPE.values_per_param_component))
+    divisors = [d for d in range(1, math.gcd(*components) + 1) if components[0] % d == 0 and components[1] % d == 0]
+    return next((d for d in divisors if d >= want), divisors[-1])
+
+
+def _param_rank(ctx: _Context) -> Decision:
+    counts = [len(a.values) for a in ctx.scene.param_axes]
+    if not counts:
+        return None
+    components = (int(ctx.value("n_density_components")), int(ctx.value("n_appearance_components")))  # type: ignore[call-overload]
+    rank = param_rank(counts, components)
+    return rank, (f"the longest parameter axis has {max(counts)} training values: {rank} components a parameter "
+                  f"factor (at least 4, and one for every {RECIPE.values_per_param_component} values), dividing the "
+                  f"VM components ({components[0]}, {components[1]})")
 
 
 def _density(ctx: _Context) -> tuple[object | None, str]:
@@ -247,6 +288,8 @@ def _silhouettes(ctx: _Context) -> Decision:
 RULES: tuple[_Rule, ...] = (
     _Rule("carve_min_seen_fraction", _carve_seen),
     _Rule("resolution_final", _resolution),
+    _Rule("rays_per_voxel", _grid_budget),
+    _Rule("n_param_components", _param_rank, in_field=True),
     _Rule("density_scale", _density, in_field=True),
     _Rule("stop_eps", _stop_eps),
     _Rule("colour_weight_floor", _opaque_only(
@@ -292,7 +335,7 @@ def choose_recipe(scene: SceneData, base: TrainConfig, base_field: FieldConfig,
     """``base`` and ``base_field`` with the data-dependent settings chosen for ``scene`` by
     ``RULES``, one loop; those named in ``fixed`` (set by the user) are kept as given and recorded
     as such."""
-    ctx = _Context(scene, scene_traits(scene, base.carve_tolerance), base, base_field)
+    ctx = _Context(scene, scene_traits(scene, base.carve_tolerance), base, base_field, fixed=fixed)
     choices: list[Choice] = []
     for rule in RULES:
         if rule.name in fixed:

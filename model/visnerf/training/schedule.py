@@ -12,6 +12,7 @@ from dataclasses import dataclass, field
 import torch
 
 from visnerf.config import TrainConfig
+from visnerf.training.grid_budget import GridBudget
 
 
 def resolution_for_box(extent: torch.Tensor, voxels_per_axis: int | float) -> tuple[int, int, int]:
@@ -21,10 +22,11 @@ def resolution_for_box(extent: torch.Tensor, voxels_per_axis: int | float) -> tu
     return tuple(max(2, int(round(float(e) / size))) for e in extent)  # type: ignore[return-value]
 
 
-def upsample_resolutions(cfg: TrainConfig) -> list[float]:
-    """Voxels per axis after each upsampling milestone, log-spaced from initial to final."""
+def upsample_resolutions(cfg: TrainConfig, final: float | None = None) -> list[float]:
+    """Voxels per axis after each upsampling milestone, log-spaced from initial to final (``final``,
+    else ``cfg.resolution_final``)."""
     n = len(cfg.upsample_at)
-    lo, hi = math.log(cfg.resolution_init), math.log(cfg.resolution_final)
+    lo, hi = math.log(cfg.resolution_init), math.log(cfg.resolution_final if final is None else final)
     return [math.exp(lo + (hi - lo) * (i + 1) / n) for i in range(n)]
 
 
@@ -42,6 +44,13 @@ class TrainState:
     """Run states written (``run_state.py``), periodic and on stop."""
     state_seconds: float = 0.0
     """Seconds spent writing them (part of ``train_seconds``)."""
+    final_grid: float = 0.0
+    """Voxels a side the time budget allows at the end (``TrainConfig.rays_per_voxel``, decided
+    at each upsampling; 0: not decided, ``resolution_final``)."""
+    mark_iteration: int = 0
+    mark_seconds: float = 0.0
+    """Iteration and training seconds at the last upsampling (or the start): the rays a second at
+    the grid held since are measured from there."""
 
 
 class Schedule:
@@ -61,6 +70,24 @@ class Schedule:
     def step_size(self) -> float:
         return self.field.voxel_size() * self.render_cfg.step_ratio
 
+    def _budget_final_grid(self, now: float) -> None:
+        """Decide ``state.final_grid`` from the rays a second measured since the last upsampling
+        (``training.grid_budget``), within the configured final grid, and say so in the recipe's
+        record of the grid."""
+        steps = self.state.iteration - self.state.mark_iteration
+        seconds = self.state.train_seconds - self.state.mark_seconds
+        if steps <= 0 or not seconds > 0:
+            return
+        assert self.cfg.time_budget_s is not None
+        budget = GridBudget(float(self.state.iteration * self.cfg.batch_rays), steps * self.cfg.batch_rays / seconds,
+                            now, self.cfg.time_budget_s - self.state.train_seconds)
+        final = budget.largest_grid(self.cfg.rays_per_voxel, float(self.cfg.resolution_final))
+        self.state.final_grid = final
+        for choice in self.recipe_choices:
+            if choice.get("name") == "rays_per_voxel":
+                reason = str(choice.get("reason", "")).split(" [at the last upsampling: ")[0]
+                choice["reason"] = f"{reason} [at the last upsampling: {budget.describe(final, self.cfg.rays_per_voxel)}]"
+
     def _milestones(self) -> None:
         done = (self.state.upsamples_done, self.state.occupancy_done, self.state.refines_done)
         self._schedule_milestones()
@@ -70,11 +97,17 @@ class Schedule:
 
     def _schedule_milestones(self) -> None:
         p = self.progress()
-        targets = upsample_resolutions(self.cfg)
         while self.state.upsamples_done < len(self.cfg.upsample_at) and p >= self.cfg.upsample_at[self.state.upsamples_done]:
-            voxels = targets[self.state.upsamples_done]
-            self.field.resample(resolution_for_box(self.field.aabb[1] - self.field.aabb[0], voxels))
+            now = math.prod(self.field.resolution) ** (1.0 / 3.0)
+            if self.cfg.rays_per_voxel > 0 and self.cfg.time_budget_s is not None:
+                self._budget_final_grid(now)
+            targets = upsample_resolutions(self.cfg, self.state.final_grid or None)
+            voxels = max(targets[self.state.upsamples_done], now)  # the budget never shrinks a grid
+            resolution = resolution_for_box(self.field.aabb[1] - self.field.aabb[0], voxels)
+            if resolution != tuple(self.field.resolution):
+                self.field.resample(resolution)
             self.state.upsamples_done += 1
+            self.state.mark_iteration, self.state.mark_seconds = self.state.iteration, self.state.train_seconds
             self._rebuild_optimizer()
             if self.field.occupancy is None and self.carved is not None:
                 self.field.set_occupancy(self._carved_on(self._occupancy_resolution()))

@@ -12,6 +12,7 @@ from visnerf.config.recipe import RECIPE
 from visnerf.training.recipe import (
     choose_recipe,
     content_box,
+    param_rank,
     surface_density,
     voxels_for,
 )
@@ -110,12 +111,14 @@ def test_parameter_factors_are_left_out_only_without_parameters(surface_scene, v
 def test_settings_the_user_gave_are_kept(surface_scene):
     base = TrainConfig(resolution_final=40, carve_min_seen_fraction=0.1, tv_weight_density=0.0, tv_weight_appearance=0.0,
                        colour_weight_floor=0.0, carve_dilation=0,
-                       occupancy_refine_dilation=0, silhouette_ray_fraction=0.0)
+                       occupancy_refine_dilation=0, silhouette_ray_fraction=0.0, time_budget_s=60.0)
     field = FieldConfig(density_scale=3.0, facing_vectors=0)
     recipe = choose_recipe(surface_scene, base, field,
                            frozenset({"resolution_final", "carve_min_seen_fraction", "density_scale", "facing_vectors",
                                       "tv_weight_density", "tv_weight_appearance", "colour_weight_floor",
-                                      "carve_dilation", "occupancy_refine_dilation", "silhouette_ray_fraction"}))
+                                      "carve_dilation", "occupancy_refine_dilation", "silhouette_ray_fraction",
+                                      "rays_per_voxel", "n_param_components"}))
+    assert recipe.train.rays_per_voxel == 0.0
     assert recipe.train.resolution_final == 40 and recipe.train.carve_min_seen_fraction == 0.1
     assert recipe.train.colour_weight_floor == 0.0 and recipe.train.carve_dilation == 0
     assert recipe.train.occupancy_refine_dilation == 0 and recipe.train.silhouette_ray_fraction == 0.0
@@ -166,3 +169,35 @@ def test_a_level_axis_the_user_gave_is_kept(iso_sweep_scene):
                          frozenset({"silhouette_ray_fraction"}))
     assert kept.train.silhouette_ray_fraction == 0.6
     assert next(c.reason for c in recipe.choices if c.name == "level_set_axis") == "set by the user"
+
+
+@pytest.mark.parametrize(("counts", "components", "rank"), [
+    ([3, 3, 5], (16, 48), 4),  # Nyx
+    ([9], (16, 48), 4),  # the synthetic scenes: 5 to 9 values an axis
+    ([16], (16, 48), 4),
+    ([17], (16, 48), 8),
+    ([30], (16, 48), 8),  # the lit series
+    ([5, 70], (16, 48), 16),  # wants 18: no common divisor that large, the largest
+    ([30], (12, 36), 12),  # wants 8: the next divisor of both
+    ([2], (2, 6), 2),  # wants 4: the largest divisor of both
+])
+def test_the_parameter_rank_grows_with_the_longest_axis(counts, components, rank):
+    assert param_rank(counts, components) == rank
+
+
+def test_a_time_budget_bounds_the_grid_by_its_rays_unless_the_grid_is_given(volume_scene):
+    budgeted = choose_recipe(volume_scene, TrainConfig(time_budget_s=600.0), FieldConfig())
+    assert budgeted.train.rays_per_voxel == RECIPE.rays_per_voxel > 0
+    assert "a time budget" in choices_of_reasons(budgeted)["rays_per_voxel"]
+    by_steps = choose_recipe(volume_scene, TrainConfig(), FieldConfig())
+    assert by_steps.train.rays_per_voxel == 0.0
+    assert "no time budget" in choices_of_reasons(by_steps)["rays_per_voxel"]
+    given = choose_recipe(volume_scene, TrainConfig(time_budget_s=600.0, resolution_final=96), FieldConfig(),
+                          frozenset({"resolution_final"}))
+    assert given.train.rays_per_voxel == 0.0 and given.train.resolution_final == 96
+    assert "the user's" in choices_of_reasons(given)["rays_per_voxel"]
+    assert budgeted.field.n_param_components == 4  # five values on its axis
+
+
+def choices_of_reasons(recipe) -> dict[str, str]:
+    return {c.name: c.reason for c in recipe.choices}
