@@ -147,9 +147,6 @@ class RayWindows:
     first: Int[Tensor, " n"]
     last: Int[Tensor, " n"]
 
-    def __getitem__(self, index: slice) -> "RayWindows":
-        return RayWindows(self.t_near[index], self.t_far[index], self.first[index], self.last[index])
-
 
 def ray_windows(
     field: VisNerfField,
@@ -192,15 +189,16 @@ class _FrameMarch:
     cancel: CancelCheck | None
 
     def march(self, rays_o: Float[Tensor, "b 3"], rays_d: Float[Tensor, "b 3"], out: Float[Tensor, "b 3"]) -> None:
-        """March a block of rays, chunk by chunk on the frame's threads, into ``out``."""
-        windows = ray_windows(self.field, rays_o, rays_d, self.step, self.settings.max_samples, self.empty,
-                              cancel=self.cancel)
+        """March a block of rays, chunk by chunk on the frame's threads, into ``out``; each chunk
+        walks its own rays' windows, so the walk is shared by the threads as the march is."""
 
         def march_chunk(i: int) -> None:
             raise_if_cancelled(self.cancel)
             sl = slice(i * self.chunk, (i + 1) * self.chunk)
+            windows = ray_windows(self.field, rays_o[sl], rays_d[sl], self.step, self.settings.max_samples, self.empty,
+                                  cancel=self.cancel)
             out[sl] = march_rays(self.field, rays_o[sl], rays_d[sl], self.frame, self.background, self.settings,
-                                 self.empty, windows[sl])
+                                 self.empty, windows)
 
         map_chunks(march_chunk, math.ceil(rays_o.shape[0] / self.chunk), self.workers)
 

@@ -59,7 +59,15 @@ def test_each_block_is_marched_before_the_next_blocks_rays_are_made(monkeypatch)
     monkeypatch.setattr(renderer, "BLOCK_RAYS", 10 * 40)
     with torch.inference_mode():
         render_image(field, c2w, intr, torch.tensor([0.4]), RenderSettings(chunk_rays=64))
-    assert events == [("rays", 10), ("walk", 400), ("rays", 10), ("walk", 400), ("rays", 9), ("walk", 360)]
+    # each block's rays are walked, chunk by chunk (64 rays at most), before the next block's are made
+    blocks: list[list[int]] = []
+    for kind, count in events:
+        if kind == "rays":
+            blocks.append([count * 40])
+        else:
+            blocks[-1].append(count)
+    assert [b[0] for b in blocks] == [400, 400, 360]
+    assert all(sum(b[1:]) == b[0] and max(b[1:]) <= 64 for b in blocks)
 
 
 def test_image_rays_of_some_rows_are_those_rows_of_the_image() -> None:
