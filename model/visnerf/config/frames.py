@@ -38,11 +38,11 @@ class FramesConfig:
     refine_spacing: int = 4
     """Largest spacing, in pixels, of the lattice a full-quality frame is first marched on where
     a voxel spans that many pixels (``rendering.refine``); 1 marches every pixel."""
-    refine_spread: float = 8.0 / 255.0
+    refine_spread: float = 12.0 / 255.0
     """A lattice cell whose four corners differ by more than this in some channel (colours in
-    [0, 1]) has its inner pixels marched; the others are blended from the corners. 8 levels of
-    255: as close to the plain renderer as every pixel marched, and the fastest such
-    (docs/decisions.md, "Frames at the screen's size")."""
+    [0, 1]) has its inner pixels marched; the others are blended from the corners. 12 levels of
+    255: the refined frame stays closer to every pixel marched than the fast frame is to the plain
+    renderer, and 16 let a cell's error grow (docs/decisions.md, "A time budget bounds the grid")."""
 
     def __post_init__(self) -> None:
         check_types(type(self), self.__dict__)
