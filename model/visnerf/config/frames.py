@@ -42,7 +42,7 @@ class FramesConfig:
     """A lattice cell whose four corners differ by more than this in some channel (colours in
     [0, 1]) has its inner pixels marched; the others are blended from the corners. 12 levels of
     255: the refined frame stays closer to every pixel marched than the fast frame is to the plain
-    renderer, and 16 let a cell's error grow (docs/decisions.md, "A time budget bounds the grid")."""
+    renderer, and 16 let a cell's error grow (docs/decisions.md, "A time budget bounds the final grid")."""
 
     def __post_init__(self) -> None:
         check_types(type(self), self.__dict__)
