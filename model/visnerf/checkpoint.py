@@ -6,6 +6,7 @@ configuration, every tensor's presence, shape and dtype, and that all values are
 problem raises ``CheckpointError`` with a message that names it. Saving is atomic.
 """
 
+import bisect
 import json
 import os
 import struct
@@ -45,16 +46,28 @@ class ParamAxis:
     values: tuple[float, ...]
     default: float
 
+    def _rounding(self) -> float:
+        """The widest rounding a float32 read-back of a value of this axis may carry."""
+        return 1e-6 * max(abs(self.min), abs(self.max), self.max - self.min, 1e-30)
+
     def contains(self, value: float) -> bool:
         """Whether ``value`` lies in [min, max], allowing the rounding of a float32 at this
         magnitude (0.12 read back from float32 is 0.1199999973: the end of the range, not outside)."""
-        tol = 1e-6 * max(abs(self.min), abs(self.max), self.max - self.min, 1e-30)
+        tol = self._rounding()
         return self.min - tol <= value <= self.max + tol
 
+    def training_value(self, value: float) -> float:
+        """The training value ``value`` is a float32 rounding of (the nearest within that
+        rounding; the values increase strictly), else ``value`` itself."""
+        at = bisect.bisect_left(self.values, value)
+        near = [v for v in self.values[max(0, at - 1):at + 1] if abs(v - value) <= self._rounding()]
+        return min(near, key=lambda v: abs(v - value)) if near else value
+
     def normalize(self, value: float) -> float:
-        """Map [min, max] to [-1, 1]."""
+        """Map [min, max] to [-1, 1]; a float32 rounding of a training value maps exactly where
+        that value does, so frames read back from float32 sit on the field's knots."""
         span = self.max - self.min
-        return 0.0 if span <= 0 else 2.0 * (value - self.min) / span - 1.0
+        return 0.0 if span <= 0 else 2.0 * (self.training_value(value) - self.min) / span - 1.0
 
 
 @dataclass(frozen=True)

@@ -101,8 +101,5 @@ def split_holdout(scene: SceneData, holdout: HoldoutConfig, atol: float = 1e-6) 
 def _exact_values(axis: ParamAxis, full: ParamAxis) -> ParamAxis:
     """``axis`` (read back from float32 parameters) with each value replaced by the dataset's exact
     value it came from, so 0.2 stays 0.2 and not 0.20000000298 in checkpoints and the API."""
-    def exact(v: float) -> float:
-        return min(full.values, key=lambda u: abs(u - v))
-
-    values = tuple(exact(v) for v in axis.values)
-    return ParamAxis(axis.name, values[0], values[-1], values, exact(axis.default))
+    values = tuple(full.training_value(v) for v in axis.values)
+    return ParamAxis(axis.name, values[0], values[-1], values, full.training_value(axis.default))

@@ -46,6 +46,19 @@ def test_training_axes_keep_the_datasets_exact_values() -> None:
     assert high.values == (0.1, 0.45, 0.8)
 
 
+def test_training_frames_sit_exactly_on_their_axes_knots() -> None:
+    """Parameters read back from float32 (0.11 is 0.10999999940) normalise exactly where the
+    axis's own values do: training reads the field's tables at their knots, nowhere between."""
+    scene = _scene()
+    params, knots = scene.normalized_params(), scene.knots()
+    for k in range(params.shape[1]):
+        assert bool(torch.isin(params[:, k], knots[k]).all())
+    axis = scene.param_axes[0]
+    assert axis.training_value(float(np.float32(0.11))) == 0.11
+    assert axis.training_value(0.1101) == 0.1101  # a value between: kept as it is
+    assert axis.normalize(float(np.float32(0.2))) == 1.0
+
+
 def test_holding_out_every_value_but_one_of_an_axis_is_refused() -> None:
     scene = _scene()
     settings = tuple((a, b) for a in (0.02, 0.11) for b in (0.1, 0.45, 0.8))

@@ -11,6 +11,7 @@ from visnerf.representation.param_axes import (
     distinct_rows,
     interpolate_knots,
     interpolate_natural_spline,
+    knot_rows,
     natural_spline_curvatures,
     pchip_slopes,
 )
@@ -21,6 +22,39 @@ def test_knot_rows_exactly_and_ends_held():
     knots = torch.tensor([-1.0, 0.0, 1.0])
     x = torch.tensor([-3.0, -1.0, 0.0, 1.0, 2.0])
     assert torch.equal(interpolate_knots(table, knots, x)[:, 0], torch.tensor([1.0, 1.0, 3.0, 7.0, 7.0]))
+
+
+def test_knot_rows_finds_knots_only_when_every_value_is_one():
+    knots = torch.tensor([-1.0, -0.25, 0.5, 1.0])
+    assert torch.equal(knot_rows(knots, torch.tensor([1.0, -1.0, 0.5, 0.5, -0.25])), torch.tensor([3, 0, 2, 2, 1]))
+    assert knot_rows(knots, torch.tensor([1.0, 0.4999999])) is None
+    assert knot_rows(knots, torch.tensor([-1.0, 1.5])) is None
+    assert knot_rows(knots, torch.tensor([-1.0, float("nan")])) is None
+
+
+@pytest.mark.parametrize("interpolant", ["monotone", "natural"])
+def test_values_at_knots_gather_the_rows_as_the_interpolant_gives_them(monkeypatch, interpolant):
+    """At the knots (where training reads the tables) the gathered rows equal the full
+    interpolant's, in value and in the table's gradient, bit for bit."""
+    import visnerf.representation.param_axes as param_axes
+
+    gen = torch.Generator().manual_seed(5)
+    knots = torch.tensor([-1.0, -0.4, 0.1, 0.55, 1.0], dtype=torch.float64)
+    table = torch.randn(5, 3 if interpolant == "monotone" else 1, generator=gen, dtype=torch.float64)
+    x = knots[torch.tensor([0, 4, 2, 2, 1, 3, 0])]
+    weights = torch.randn(7, table.shape[1], generator=gen, dtype=torch.float64)
+
+    def run() -> tuple[torch.Tensor, torch.Tensor]:
+        t = table.clone().requires_grad_(True)
+        out = interpolate_knots(t, knots, x) if interpolant == "monotone" else interpolate_natural_spline(t[:, 0], knots, x)[:, None]
+        (out * weights).sum().backward()
+        return out.detach(), t.grad
+
+    gathered, grad = run()
+    monkeypatch.setattr(param_axes, "knot_rows", lambda knots, x: None)  # the interpolant in full
+    full, full_grad = run()
+    assert torch.equal(gathered, full) and torch.equal(grad, full_grad)
+    assert torch.equal(gathered, table[torch.tensor([0, 4, 2, 2, 1, 3, 0])])
 
 
 def test_rows_on_a_line_stay_on_it():
