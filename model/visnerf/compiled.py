@@ -49,6 +49,11 @@ def jit(fn: Callable[..., Any], inline: bool = False, fastmath: set[str] | None 
 _helpers: "ThreadPoolExecutor | None" = None
 
 
+def parts(n: int, least: int) -> int:
+    """Threads for a call over ``n`` items: one per torch thread, each with at least ``least``."""
+    return max(1, min(torch.get_num_threads(), n // least))
+
+
 def run_parts(fn: Callable[[int], None], parts: int) -> None:
     """``fn(i)`` for ``i < parts``, part 0 on the calling thread and the others on helper threads
     (made once): for compiled loops that release the GIL, each given a disjoint share of a call's

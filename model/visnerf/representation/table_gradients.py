@@ -124,7 +124,7 @@ class TableGradient:
 
 def row_parts(n_rows: int) -> int:
     """Threads for a pass over ``n_rows`` table rows."""
-    return max(1, min(torch.get_num_threads(), n_rows // MIN_ROWS_A_PART))
+    return compiled.parts(n_rows, MIN_ROWS_A_PART)
 
 
 @dataclass

@@ -60,7 +60,7 @@ def _forward(rows: "GridRows", q: Tensor, coords: Tensor, ray: Tensor, tail: Ten
     arrays = (_np(coords), _np(ray), _np(q), _np(tail), planes.detach().numpy(), lines.detach().numpy(),
               res, plane_off, line_off, n_freqs, out.numpy(), bool(save), taps.plane_rows, taps.plane_weights,
               taps.line_rows, taps.line_weights, taps.plane_values)
-    parts = _parts(m, MIN_SAMPLES_A_PART)
+    parts = compiled.parts(m, MIN_SAMPLES_A_PART)
 
     def part(i: int) -> None:
         forward(*arrays, m * i // parts, m * (i + 1) // parts)
@@ -79,7 +79,7 @@ def _backward(rows: "GridRows", q: Tensor, ray: Tensor, taps: Taps, grad_out: Te
     _, row_gradients = rows.loops(q.shape[1])
     planes, lines = rows.grid.row_tables()
     m, c = ray.shape[0], rows.n_components
-    parts = _parts(m, MIN_SAMPLES_A_PART)
+    parts = compiled.parts(m, MIN_SAMPLES_A_PART)
     grad_q = [torch.zeros_like(q) for _ in range(parts)]
     grad_plane_value = np.empty((3, m, c), rows.float_type)
     grad_line_value = np.empty((3, m, c), rows.float_type)
@@ -138,11 +138,6 @@ class TakenRows:
 
 MIN_SAMPLES_A_PART = 2048
 """Fewest samples worth a thread of their own (smaller calls run on the caller's thread alone)."""
-
-
-def _parts(m: int, least: int) -> int:
-    """Threads for a call over ``m`` samples: one per torch thread, each with at least ``least``."""
-    return max(1, min(torch.get_num_threads(), m // least))
 
 
 def _np(t: Tensor) -> np.ndarray:
