@@ -210,11 +210,13 @@ def _grid_budget(ctx: _Context) -> Decision:
 
 def param_rank(value_counts: list[int], components: tuple[int, int]) -> int:
     """Parameter components for axes of ``value_counts`` training values: the smallest count that
-    divides both VM component counts and is at least 4 and a ``RECIPE.values_per_param_component``-th
-    of the longest axis's values (the largest common divisor where none is that large)."""
-    want = max(4, math.ceil(max(value_counts) / RECIPE.values_per_param_component))
-    divisors = [d for d in range(1, math.gcd(*components) + 1) if components[0] % d == 0 and components[1] % d == 0]
-    return next((d for d in divisors if d >= want), divisors[-1])
+    divides both VM component counts and is at least ``FieldConfig``'s default and a
+    ``RECIPE.values_per_param_component``-th of the longest axis's values (the largest common
+    divisor where none is that large)."""
+    least = FieldConfig.n_param_components
+    want = max(least, math.ceil(max(value_counts) / RECIPE.values_per_param_component))
+    common = math.gcd(*components)
+    return next((d for d in range(want, common + 1) if common % d == 0), common)
 
 
 def _param_rank(ctx: _Context) -> Decision:
@@ -223,9 +225,10 @@ def _param_rank(ctx: _Context) -> Decision:
         return None
     components = (int(ctx.value("n_density_components")), int(ctx.value("n_appearance_components")))  # type: ignore[call-overload]
     rank = param_rank(counts, components)
+    least, per = FieldConfig.n_param_components, RECIPE.values_per_param_component
     return rank, (f"the longest parameter axis has {max(counts)} training values: {rank} components a parameter "
-                  f"factor (at least 4, and one for every {RECIPE.values_per_param_component} values), dividing the "
-                  f"VM components ({components[0]}, {components[1]})")
+                  f"factor (at least {least}, and one for every {per} values), dividing the VM components "
+                  f"({components[0]}, {components[1]})")
 
 
 def _density(ctx: _Context) -> tuple[object | None, str]:
