@@ -59,9 +59,9 @@ class RecipeConfig:
     renderings have none, volume renderings several per cent."""
     border_pixels: int = 1
     """Width of the image border in which a foreground pixel means content cut by the frame."""
-    values_per_param_component: int = 4
-    """Training values of the longest parameter axis per parameter component: a parameter factor of
-    rank 4 fits axes of up to 16 values, and a 30-timestep series gains from rank 8."""
+    values_per_param_component: int = 3
+    """Training values of the longest parameter axis per parameter component: rank 4 serves axes of
+    up to 12 values, and a 30-timestep series gains from rank 8 over 4 and from 16 over 8."""
     rays_per_voxel: float = 4.0
     """``TrainConfig.rays_per_voxel`` under a time budget: the final grid holds at most the rays the
     budget will see over this many voxels (Nyx's 200 voxels beat 170 at about 5 rays a voxel, a

@@ -13,7 +13,7 @@ the images and cameras alone, each choice with the reason ``visnerf info`` shows
   see less than one ray a voxel in 20 minutes;
 - the parameter factors' rank (``FieldConfig.n_param_components``): 4, or a
   ``RECIPE.values_per_param_component``-th of the longest axis's training values where that is
-  more (a 30-timestep series: 8);
+  more (a 30-timestep series: 16);
 - the carving's ``min_seen_fraction``: where every training image shows its content whole (no
   foreground pixel on the image border), every cell of the content is in every view's image, and a
   cell that a quarter of its setting's views do not have in frame is camera-box corner, not

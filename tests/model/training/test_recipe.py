@@ -173,12 +173,13 @@ def test_a_level_axis_the_user_gave_is_kept(iso_sweep_scene):
 
 @pytest.mark.parametrize(("counts", "components", "rank"), [
     ([3, 3, 5], (16, 48), 4),  # Nyx
-    ([9], (16, 48), 4),  # the synthetic scenes: 5 to 9 values an axis
-    ([16], (16, 48), 4),
-    ([17], (16, 48), 8),
-    ([30], (16, 48), 8),  # the lit series
-    ([5, 70], (16, 48), 16),  # wants 18: no common divisor that large, the largest
-    ([30], (12, 36), 12),  # wants 8: the next divisor of both
+    ([5], (16, 48), 4),  # the synthetic scenes: 3 to 5 values an axis
+    ([9], (16, 48), 4),
+    ([12], (16, 48), 4),
+    ([13], (16, 48), 8),
+    ([30], (16, 48), 16),  # the lit series
+    ([5, 70], (16, 48), 16),  # wants 24: no common divisor that large, the largest
+    ([30], (12, 36), 12),  # wants 10: the next divisor of both
     ([2], (2, 6), 2),  # wants 4: the largest divisor of both
 ])
 def test_the_parameter_rank_grows_with_the_longest_axis(counts, components, rank):
