@@ -59,6 +59,12 @@ class RecipeConfig:
     renderings have none, volume renderings several per cent."""
     border_pixels: int = 1
     """Width of the image border in which a foreground pixel means content cut by the frame."""
+    sparse_views: int = 30
+    """A translucent scene with fewer training images a setting than this gets total variation on
+    its factors (``sparse_view_tv``): a 20-view series gained by it, Nyx's 42 views did not."""
+    sparse_view_tv: float = 0.1
+    """``TrainConfig.tv_weight_density`` and ``tv_weight_appearance`` for such a scene: few views fit
+    its density and colours with speckle between them, which the images do not pin down."""
     values_per_param_component: int = 3
     """Training values of the longest parameter axis per parameter component: rank 4 serves axes of
     up to 12 values, and a 30-timestep series gains from rank 8 over 4 and from 16 over 8."""

@@ -40,7 +40,8 @@ the images and cameras alone, each choice with the reason ``visnerf info`` shows
   view. A volume rendering without lighting looks the same from every side and gets none;
 - total variation on the density and appearance factors (``TrainConfig.tv_weight_density``,
   ``tv_weight_appearance``) for opaque scenes: the surface and its colours between the views, and
-  between training isovalues, stay smooth;
+  between training isovalues, stay smooth; and for translucent scenes seen by fewer than
+  ``RECIPE.sparse_views`` images a setting, whose few views leave speckle between them;
 - a level-set axis (``FieldConfig.level_set_axis``) for opaque scenes whose settings' visual hulls
   are nested along an axis (``data.nesting``): an isovalue sweep. Its surfaces are then the level
   sets of one learnt field, and a value between two training values gives the surface between
@@ -262,6 +263,23 @@ def _opaque_only(value: object, opaque_reason: str, translucent_reason: str) -> 
     return decide
 
 
+def _total_variation(opaque_value: float, opaque_reason: str, what: str) -> Callable[[_Context], Decision]:
+    """Total variation on the ``what`` factors: ``opaque_value`` for opaque surfaces, and for
+    translucent content seen by few views a setting (``RECIPE.sparse_views``)."""
+    def decide(ctx: _Context) -> Decision:
+        views = ctx.traits.views_per_setting
+        if ctx.traits.opaque:
+            return opaque_value, opaque_reason
+        if views < RECIPE.sparse_views:
+            return RECIPE.sparse_view_tv, (f"translucent content seen by {views:g} views a setting (under "
+                                           f"{RECIPE.sparse_views}): so few views fit its {what} with speckle "
+                                           "between them; total variation keeps it smooth")
+        return None, (f"translucent content seen by {views:g} views a setting: its {what} is seen along every ray "
+                      "through it")
+
+    return decide
+
+
 def _level_axis(ctx: _Context) -> Decision:
     traits, scene, base = ctx.traits, ctx.scene, ctx.base
     if not (traits.opaque and traits.n_params > 0):
@@ -305,17 +323,17 @@ RULES: tuple[_Rule, ...] = (
         "opaque surfaces: their shading follows the cosine between the surface and the view (a light at the "
         "camera), which the colour decoder reads from learnt unit vectors",
         "translucent content: its colours are read with spherical harmonics of the view alone"), in_field=True),
-    _Rule("tv_weight_density", _opaque_only(
+    _Rule("tv_weight_density", _total_variation(
         RECIPE.surface.tv_density,
         "opaque surfaces: the images pin the density only where a surface is seen, and a few views fit it with a "
         "rough surface (and, with a level axis, leave the surfaces between training values free); total "
         "variation keeps it smooth",
-        "translucent content: its density is seen along every ray through it")),
-    _Rule("tv_weight_appearance", _opaque_only(
+        "density")),
+    _Rule("tv_weight_appearance", _total_variation(
         RECIPE.surface.tv_appearance,
         "opaque surfaces: each surface point is seen by a few views, whose fit total variation on the appearance "
         "factors carries over to its neighbours",
-        "translucent content: its appearance is seen along every ray through it")),
+        "appearance")),
     _Rule("carve_dilation", _opaque_only(
         RECIPE.surface.carve_dilation,
         "opaque surfaces: a density that fills the carved hull renders the training silhouettes exactly; grown, "

@@ -1,6 +1,6 @@
 """What the recipe reads from a dataset's images and cameras (``training.recipe``): the size of a
-pixel at the content, whether every image frames its content whole, and how much of the foreground
-is faint (translucent content) or not (opaque surfaces)."""
+pixel at the content, whether every image frames its content whole, how much of the foreground
+is faint (translucent content) or not (opaque surfaces), and how many views see each setting."""
 
 from dataclasses import dataclass
 
@@ -24,6 +24,8 @@ class SceneTraits:
     faint_fraction: float
     """Fraction of the foreground pixels that are faint (``RECIPE.faint_contrast``)."""
     n_params: int
+    views_per_setting: float
+    """Training images of a parameter setting (the median over settings; every image for K = 0)."""
 
     @property
     def opaque(self) -> bool:
@@ -64,8 +66,16 @@ def faint_fraction(scene: SceneData, tolerance: int, max_frames: int = 64) -> fl
     return float((fg < RECIPE.faint_contrast * top).float().mean())
 
 
+def views_per_setting(scene: SceneData) -> float:
+    """The median number of training images at one parameter setting."""
+    if scene.n_params == 0:
+        return float(scene.n_frames)
+    _, counts = torch.unique(scene.params, dim=0, return_counts=True)
+    return float(counts.float().median())
+
+
 def scene_traits(scene: SceneData, tolerance: int) -> SceneTraits:
     box = estimate_bbox(scene)
     border = frames_cut_by_border(scene, tolerance)
     return SceneTraits(pixel_footprint(scene, box.mean(dim=0)), border == 0, border,
-                       faint_fraction(scene, tolerance), scene.n_params)
+                       faint_fraction(scene, tolerance), scene.n_params, views_per_setting(scene))

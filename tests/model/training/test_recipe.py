@@ -16,7 +16,7 @@ from visnerf.training.recipe import (
     surface_density,
     voxels_for,
 )
-from visnerf.training.scene_traits import faint_fraction, frames_cut_by_border, pixel_footprint
+from visnerf.training.scene_traits import faint_fraction, frames_cut_by_border, pixel_footprint, views_per_setting
 
 NYX = Path(__file__).resolve().parents[3].parent / "shared" / "data" / "nyx"
 
@@ -40,7 +40,8 @@ def test_opaque_surfaces_get_a_surface_density_and_volumes_do_not(surface_scene,
     assert surface.field.facing_vectors == RECIPE.surface.facing_vectors > 0 and volume.field.facing_vectors == 0
     assert "opaque" in next(c.reason for c in surface.choices if c.name == "facing_vectors")
     assert "translucent" in next(c.reason for c in volume.choices if c.name == "facing_vectors")
-    # Only opaque content gets total variation on its density and appearance.
+    # Opaque content gets total variation on its density and appearance; a volume seen by many views a setting none.
+    assert views_per_setting(volume_scene) >= RECIPE.sparse_views
     assert surface.train.tv_weight_density == RECIPE.surface.tv_density > volume.train.tv_weight_density == 0.0
     assert surface.train.tv_weight_appearance == RECIPE.surface.tv_appearance > 0.0
     assert volume.train.tv_weight_appearance == TrainConfig().tv_weight_appearance
@@ -169,6 +170,31 @@ def test_a_level_axis_the_user_gave_is_kept(iso_sweep_scene):
                          frozenset({"silhouette_ray_fraction"}))
     assert kept.train.silhouette_ray_fraction == 0.6
     assert next(c.reason for c in recipe.choices if c.name == "level_set_axis") == "set by the user"
+
+
+def test_translucent_content_seen_by_few_views_a_setting_gets_total_variation(volume_scene):
+    per_setting = int(views_per_setting(volume_scene))
+    few = RECIPE.sparse_views - 1
+    keep = torch.cat([torch.nonzero((volume_scene.params == p).all(dim=1))[:few, 0]
+                      for p in torch.unique(volume_scene.params, dim=0)])
+    sparse = volume_scene.subset(keep)
+    assert views_per_setting(sparse) == few < per_setting
+    recipe = choose_recipe(sparse, TrainConfig(), FieldConfig())
+    assert recipe.train.tv_weight_density == recipe.train.tv_weight_appearance == RECIPE.sparse_view_tv > 0.0
+    reasons = choices_of_reasons(recipe)
+    assert f"seen by {few} views a setting" in reasons["tv_weight_density"] and "density" in reasons["tv_weight_density"]
+    assert "appearance" in reasons["tv_weight_appearance"]
+    dense = choose_recipe(volume_scene, TrainConfig(), FieldConfig())
+    assert dense.train.tv_weight_density == 0.0
+    assert f"seen by {per_setting} views a setting" in choices_of_reasons(dense)["tv_weight_density"]
+
+
+def test_views_per_setting_counts_the_images_of_each_setting(volume_scene, surface_scene):
+    assert views_per_setting(surface_scene) == surface_scene.n_frames  # K = 0: one setting
+    settings = torch.unique(volume_scene.params, dim=0).shape[0]
+    uneven = volume_scene.subset(torch.cat([torch.arange(volume_scene.n_frames), torch.zeros(50, dtype=torch.long)]))
+    assert views_per_setting(volume_scene) == volume_scene.n_frames / settings  # evenly spread here
+    assert views_per_setting(uneven) == views_per_setting(volume_scene)  # the median, not the mean
 
 
 @pytest.mark.parametrize(("counts", "components", "rank"), [
