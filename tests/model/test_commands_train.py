@@ -8,6 +8,7 @@ import torch
 
 from visnerf.checkpoint import read_checkpoint
 from visnerf.config import TrainConfig
+from visnerf.config.recipe import RECIPE
 
 
 def _visnerf(*args: str) -> subprocess.CompletedProcess:
@@ -50,7 +51,8 @@ def test_factor_storage_and_sampled_density_gradients(plume, tmp_path) -> None:
     assert meta.field.factor_storage == "int8" and tensors["density_grid.planes.0"].dtype == torch.int8
     recipe = meta.provenance.recipe
     assert recipe["tv_weight_appearance"] == 0.0 and recipe["density_grad_keep"] == 0.25
-    assert recipe["tv_weight_density"] == TrainConfig.tv_weight_density and recipe["batch_rays"] == TrainConfig.batch_rays
+    # 12 views a setting: the recipe's total variation for sparse views, on appearance overruled by the flag
+    assert recipe["tv_weight_density"] == RECIPE.sparse_view_tv and recipe["batch_rays"] == TrainConfig.batch_rays
     assert recipe["lr_factors"] == 0.03 and recipe["lr_decay_ratio"] == 0.05
     assert recipe["lr_networks"] == 0.002
     assert recipe["weight_average_span"] == 0.2 and recipe["weight_average_from"] == 0.4
