@@ -38,23 +38,36 @@ def available(device: torch.device) -> bool:
 
 
 @functools.cache
-def interpolation_loop(ft: type):  # noqa: ANN202 - an inlined numba helper
-    """Each axis's lower node and fraction of sample ``s`` in ``ft`` (``vm_taps``' interpolation)."""
+def axis_loop(ft: type):  # noqa: ANN202 - an inlined numba helper
+    """The lower node (unsigned) and fraction of grid coordinate ``x`` on an axis of ``n`` nodes,
+    in ``ft`` (``vm_taps``' interpolation)."""
 
     @no_type_check  # compiled by numba: no runtime type checks (tests run jaxtyping's import hook)
-    def _interpolation(coords, s, res, lower, frac):  # noqa: ANN001, ANN202
+    def _axis(x, n):  # noqa: ANN001, ANN202
         one = ft(1.0)
+        if not x >= -one:  # NaN reads the border too: no index outside the tables
+            x = -one
+        elif x > one:
+            x = one
+        half = ft(0.5) * ft(n - 1)
+        pos = half * x + half
+        lo = min(math.floor(pos), n - 2)
+        return np.uint64(lo), pos - ft(lo)
+
+    return compiled.jit(_axis, inline=True)
+
+
+@functools.cache
+def interpolation_loop(ft: type):  # noqa: ANN202 - an inlined numba helper
+    """Each axis's lower node and fraction of sample ``s`` in ``ft`` (``axis_loop``)."""
+    axis = axis_loop(ft)
+
+    @no_type_check
+    def _interpolation(coords, s, res, lower, frac):  # noqa: ANN001, ANN202
         for a in range(3):
-            x = coords[s, a]
-            if not x >= -one:  # NaN reads the border too: no index outside the tables
-                x = -one
-            elif x > one:
-                x = one
-            half = ft(0.5) * ft(res[a] - 1)
-            pos = half * x + half
-            lo = min(math.floor(pos), res[a] - 2)
+            lo, fr = axis(coords[s, a], res[a])
             lower[a] = lo
-            frac[a] = pos - ft(lo)
+            frac[a] = fr
 
     return compiled.jit(_interpolation, inline=True)
 
@@ -83,29 +96,57 @@ def encoding_loop(ft: type):  # noqa: ANN202 - an inlined numba helper
 @no_type_check
 def _store_row(row, row_bits, s, width, to_bf16, out, out_bits):  # noqa: ANN001, ANN202
     """Row ``s`` of the output from the scratch row: copied (float32) or rounded to the nearest
-    even bfloat16 (its bits; NaN stays NaN, where rounding could carry it to 0)."""
+    even bfloat16 (its bits; NaN stays NaN, where rounding could carry it to 0); unsigned indices
+    as ``mode_loop``'s."""
+    su = np.uint64(s)
     if to_bf16:
         for j in range(width):
-            b = row_bits[0, j]
-            if (b & np.uint32(0x7FFFFFFF)) > np.uint32(0x7F800000):
-                out_bits[s, j] = np.uint16(0x7FC0)
-            else:
-                out_bits[s, j] = np.uint16((b + np.uint32(0x7FFF) + ((b >> np.uint32(16)) & np.uint32(1)))
-                                           >> np.uint32(16))
+            ju = np.uint64(j)
+            b = row_bits[ju]
+            rounded = np.uint16((b + np.uint32(0x7FFF) + ((b >> np.uint32(16)) & np.uint32(1))) >> np.uint32(16))
+            out_bits[su, ju] = np.uint16(0x7FC0) if (b & np.uint32(0x7FFFFFFF)) > np.uint32(0x7F800000) else rounded
     else:
         for j in range(width):
-            out[s, j] = row[0, j]
+            ju = np.uint64(j)
+            out[su, ju] = row[ju]
 
 
 store_row = compiled.jit(_store_row, inline=True)
 
 
+@functools.cache
+def mode_loop(c: int, ft: type):  # noqa: ANN202 - an inlined numba helper
+    """One mode's ``c`` features of a sample into ``row[col:col + c]``: the bilinear plane value
+    at flat row ``r00`` (``w`` rows to the next line of the plane) times the linear line value at
+    flat row ``l0``, ``plane`` and ``line`` flattened. Every index is unsigned: numba wraps a
+    signed index that may be negative, a branch per read that keeps LLVM from vectorising the
+    channel loop (1.7 times the time of this loop; docs/decisions.md)."""
+
+    @no_type_check
+    def _mode(plane, line, r00, w, l0, fa, fb, fl, row, col):  # noqa: ANN001, ANN202
+        one = ft(1.0)
+        cu = np.uint64(c)
+        w00, w10 = (one - fa) * (one - fb), fa * (one - fb)
+        w01, w11 = (one - fa) * fb, fa * fb
+        fl0 = one - fl
+        a = r00 * cu
+        b = (r00 + w) * cu
+        q = l0 * cu
+        for ch in range(c):
+            k = np.uint64(ch)
+            p = (w00 * plane[a + k] + w10 * plane[a + cu + k]) + (w01 * plane[b + k] + w11 * plane[b + cu + k])
+            row[col + k] = p * (fl0 * line[q + k] + fl * line[q + cu + k])
+
+    return compiled.jit(_mode, inline=True)
+
+
 def _kernel_source(c: int):  # noqa: ANN202 - the loop numba compiles for ``c`` channels
     """The loop for tables of ``c`` channels, compiled once per channel count (``_compiled``): a
-    mode's channel loop of known length, and every row indexed in two dimensions (no view made
-    per sample, which numba counts references to); docs/decisions.md, "Rendering"."""
-    interpolation = interpolation_loop(np.float32)
+    mode's channel loop of known length over flattened tables with unsigned indices (``mode_loop``)
+    and no view made per sample, which numba counts references to; docs/decisions.md, "Rendering"."""
+    axis = axis_loop(np.float32)
     encode = encoding_loop(np.float32)
+    mode = mode_loop(c, np.float32)
 
     @no_type_check
     def _kernel(coords, plane, line, res, plane_off, line_off, n_freqs, out, out_bits, to_bf16):  # noqa: ANN001, ANN202
@@ -115,30 +156,32 @@ def _kernel_source(c: int):  # noqa: ANN202 - the loop numba compiles for ``c`` 
         nf = 3 * c
         width = nf if n_freqs < 0 else nf + 3 + 6 * n_freqs
         row = np.empty((1, width), np.float32)  # scratch, written, then copied or rounded into the output
-        row_bits = row.view(np.uint32)
-        lower = np.empty(3, np.int64)
-        frac = np.empty(3, np.float32)
-        one = np.float32(1.0)
+        flat_row = row.reshape(-1)
+        row_bits = flat_row.view(np.uint32)
+        flat_plane = plane.reshape(-1)
+        flat_line = line.reshape(-1)
+        nx, ny, nz = res[0], res[1], res[2]
+        ux, uy = np.uint64(nx), np.uint64(ny)
+        p0, p1, p2 = np.uint64(plane_off[0]), np.uint64(plane_off[1]), np.uint64(plane_off[2])
+        l0, l1, l2 = np.uint64(line_off[0]), np.uint64(line_off[1]), np.uint64(line_off[2])
         for s in range(coords.shape[0]):
-            interpolation(coords, s, res, lower, frac)
-            for i in range(3):
-                pa, pb, la = plane_axes(i)
-                w = res[pa]
-                r00 = plane_off[i] + lower[pb] * w + lower[pa]
-                fa, fb, fl = frac[pa], frac[pb], frac[la]
-                w00, w10 = (one - fa) * (one - fb), fa * (one - fb)
-                w01, w11 = (one - fa) * fb, fa * fb
-                l0 = line_off[i] + lower[la]
-                for ch in range(c):
-                    p = ((w00 * plane[r00, ch] + w10 * plane[r00 + 1, ch])
-                         + (w01 * plane[r00 + w, ch] + w11 * plane[r00 + w + 1, ch]))
-                    q = (one - fl) * line[l0, ch] + fl * line[l0 + 1, ch]
-                    row[0, i * c + ch] = p * q
+            x0, fx = axis(coords[s, 0], nx)
+            y0, fy = axis(coords[s, 1], ny)
+            z0, fz = axis(coords[s, 2], nz)
+            # the modes of ``MODES`` (``_MODES_WRITTEN_OUT``): planes xy, xz, yz with lines z, y, x
+            mode(flat_plane, flat_line, p0 + y0 * ux + x0, ux, l0 + z0, fx, fy, fz, flat_row, np.uint64(0))
+            mode(flat_plane, flat_line, p1 + z0 * ux + x0, ux, l1 + y0, fx, fz, fy, flat_row, np.uint64(c))
+            mode(flat_plane, flat_line, p2 + z0 * uy + y0, uy, l2 + x0, fy, fz, fx, flat_row, np.uint64(2 * c))
             if n_freqs >= 0:
                 encode(coords, s, n_freqs, row, 0, nf)
-            store_row(row, row_bits, s, width, to_bf16, out, out_bits)
+            store_row(flat_row, row_bits, s, width, to_bf16, out, out_bits)
 
     return _kernel
+
+
+_MODES_WRITTEN_OUT = (((0, 1), 2), ((0, 2), 1), ((1, 2), 0))
+if MODES != _MODES_WRITTEN_OUT:  # pragma: no cover - the pass writes the modes out, as these
+    raise ImportError(f"vm_kernel's pass writes out the modes {_MODES_WRITTEN_OUT}, vm_taps has {MODES}")
 
 
 @no_type_check
