@@ -120,7 +120,7 @@ def mode_loop(c: int, ft: type):  # noqa: ANN202 - an inlined numba helper
     at flat row ``r00`` (``w`` rows to the next line of the plane) times the linear line value at
     flat row ``l0``, ``plane`` and ``line`` flattened. Every index is unsigned: numba wraps a
     signed index that may be negative, a branch per read that keeps LLVM from vectorising the
-    channel loop (1.7 times the time of this loop; docs/decisions.md)."""
+    channel loop (docs/decisions.md, "The inference lookups index without sign")."""
 
     @no_type_check
     def _mode(plane, line, r00, w, l0, fa, fb, fl, row, col):  # noqa: ANN001, ANN202
