@@ -30,6 +30,11 @@ from visnerf.representation.table_gradients import TableGradient, TapIndex, row_
 
 _FLOAT_TYPES = {torch.float32: np.float32, torch.float64: np.float64}
 _NO_MARKS = np.zeros(1, np.uint8)
+SCATTER_ROWS = 4096
+"""Tables of at most this many rows (the lines of a grid) take their taps sample by sample into a
+row buffer instead of sorting them by row: every sample reads every line, so a few hundred rows
+hold most of the taps, and a sorted gather reads the samples' gradients in random order for each
+of them (docs/decisions.md, "Small tables gather their taps sample by sample")."""
 _NO_COEFFICIENTS = np.zeros(1, np.float64)
 
 
@@ -119,7 +124,58 @@ def _taps_source(ft: type):  # noqa: ANN202 - the loop numba compiles for float 
     return _adam_taps
 
 
+def _scatter_source(ft: type):  # noqa: ANN202 - the loop numba compiles for float type ``ft``
+    update = _update_loop(ft)
+
+    @no_type_check
+    def _scatter_taps(grad, marks, rows, weights, corners, values):  # noqa: ANN001, ANN202
+        """Add one backward's taps (``PendingTaps``) into ``grad`` sample by sample and mark their
+        rows: each row's sum runs over its taps in sample order, as ``_adam_taps`` sums them."""
+        c = grad.shape[1]
+        for s in range(rows.shape[0]):
+            for i in range(3):
+                for k in range(corners.shape[1]):
+                    row = rows[s, i] + corners[i, k]
+                    w = weights[s, i, k]
+                    marks[row] = 1
+                    for ch in range(c):
+                        grad[row, ch] += w * values[i, s, ch]
+
+    @no_type_check
+    def _adam_scattered(param, exp_avg, exp_avg_sq, steps, grad, marks, part_starts, l1, use_l1, lr,  # noqa: ANN001, ANN202
+                        beta1, beta2, eps, inv_bias1, bias2_sqrts):
+        """``_adam_taps`` at the marked rows, their gradient summed in ``grad`` (``_scatter_taps``);
+        the rows of ``grad`` and their marks are zeroed. Returns the L1 prior's part."""
+        b1, b2, b2c, e = ft(1.0 - beta1), ft(beta2), ft(1.0 - beta2), ft(eps)
+        c = param.shape[1]
+        g = np.empty(c, ft)
+        total = 0.0
+        part = 0
+        for row in range(param.shape[0]):
+            if marks[row] == 0:
+                continue
+            for ch in range(c):
+                g[ch] = grad[row, ch]
+                grad[row, ch] = 0
+            marks[row] = 0
+            if use_l1:
+                while row >= part_starts[part + 1]:
+                    part += 1
+                coefficient = ft(l1[part])
+                row_sum = 0.0
+                for ch in range(c):
+                    v = param[row, ch]
+                    g[ch] += coefficient * ((v > 0) - (v < 0))
+                    row_sum += abs(v)
+                total += l1[part] * row_sum
+            update(param, g, exp_avg, exp_avg_sq, row, steps, lr, b1, b2, b2c, e, inv_bias1, bias2_sqrts)
+        return total
+
+    return _scatter_taps, _adam_scattered
+
+
 _LOOPS = {ft: (compiled.jit(_marked_source(ft)), compiled.jit(_taps_source(ft))) for ft in (np.float32, np.float64)}
+_SCATTER_LOOPS = {ft: tuple(compiled.jit(f) for f in _scatter_source(ft)) for ft in (np.float32, np.float64)}
 
 
 def _rows(t: Tensor) -> Tensor:
@@ -140,6 +196,9 @@ class RowSparseAdam(torch.optim.Optimizer):
         self._bias: dict[tuple[float, float], tuple[np.ndarray, np.ndarray]] = {}
         self._most_updates: int | None = None
         """A bound on any row's count of updates (from the state at the first step, plus one a step)."""
+        self._row_buffers: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        """``id(parameter)``: the gradient rows and marks of a small table (``SCATTER_ROWS``), zero
+        between steps."""
 
     def set_row_source(self, param: nn.Parameter, source: TableGradient) -> None:
         """Take ``param``'s gradient from ``source`` (its ``.grad`` is ``source``'s buffer, kept
@@ -228,6 +287,9 @@ class RowSparseAdam(torch.optim.Optimizer):
 
     def _update_from_taps(self, p: Tensor, source: TableGradient, hyper: tuple) -> None:
         self._check(p)
+        if source.n_rows <= SCATTER_ROWS:
+            self._update_from_scattered_taps(p, source, hyper)
+            return
         state = self._state_of(p)
         index: TapIndex = source.index()  # type: ignore[assignment]
         use_l1 = source.l1_coefficients is not None
@@ -245,3 +307,23 @@ class RowSparseAdam(torch.optim.Optimizer):
 
         compiled.run_parts(part, parts)
         source.l1_value = float(sum(totals))
+
+    def _update_from_scattered_taps(self, p: Tensor, source: TableGradient, hyper: tuple) -> None:
+        """``_update_from_taps`` for a small table, on one thread: its pending taps added sample by
+        sample into a row buffer (kept, outside the optimizer's state), then the touched rows
+        updated. The sums and the update are those of the sorted gather, float for float."""
+        state = self._state_of(p)
+        ft = _FLOAT_TYPES[p.dtype]
+        scatter, adam = _SCATTER_LOOPS[ft]
+        buffer = self._row_buffers.get(id(p))
+        if buffer is None or buffer[0].shape != _rows(p).shape or buffer[0].dtype != ft:
+            buffer = (np.zeros(_rows(p).shape, ft), np.zeros(_rows(p).shape[0], np.uint8))
+            self._row_buffers[id(p)] = buffer
+        grad, marks = buffer
+        pending, source.pending = source.pending, []
+        for taps in pending:
+            scatter(grad, marks, taps.rows, taps.weights, taps.corners, taps.values)
+        use_l1 = source.l1_coefficients is not None
+        source.l1_value = float(adam(_rows(p).numpy(), _rows(state["exp_avg"]).numpy(), _rows(state["exp_avg_sq"]).numpy(),
+                                     state["step"].numpy(), grad, marks, source.part_starts.astype(np.int64),
+                                     source.l1_coefficients if use_l1 else _NO_COEFFICIENTS, use_l1, *hyper))

@@ -8,6 +8,7 @@ import torch
 from visnerf.representation.table_gradients import RowGradients, TableGradient
 from visnerf.representation.vm import VMGrid
 from visnerf.representation.vm_rows import GridRows
+from visnerf.training import sparse_adam
 from visnerf.training.regularizers import add_grid_l1_, add_grid_total_variation_
 from visnerf.training.row_priors import add_l1_at_marks, add_total_variation_at_marks, l1_coefficients
 from visnerf.training.sparse_adam import RowSparseAdam
@@ -85,6 +86,41 @@ def test_updates_from_pending_taps_equal_updates_from_the_materialized_gradient(
         grids.append(grid)
     assert torch.allclose(grids[0].plane_table, grids[1].plane_table, rtol=0, atol=1e-13)
     assert torch.allclose(grids[0].line_table, grids[1].line_table, rtol=0, atol=1e-13)
+
+
+def test_small_tables_taken_sample_by_sample_update_as_the_sorted_gather(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Taps added into a row buffer sample by sample (``SCATTER_ROWS``) give the sorted gather's
+    update float for float: tables, moments, counts and the L1 prior's value, over steps of two
+    micro-batches each, in float32 as training runs."""
+    g = torch.Generator().manual_seed(5)
+    batches = [(torch.rand(300, 3, generator=g) * 1.8 - 0.9, torch.randint(0, 6, (300,), generator=g)) for _ in range(6)]
+    q = torch.rand(6, 4, generator=g)
+    weights = torch.randn(300, 3 * 8 + 4 + 9, generator=g)
+    results = []
+    default_rows = sparse_adam.SCATTER_ROWS
+    for scatter_rows in (default_rows, 0):
+        monkeypatch.setattr(sparse_adam, "SCATTER_ROWS", scatter_rows)
+        torch.manual_seed(3)
+        grid = VMGrid(8, (6, 7, 8), 0.5)
+        grads = RowGradients.of(grid)
+        opt = RowSparseAdam(grid.parameters(), lr=0.05, betas=(0.9, 0.99))
+        for table in grads.tables():
+            opt.set_row_source(table.table, table)
+            table.l1_coefficients = l1_coefficients(table, 0.2)
+        l1_values = []
+        for step in range(3):
+            for coords, ray in batches[2 * step:2 * step + 2]:  # two backwards, two pending parts a table
+                (GridRows(grid, grads).rows(coords, ray, q, n_freqs=1) * weights).sum().backward()
+            opt.step()
+            l1_values.append([table.l1_value for table in grads.tables()])
+        results.append((grid, opt, l1_values))
+    (grid_a, opt_a, l1_a), (grid_b, opt_b, l1_b) = results
+    assert grid_a.plane_table.shape[0] <= default_rows  # the first run took the new path
+    assert torch.equal(grid_a.plane_table, grid_b.plane_table) and torch.equal(grid_a.line_table, grid_b.line_table)
+    for pa, pb in ((grid_a.plane_table, grid_b.plane_table), (grid_a.line_table, grid_b.line_table)):
+        for key in ("exp_avg", "exp_avg_sq", "step"):
+            assert torch.equal(opt_a.state[pa][key], opt_b.state[pb][key])
+    assert l1_a == l1_b and all(v > 0 for row in l1_a for v in row)
 
 
 def test_a_dense_adams_state_goes_on_as_a_count_per_row() -> None:
