@@ -4,7 +4,8 @@ A backward of the compiled lookups (``vm_rows``) does not write into the table's
 leaves ``PendingTaps``, the rows each sample's taps read with their weights and the gradient of
 the value the taps made. The optimizer then sorts the taps by row (a counting pass,
 ``vm_rows_kernel.tap_index``) and updates each touched row from the sum of its taps' gradients
-in one pass (``training.sparse_adam``): no table-sized gradient is written, read or zeroed.
+in one pass (``training.sparse_adam``): no table-sized gradient is written, read or zeroed (a
+small table, a grid's lines, is summed sample by sample into a buffer of its own instead).
 Where a whole gradient is needed (gradients averaged over ranks, a prior that reads a row's
 neighbours) ``materialize`` adds the taps into the table's ``.grad``, made once and kept, and
 marks the rows it wrote; the optimizer then updates the marked rows and zeroes them.

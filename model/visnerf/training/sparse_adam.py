@@ -7,7 +7,9 @@ gradient from its ``TableGradient`` (``representation.table_gradients``):
 
 - pending taps (one process, no prior that reads a row's neighbours): one pass over the touched
   rows sums each row's taps, adds the L1 prior where one is set, and updates the row, its moments
-  and its count; no table-sized gradient exists;
+  and its count; no table-sized gradient exists. A small table (``SCATTER_ROWS``: a grid's
+  lines, which every sample reads) takes its taps sample by sample into a row buffer of its
+  own instead, then updates the rows they marked: the same sums in the same order;
 - a materialized gradient (``.grad`` with row marks: ranks, total variation): the marked rows
   are updated and their gradient rows and marks zeroed.
 
