@@ -62,6 +62,27 @@ def _update_loop(ft: type):  # noqa: ANN202 - an inlined numba helper
     return compiled.jit(_update, inline=True)
 
 
+@functools.cache
+def _row_l1_loop(ft: type):  # noqa: ANN202 - an inlined numba helper
+    """The L1 prior at one row in float type ``ft``."""
+
+    @no_type_check
+    def _row_l1(param, row, g, l1, part_starts, part):  # noqa: ANN001, ANN202
+        """Add ``l1[mode] * sign(param[row])`` into ``g`` (``part``: the mode of an earlier row, rows
+        in increasing order); returns the row's mode and the prior there, ``l1[mode] * sum |value|``."""
+        while row >= part_starts[part + 1]:
+            part += 1
+        coefficient = ft(l1[part])
+        row_sum = 0.0
+        for ch in range(param.shape[1]):
+            v = param[row, ch]
+            g[ch] += coefficient * ((v > 0) - (v < 0))
+            row_sum += abs(v)
+        return part, l1[part] * row_sum
+
+    return compiled.jit(_row_l1, inline=True)
+
+
 def _marked_source(ft: type):  # noqa: ANN202 - the loop numba compiles for float type ``ft``
     update = _update_loop(ft)
 
@@ -87,6 +108,7 @@ def _marked_source(ft: type):  # noqa: ANN202 - the loop numba compiles for floa
 
 def _taps_source(ft: type):  # noqa: ANN202 - the loop numba compiles for float type ``ft``
     update = _update_loop(ft)
+    row_l1 = _row_l1_loop(ft)
 
     @no_type_check
     def _adam_taps(param, exp_avg, exp_avg_sq, steps, starts, taps, tap_weights, values, part_starts,  # noqa: ANN001, ANN202
@@ -111,15 +133,8 @@ def _taps_source(ft: type):  # noqa: ANN202 - the loop numba compiles for float 
                 for ch in range(c):
                     g[ch] += w * values[k, ch]
             if use_l1:
-                while row >= part_starts[part + 1]:
-                    part += 1
-                coefficient = ft(l1[part])
-                row_sum = 0.0
-                for ch in range(c):
-                    v = param[row, ch]
-                    g[ch] += coefficient * ((v > 0) - (v < 0))
-                    row_sum += abs(v)
-                total += l1[part] * row_sum
+                part, value = row_l1(param, row, g, l1, part_starts, part)
+                total += value
             update(param, g, exp_avg, exp_avg_sq, row, steps, lr, b1, b2, b2c, e, inv_bias1, bias2_sqrts)
         return total
 
@@ -128,6 +143,7 @@ def _taps_source(ft: type):  # noqa: ANN202 - the loop numba compiles for float 
 
 def _scatter_source(ft: type):  # noqa: ANN202 - the loop numba compiles for float type ``ft``
     update = _update_loop(ft)
+    row_l1 = _row_l1_loop(ft)
 
     @no_type_check
     def _scatter_taps(grad, marks, rows, weights, corners, values):  # noqa: ANN001, ANN202
@@ -161,15 +177,8 @@ def _scatter_source(ft: type):  # noqa: ANN202 - the loop numba compiles for flo
                 grad[row, ch] = 0
             marks[row] = 0
             if use_l1:
-                while row >= part_starts[part + 1]:
-                    part += 1
-                coefficient = ft(l1[part])
-                row_sum = 0.0
-                for ch in range(c):
-                    v = param[row, ch]
-                    g[ch] += coefficient * ((v > 0) - (v < 0))
-                    row_sum += abs(v)
-                total += l1[part] * row_sum
+                part, value = row_l1(param, row, g, l1, part_starts, part)
+                total += value
             update(param, g, exp_avg, exp_avg_sq, row, steps, lr, b1, b2, b2c, e, inv_bias1, bias2_sqrts)
         return total
 
