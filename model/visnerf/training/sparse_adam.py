@@ -38,6 +38,7 @@ row buffer instead of sorting them by row: every sample reads every line, so a f
 hold most of the taps, and a sorted gather reads the samples' gradients in random order for each
 of them (docs/decisions.md, "Small tables gather their taps sample by sample")."""
 _NO_COEFFICIENTS = np.zeros(1, np.float64)
+_NO_PARTS = np.zeros(2, np.int64)
 
 
 @functools.cache
@@ -85,23 +86,32 @@ def _row_l1_loop(ft: type):  # noqa: ANN202 - an inlined numba helper
 
 def _marked_source(ft: type):  # noqa: ANN202 - the loop numba compiles for float type ``ft``
     update = _update_loop(ft)
+    row_l1 = _row_l1_loop(ft)
 
     @no_type_check
-    def _adam_marked(param, grad, exp_avg, exp_avg_sq, steps, marks, use_marks, lr, beta1, beta2, eps,  # noqa: ANN001, ANN202
-                     inv_bias1, bias2_sqrts, first, stop):
+    def _adam_marked(param, grad, exp_avg, exp_avg_sq, steps, marks, use_marks, part_starts, l1, use_l1,  # noqa: ANN001, ANN202
+                     lr, beta1, beta2, eps, inv_bias1, bias2_sqrts, first, stop):
         """Adam at the rows ``first <= row < stop`` whose mark is set (every row without
-        ``use_marks``), from ``grad``; their gradient rows and marks are zeroed.
+        ``use_marks``), from ``grad`` plus, with ``use_l1``, ``l1[mode] * sign(value)``; their
+        gradient rows and marks are zeroed. Returns the L1 prior's part at those rows.
         ``inv_bias1[t] = 1 / (1 - beta1^t)`` and ``bias2_sqrts[t] = sqrt(1 - beta2^t)`` for a
         row's ``t``-th update (float64)."""
         b1, b2, b2c, e = ft(1.0 - beta1), ft(beta2), ft(1.0 - beta2), ft(eps)
+        total = 0.0
+        part = 0
         for row in range(first, stop):
             if use_marks and marks[row] == 0:
                 continue
-            update(param, grad[row], exp_avg, exp_avg_sq, row, steps, lr, b1, b2, b2c, e, inv_bias1, bias2_sqrts)
+            g = grad[row]
+            if use_l1:
+                part, value = row_l1(param, row, g, l1, part_starts, part)
+                total += value
+            update(param, g, exp_avg, exp_avg_sq, row, steps, lr, b1, b2, b2c, e, inv_bias1, bias2_sqrts)
             for ch in range(param.shape[1]):
                 grad[row, ch] = 0
             if use_marks:
                 marks[row] = 0
+        return total
 
     return _adam_marked
 
@@ -141,52 +151,23 @@ def _taps_source(ft: type):  # noqa: ANN202 - the loop numba compiles for float 
     return _adam_taps
 
 
-def _scatter_source(ft: type):  # noqa: ANN202 - the loop numba compiles for float type ``ft``
-    update = _update_loop(ft)
-    row_l1 = _row_l1_loop(ft)
-
-    @no_type_check
-    def _scatter_taps(grad, marks, rows, weights, corners, values):  # noqa: ANN001, ANN202
-        """Add one backward's taps (``PendingTaps``) into ``grad`` sample by sample and mark their
-        rows: each row's sum runs over its taps in sample order, as ``_adam_taps`` sums them."""
-        c = grad.shape[1]
-        for s in range(rows.shape[0]):
-            for i in range(3):
-                for k in range(corners.shape[1]):
-                    row = rows[s, i] + corners[i, k]
-                    w = weights[s, i, k]
-                    marks[row] = 1
-                    for ch in range(c):
-                        grad[row, ch] += w * values[i, s, ch]
-
-    @no_type_check
-    def _adam_scattered(param, exp_avg, exp_avg_sq, steps, grad, marks, part_starts, l1, use_l1, lr,  # noqa: ANN001, ANN202
-                        beta1, beta2, eps, inv_bias1, bias2_sqrts):
-        """``_adam_taps`` at the marked rows, their gradient summed in ``grad`` (``_scatter_taps``);
-        the rows of ``grad`` and their marks are zeroed. Returns the L1 prior's part."""
-        b1, b2, b2c, e = ft(1.0 - beta1), ft(beta2), ft(1.0 - beta2), ft(eps)
-        c = param.shape[1]
-        g = np.empty(c, ft)
-        total = 0.0
-        part = 0
-        for row in range(param.shape[0]):
-            if marks[row] == 0:
-                continue
-            for ch in range(c):
-                g[ch] = grad[row, ch]
-                grad[row, ch] = 0
-            marks[row] = 0
-            if use_l1:
-                part, value = row_l1(param, row, g, l1, part_starts, part)
-                total += value
-            update(param, g, exp_avg, exp_avg_sq, row, steps, lr, b1, b2, b2c, e, inv_bias1, bias2_sqrts)
-        return total
-
-    return _scatter_taps, _adam_scattered
+@no_type_check  # compiled by numba
+def _scatter_taps(grad, marks, rows, weights, corners, values):  # noqa: ANN001, ANN202
+    """Add one backward's taps (``PendingTaps``) into ``grad`` sample by sample and mark their
+    rows: each row's sum runs over its taps in sample order, as ``_adam_taps`` sums them."""
+    c = grad.shape[1]
+    for s in range(rows.shape[0]):
+        for i in range(3):
+            for k in range(corners.shape[1]):
+                row = rows[s, i] + corners[i, k]
+                w = weights[s, i, k]
+                marks[row] = 1
+                for ch in range(c):
+                    grad[row, ch] += w * values[i, s, ch]
 
 
 _LOOPS = {ft: (compiled.jit(_marked_source(ft)), compiled.jit(_taps_source(ft))) for ft in (np.float32, np.float64)}
-_SCATTER_LOOPS = {ft: tuple(compiled.jit(f) for f in _scatter_source(ft)) for ft in (np.float32, np.float64)}
+_SCATTER_TAPS = compiled.jit(_scatter_taps)
 
 
 def _rows(t: Tensor) -> Tensor:
@@ -286,7 +267,7 @@ class RowSparseAdam(torch.optim.Optimizer):
         state = self._state_of(p)
         arrays = (_rows(p).numpy(), _rows(p.grad.contiguous()).numpy(), _rows(state["exp_avg"]).numpy(),
                   _rows(state["exp_avg_sq"]).numpy(), state["step"].numpy(), _NO_MARKS if marks is None else marks,
-                  marks is not None, *hyper)
+                  marks is not None, _NO_PARTS, _NO_COEFFICIENTS, False, *hyper)
         loop = _LOOPS[_FLOAT_TYPES[p.dtype]][0]
         rows = _rows(p).shape[0]
         parts = row_parts(rows)
@@ -325,7 +306,6 @@ class RowSparseAdam(torch.optim.Optimizer):
         updated. The sums and the update are those of the sorted gather, float for float."""
         state = self._state_of(p)
         ft = _FLOAT_TYPES[p.dtype]
-        scatter, adam = _SCATTER_LOOPS[ft]
         buffer = self._row_buffers.get(id(p))
         if buffer is None or buffer[0].shape != _rows(p).shape or buffer[0].dtype != ft:
             buffer = (np.zeros(_rows(p).shape, ft), np.zeros(_rows(p).shape[0], np.uint8))
@@ -333,8 +313,10 @@ class RowSparseAdam(torch.optim.Optimizer):
         grad, marks = buffer
         pending, source.pending = source.pending, []
         for taps in pending:
-            scatter(grad, marks, taps.rows, taps.weights, taps.corners, taps.values)
+            _SCATTER_TAPS(grad, marks, taps.rows, taps.weights, taps.corners, taps.values)
         use_l1 = source.l1_coefficients is not None
-        source.l1_value = float(adam(_rows(p).numpy(), _rows(state["exp_avg"]).numpy(), _rows(state["exp_avg_sq"]).numpy(),
-                                     state["step"].numpy(), grad, marks, source.part_starts.astype(np.int64),
-                                     source.l1_coefficients if use_l1 else _NO_COEFFICIENTS, use_l1, *hyper))
+        adam_marked = _LOOPS[ft][0]
+        source.l1_value = float(adam_marked(
+            _rows(p).numpy(), grad, _rows(state["exp_avg"]).numpy(), _rows(state["exp_avg_sq"]).numpy(),
+            state["step"].numpy(), marks, True, source.part_starts.astype(np.int64),
+            source.l1_coefficients if use_l1 else _NO_COEFFICIENTS, use_l1, *hyper, 0, grad.shape[0]))
