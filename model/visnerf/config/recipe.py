@@ -65,6 +65,10 @@ class RecipeConfig:
     sparse_view_tv: float = 0.1
     """``TrainConfig.tv_weight_density`` and ``tv_weight_appearance`` for such a scene: few views fit
     its density and colours with speckle between them, which the images do not pin down."""
+    sparse_view_sh_degree: int = 1
+    """``FieldConfig.sh_degree`` for such a scene: the 16 view terms of degree 3 fit each of its few
+    views' colours and miss the views between them; a 20-view series gained at degree 2 and more
+    at 1 (docs/decisions.md, "Few views a setting: view terms of degree 1")."""
     values_per_param_component: int = 3
     """Training values of the longest parameter axis per parameter component: rank 4 serves axes of
     up to 12 values, and a 30-timestep series gains from rank 8 over 4 and from 16 over 8."""

@@ -37,7 +37,12 @@ the images and cameras alone, each choice with the reason ``visnerf info`` shows
   light at the camera (isosurface renderers' headlight) changes colour with the cosine between its
   normal and the view, too sharply for spherical harmonics of degree 3; the field learns
   ``RECIPE.surface.facing_vectors`` unit vectors per point and its colour decoder reads their cosines with the
-  view. A volume rendering without lighting looks the same from every side and gets none;
+  view. A volume rendering without lighting looks the same from every side and gets none, and a
+  lit translucent series seen by 20 views a timestep fit its views with them and lost between;
+- spherical harmonics of the view of a lower degree (``FieldConfig.sh_degree``,
+  ``RECIPE.sparse_view_sh_degree``) for translucent content seen by fewer than
+  ``RECIPE.sparse_views`` images a setting: more view terms than its few views pin down fit each
+  view's colours and miss the views between them;
 - total variation on the density and appearance factors (``TrainConfig.tv_weight_density``,
   ``tv_weight_appearance``) for opaque scenes: the surface and its colours between the views, and
   between training isovalues, stay smooth; and for translucent scenes seen by fewer than
@@ -82,7 +87,7 @@ CHOSEN_FIELDS = frozenset({("TrainConfig", "resolution_final"), ("TrainConfig", 
                            ("TrainConfig", "tv_weight_appearance"), ("TrainConfig", "colour_weight_floor"),
                            ("TrainConfig", "carve_dilation"), ("TrainConfig", "occupancy_refine_dilation"),
                            ("TrainConfig", "silhouette_ray_fraction"), ("FieldConfig", "n_param_components"),
-                           ("TrainConfig", "rays_per_voxel")})
+                           ("TrainConfig", "rays_per_voxel"), ("FieldConfig", "sh_degree")})
 """The configuration fields ``choose_recipe`` sets from the data unless the user gives them
 (``RULES``, and ``density_shift`` with ``density_scale``)."""
 
@@ -280,6 +285,19 @@ def _total_variation(opaque_value: float, opaque_reason: str, what: str) -> Call
     return decide
 
 
+def _view_terms(ctx: _Context) -> Decision:
+    """The view direction's spherical harmonics: of degree ``RECIPE.sparse_view_sh_degree`` for
+    translucent content seen by few views a setting, the default elsewhere."""
+    views = ctx.traits.views_per_setting
+    if ctx.traits.opaque:
+        return None, "opaque surfaces: the view terms beside the facing cosines"
+    if views < RECIPE.sparse_views:
+        return RECIPE.sparse_view_sh_degree, (
+            f"translucent content seen by {views:g} views a setting (under {RECIPE.sparse_views}): view terms of a "
+            "higher degree fit each view's colours and miss the views between them")
+    return None, f"translucent content seen by {views:g} views a setting: enough to fit its view dependence"
+
+
 def _level_axis(ctx: _Context) -> Decision:
     traits, scene, base = ctx.traits, ctx.scene, ctx.base
     if not (traits.opaque and traits.n_params > 0):
@@ -323,6 +341,7 @@ RULES: tuple[_Rule, ...] = (
         "opaque surfaces: their shading follows the cosine between the surface and the view (a light at the "
         "camera), which the colour decoder reads from learnt unit vectors",
         "translucent content: its colours are read with spherical harmonics of the view alone"), in_field=True),
+    _Rule("sh_degree", _view_terms, in_field=True),
     _Rule("tv_weight_density", _total_variation(
         RECIPE.surface.tv_density,
         "opaque surfaces: the images pin the density only where a surface is seen, and a few views fit it with a "

@@ -172,7 +172,7 @@ def test_a_level_axis_the_user_gave_is_kept(iso_sweep_scene):
     assert next(c.reason for c in recipe.choices if c.name == "level_set_axis") == "set by the user"
 
 
-def test_translucent_content_seen_by_few_views_a_setting_gets_total_variation(volume_scene):
+def test_translucent_content_seen_by_few_views_a_setting_gets_total_variation_and_fewer_view_terms(volume_scene):
     per_setting = int(views_per_setting(volume_scene))
     few = RECIPE.sparse_views - 1
     keep = torch.cat([torch.nonzero((volume_scene.params == p).all(dim=1))[:few, 0]
@@ -184,8 +184,11 @@ def test_translucent_content_seen_by_few_views_a_setting_gets_total_variation(vo
     reasons = choices_of_reasons(recipe)
     assert f"seen by {few} views a setting" in reasons["tv_weight_density"] and "density" in reasons["tv_weight_density"]
     assert "appearance" in reasons["tv_weight_appearance"]
+    assert recipe.field.sh_degree == RECIPE.sparse_view_sh_degree < FieldConfig().sh_degree
+    assert f"seen by {few} views a setting" in reasons["sh_degree"]
     dense = choose_recipe(volume_scene, TrainConfig(), FieldConfig())
     assert dense.train.tv_weight_density == 0.0
+    assert dense.field.sh_degree == FieldConfig().sh_degree
     assert f"seen by {per_setting} views a setting" in choices_of_reasons(dense)["tv_weight_density"]
 
 
