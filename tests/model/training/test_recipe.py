@@ -113,18 +113,18 @@ def test_settings_the_user_gave_are_kept(surface_scene):
     base = TrainConfig(resolution_final=40, carve_min_seen_fraction=0.1, tv_weight_density=0.0, tv_weight_appearance=0.0,
                        colour_weight_floor=0.0, carve_dilation=0,
                        occupancy_refine_dilation=0, silhouette_ray_fraction=0.0, time_budget_s=60.0)
-    field = FieldConfig(density_scale=3.0, facing_vectors=0)
+    field = FieldConfig(density_scale=3.0, facing_vectors=0, sh_degree=2)
     recipe = choose_recipe(surface_scene, base, field,
                            frozenset({"resolution_final", "carve_min_seen_fraction", "density_scale", "facing_vectors",
                                       "tv_weight_density", "tv_weight_appearance", "colour_weight_floor",
                                       "carve_dilation", "occupancy_refine_dilation", "silhouette_ray_fraction",
-                                      "rays_per_voxel", "n_param_components"}))
+                                      "rays_per_voxel", "n_param_components", "sh_degree"}))
     assert recipe.train.rays_per_voxel == 0.0
     assert recipe.train.resolution_final == 40 and recipe.train.carve_min_seen_fraction == 0.1
     assert recipe.train.colour_weight_floor == 0.0 and recipe.train.carve_dilation == 0
     assert recipe.train.occupancy_refine_dilation == 0 and recipe.train.silhouette_ray_fraction == 0.0
     assert recipe.train.tv_weight_density == recipe.train.tv_weight_appearance == 0.0
-    assert recipe.field.density_scale == 3.0 and recipe.field.facing_vectors == 0
+    assert recipe.field.density_scale == 3.0 and recipe.field.facing_vectors == 0 and recipe.field.sh_degree == 2
     assert all(c.reason == "set by the user" for c in recipe.choices if c.name != "parameter_axes")
 
 
