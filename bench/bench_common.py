@@ -4,6 +4,9 @@ The hold-out of the Nyx benchmarks, their shared options, alternating step timin
 frames of a dataset, the machine record, JSON without NaN/inf, and a figure writer.
 """
 
+import visnerf  # noqa: F401  (before torch: it sets the OpenMP wait policy that torch reads once)
+
+# isort: split
 import argparse
 import dataclasses
 import json

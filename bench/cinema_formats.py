@@ -10,6 +10,9 @@ held-out frames rendered at full quality against their ground truth. Writes
 ``cinema_formats.json`` and ``.md``.
 """
 
+import visnerf  # noqa: F401  (before torch: it sets the OpenMP wait policy that torch reads once)
+
+# isort: split
 import argparse
 import subprocess
 import sys

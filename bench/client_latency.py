@@ -21,6 +21,9 @@ size within 1.5 s of the last input.
     python bench/client_latency.py [--checkpoints DIR --scene ID] [--loads 5] [--seconds 3]
 """
 
+import visnerf  # noqa: F401  (before torch: it sets the OpenMP wait policy that torch reads once)
+
+# isort: split
 import argparse
 import json
 import os

@@ -24,6 +24,9 @@ A full run (every scene at 128x128) writes bench/results/eval_scenes.{json,md} a
 README; any other run writes eval_scenes.partial.{json,md} and leaves the README alone.
 """
 
+import visnerf  # noqa: F401  (before torch: it sets the OpenMP wait policy that torch reads once)
+
+# isort: split
 import argparse
 import dataclasses
 import json

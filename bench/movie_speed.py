@@ -18,6 +18,9 @@ both phases, and the job's own frames per second. Writes movie_speed.json and mo
 --out-dir (bench/results).
 """
 
+import visnerf  # noqa: F401  (before torch: it sets the OpenMP wait policy that torch reads once)
+
+# isort: split
 import argparse
 import dataclasses
 import json

@@ -47,6 +47,9 @@ run (``--about`` adds a paragraph on what they share and differ in); it trains n
         --run fused="the fused step" --run before="the tree before" --title "Nyx, side by side"
 """
 
+import visnerf  # noqa: F401  (before torch: it sets the OpenMP wait policy that torch reads once)
+
+# isort: split
 import argparse
 import json
 import math

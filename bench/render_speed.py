@@ -34,6 +34,9 @@ is) or PATH=DATASET_FOLDER.
 Writes render_speed.json, render_speed.md and render_speed.png to --out-dir (bench/results).
 """
 
+import visnerf  # noqa: F401  (before torch: it sets the OpenMP wait policy that torch reads once)
+
+# isort: split
 import argparse
 import dataclasses
 import math

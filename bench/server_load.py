@@ -39,6 +39,9 @@ Results go to bench/results/server_load.json and .md (``replicas``: server_repli
     python bench/server_load.py --mode replicas --replicas 2 --rounds 2 --duration 20
 """
 
+import visnerf  # noqa: F401  (before torch: it sets the OpenMP wait policy that torch reads once)
+
+# isort: split
 import argparse
 import dataclasses
 import math

@@ -29,6 +29,9 @@ rank draws its share), no validation:
 Writes train_ranks.json and train_ranks.md to --out-dir.
 """
 
+import visnerf  # noqa: F401  (before torch: it sets the OpenMP wait policy that torch reads once)
+
+# isort: split
 import argparse
 import dataclasses
 import gc

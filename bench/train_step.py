@@ -25,6 +25,9 @@ cuda_check.md with the GPU named:
         --steps 20 --results bench/results/cuda_check
 """
 
+import visnerf  # noqa: F401  (before torch: it sets the OpenMP wait policy that torch reads once)
+
+# isort: split
 import argparse
 import statistics
 import sys

@@ -1,5 +1,12 @@
 """Process-wide thread settings."""
 
+import ast
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
+
 import pytest
 import torch
 
@@ -81,3 +88,29 @@ def test_a_thread_variable_that_is_no_number_is_refused_by_name(monkeypatch) -> 
     monkeypatch.setenv("OMP_NUM_THREADS", "two")
     with pytest.raises(ValueError, match="OMP_NUM_THREADS must be a whole number"):
         runtime.default_threads()
+
+
+def _omp_spin_count(code: str, **env: str) -> str:
+    """The spin count torch's libgomp took, from its own report (OMP_DISPLAY_ENV=VERBOSE)."""
+    base = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")}
+    done = subprocess.run([sys.executable, "-c", code], env={**base, **env, "OMP_DISPLAY_ENV": "VERBOSE"},
+                          capture_output=True, text=True, check=True)
+    found = re.search(r"GOMP_SPINCOUNT = '(\d+)'", done.stderr)
+    assert found, done.stderr
+    return found.group(1)
+
+
+def test_importing_visnerf_before_torch_stops_openmp_workers_spinning() -> None:
+    assert _omp_spin_count("import visnerf.runtime") == "0"
+    assert _omp_spin_count("import torch") != "0"  # libgomp's default spins: the check can tell
+
+
+def test_a_wait_policy_the_user_set_is_kept() -> None:
+    assert _omp_spin_count("import visnerf.runtime", OMP_WAIT_POLICY="ACTIVE") != "0"
+
+
+def test_every_benchmark_imports_visnerf_before_torch() -> None:
+    for script in sorted((Path(__file__).parents[2] / "bench").glob("*.py")):
+        imports = [node for node in ast.parse(script.read_text()).body if isinstance(node, ast.Import | ast.ImportFrom)]
+        first = imports[0]
+        assert isinstance(first, ast.Import) and first.names[0].name == "visnerf", script.name
