@@ -26,6 +26,9 @@ GUARD = 1e-3
 that a hair's breadth lies in the next (occupied) cell (both walks)."""
 RAYS_PER_CALL = 16384
 """Rays walked between two cancel checks."""
+RAYS_PER_PART = 256
+"""The fewest rays a thread walks on its own (``compiled.parts``): a training step's rays are
+walked on every core, a frame's chunks each on one (the renderer's threads run one torch thread)."""
 
 
 def available(device: torch.device) -> bool:
@@ -134,7 +137,7 @@ def sample_windows(
     cancel: CancelCheck | None = None,
 ) -> tuple[Int[Tensor, " n"], Int[Tensor, " n"]]:
     """``EmptySpace.sample_window`` on the CPU (``grid`` holds its distances), asking ``cancel``
-    between calls of ``RAYS_PER_CALL`` rays."""
+    between calls of ``RAYS_PER_CALL`` rays, each call shared by the threads (``RAYS_PER_PART``)."""
     if compiled.numba is None:  # pragma: no cover
         raise RuntimeError("numba is not installed: the compiled empty-space walk is unavailable")
     n = first.shape[0]
@@ -144,6 +147,12 @@ def sample_windows(
     of, ol = out_first.numpy(), out_last.numpy()
     for start in range(0, n, RAYS_PER_CALL):
         raise_if_cancelled(cancel)
-        sl = slice(start, start + RAYS_PER_CALL)
-        _compiled(*(a[sl] for a in arrays[:3]), step, *(a[sl] for a in arrays[3:]), int(near), *tables, of[sl], ol[sl])
+        rays = min(n, start + RAYS_PER_CALL) - start
+        parts = compiled.parts(rays, RAYS_PER_PART)
+
+        def part(i: int, start: int = start, rays: int = rays, parts: int = parts) -> None:
+            sl = slice(start + rays * i // parts, start + rays * (i + 1) // parts)
+            _compiled(*(a[sl] for a in arrays[:3]), step, *(a[sl] for a in arrays[3:]), int(near), *tables, of[sl], ol[sl])
+
+        compiled.run_parts(part, parts)
     return out_first.to(first.dtype), out_last.to(last.dtype)

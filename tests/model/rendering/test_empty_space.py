@@ -145,3 +145,29 @@ def test_a_window_near_content_is_the_window_of_the_grid_grown_by_one_cell(walk:
         assert (near[0][~any_occ] > near[1][~any_occ]).all()
     assert (near[0][any_occ] == lo[any_occ]).float().mean() > 0.95
     assert (near[1][any_occ] == hi[any_occ]).float().mean() > 0.95
+
+
+@pytest.mark.skipif(not empty_space_kernel.available(torch.device("cpu")), reason="numba not importable")
+def test_the_compiled_walk_shared_by_threads_equals_the_walk_on_one(monkeypatch) -> None:
+    aabb = torch.tensor([[-0.5, -0.4, -0.6], [0.5, 0.4, 0.6]])
+    space = EmptySpace.of(_blobs((10, 8, 12), 4, 3), aabb)
+    g = torch.Generator().manual_seed(3)
+    n = 2500
+    rays_o = torch.randn(n, 3, generator=g) * 0.3 + torch.tensor([0.0, 0.0, -2.0])
+    rays_d = torch.nn.functional.normalize((torch.rand(n, 3, generator=g) - 0.5) * 1.2 - rays_o, dim=-1)
+    step = 0.037
+    t_near, t_far, hit = intersect_aabb(rays_o, rays_d, aabb)
+    last0 = torch.where(hit, torch.ceil((t_far - t_near) / step - 0.5 + 1e-3).long() - 1, -1)
+    first0 = torch.zeros_like(last0)
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(2)
+        monkeypatch.setattr(empty_space_kernel, "RAYS_PER_PART", 10**9)
+        one = space.sample_window(rays_o, rays_d, t_near, step, first0, last0)
+        monkeypatch.setattr(empty_space_kernel, "RAYS_PER_PART", 7)
+        monkeypatch.setattr(empty_space_kernel, "RAYS_PER_CALL", 1001)  # calls of 1001, 1001 and 498 rays, two parts each
+        shared = space.sample_window(rays_o, rays_d, t_near, step, first0, last0)
+    finally:
+        torch.set_num_threads(before)
+    assert torch.equal(one[0], shared[0]) and torch.equal(one[1], shared[1])
+    assert (one[0] <= one[1]).any() and (one[0] > one[1]).any()
