@@ -5,13 +5,14 @@ leaves ``PendingTaps``, the rows each sample's taps read with their weights and 
 the value the taps made. The optimizer then sorts the taps by row (a counting pass,
 ``vm_rows_kernel.tap_index``) and updates each touched row from the sum of its taps' gradients
 in one pass (``training.sparse_adam``): no table-sized gradient is written, read or zeroed (a
-small table, a grid's lines, is summed sample by sample into a buffer of its own instead).
+small table, a grid's lines, is summed sample by sample into a buffer instead, ``SCATTER_ROWS``).
 Where a whole gradient is needed (gradients averaged over ranks, a prior that reads a row's
 neighbours) ``materialize`` adds the taps into the table's ``.grad``, made once and kept, and
 marks the rows it wrote; the optimizer then updates the marked rows and zeroes them.
 """
 
 from dataclasses import dataclass, field
+from typing import no_type_check
 
 import numpy as np
 import torch
@@ -24,6 +25,29 @@ from visnerf.representation.vm_rows_kernel import gather_loop, tap_index
 
 MIN_ROWS_A_PART = 4096
 """Fewest table rows worth a thread of their own when their taps are summed."""
+SCATTER_ROWS = 4096
+"""Tables of at most this many rows (the lines of a grid) take their taps sample by sample into a
+row buffer instead of sorting them by row: every sample reads every line, so a few hundred rows
+hold most of the taps, and a sorted gather reads the samples' gradients in random order for each
+of them (docs/decisions.md, "Small tables gather their taps sample by sample")."""
+
+
+@no_type_check  # compiled by numba
+def _scatter_taps(grad, marks, rows, weights, corners, values):  # noqa: ANN001, ANN202
+    """Add one backward's taps (``PendingTaps``) into ``grad`` sample by sample and mark their
+    rows: each row's sum runs over its taps in sample order, as the sorted gather sums them."""
+    c = grad.shape[1]
+    for s in range(rows.shape[0]):
+        for i in range(3):
+            for k in range(corners.shape[1]):
+                row = rows[s, i] + corners[i, k]
+                w = weights[s, i, k]
+                marks[row] = 1
+                for ch in range(c):
+                    grad[row, ch] += w * values[i, s, ch]
+
+
+_scatter_loop = compiled.jit(_scatter_taps)
 
 
 @dataclass(frozen=True)
@@ -103,8 +127,19 @@ class TableGradient:
         tap_index(rows, weights, corners, self.n_rows, starts, taps, tap_weights)
         return TapIndex(starts, taps, tap_weights, values.reshape(3 * m, c))
 
+    def scatter(self, grad: np.ndarray, marks: np.ndarray) -> None:
+        """Add the pending taps into ``grad`` sample by sample, marking their rows in ``marks``,
+        and clear them (for a small table, ``SCATTER_ROWS``)."""
+        pending, self.pending = self.pending, []
+        for taps in pending:
+            _scatter_loop(grad, marks, taps.rows, taps.weights, taps.corners, taps.values)
+
     def materialize(self) -> None:
-        """Add the pending taps into the buffer and mark the rows they reach."""
+        """Add the pending taps into the buffer and mark the rows they reach: a small table's
+        sample by sample (``scatter``), a large one's sorted by row and gathered on every thread."""
+        if self.n_rows <= SCATTER_ROWS:
+            self.scatter(self.buffer().numpy(), self.marks)
+            return
         index = self.index()
         if index is None:
             return

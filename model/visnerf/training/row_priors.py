@@ -16,20 +16,19 @@ from typing import no_type_check
 import numpy as np
 
 from visnerf import compiled
-from visnerf.representation.table_gradients import RowGradients, TableGradient
+from visnerf.representation.table_gradients import MIN_ROWS_A_PART, RowGradients, TableGradient
 from visnerf.representation.vm import VMGrid
 from visnerf.representation.vm_kernel import table_layout
 from visnerf.representation.vm_taps import MODES
 
 
 @no_type_check  # compiled by numba
-def _l1(table, grad, marks, starts, coefficients):  # noqa: ANN001, ANN202
-    """``grad += c_part * sign(table)`` at marked rows (row ``i`` in part ``p`` where
-    ``starts[p] <= i < starts[p + 1]``); returns ``sum c_part |table|`` over them."""
-    total = 0.0
+def _l1(table, grad, marks, starts, coefficients, totals, first, stop):  # noqa: ANN001, ANN202
+    """``grad += c_part * sign(table)`` at marked rows ``first <= row < stop`` (row ``i`` is in part
+    ``p`` where ``starts[p] <= i < starts[p + 1]``); ``totals[row] = c_part * sum |table[row]|``."""
     for part in range(starts.shape[0] - 1):
         c = coefficients[part]
-        for row in range(starts[part], starts[part + 1]):
+        for row in range(max(first, starts[part]), min(stop, starts[part + 1])):
             if marks[row] == 0:
                 continue
             part_sum = 0.0
@@ -37,17 +36,17 @@ def _l1(table, grad, marks, starts, coefficients):  # noqa: ANN001, ANN202
                 v = table[row, ch]
                 grad[row, ch] += c * ((v > 0) - (v < 0))
                 part_sum += abs(v)
-            total += c * part_sum
-    return total
+            totals[row] = c * part_sum
 
 
 @no_type_check
-def _tv_plane(table, grad, marks, start, h, w, scale_y, scale_x):  # noqa: ANN001, ANN202
+def _tv_plane(table, grad, marks, start, h, w, scale_y, scale_x, totals, y_first, y_stop):  # noqa: ANN001, ANN202
     """The gradient of ``scale_y * sum (v[y+1, x] - v[y, x])^2 + scale_x * sum (v[y, x+1] - v[y, x])^2``
-    of one plane (rows ``start + y * w + x``) added at its marked rows; returns the terms of the
-    differences whose lower row is marked."""
-    total = 0.0
-    for y in range(h):
+    of one plane (rows ``start + y * w + x``) added at its marked rows of lines
+    ``y_first <= y < y_stop``; ``totals[y]``: the terms of line ``y``'s differences whose lower row
+    is marked. A marked row's gradient is written by its own line alone."""
+    for y in range(y_first, y_stop):
+        total = 0.0
         for x in range(w):
             row = start + y * w + x
             if marks[row] == 0:
@@ -68,7 +67,7 @@ def _tv_plane(table, grad, marks, start, h, w, scale_y, scale_x):  # noqa: ANN00
                     g -= 2.0 * scale_x * d
                     total += scale_x * d * d
                 grad[row, ch] += g
-    return total
+        totals[y] = total
 
 
 _l1_loop = compiled.jit(_l1)
@@ -85,12 +84,36 @@ def l1_coefficients(table: TableGradient, weight: float) -> np.ndarray:
 
 def add_l1_at_marks(grid: VMGrid, grads: RowGradients, weight: float) -> float:
     """``regularizers.add_grid_l1_`` at the marked rows: ``weight * mean |v|`` of each of the six
-    factors, averaged, its (sub)gradient added where a row is marked."""
+    factors, averaged, its (sub)gradient added where a row is marked (ranges of rows on every
+    thread; the value summed row by row in order, the same on any thread count)."""
     total = 0.0
     for table in grads.tables():
-        total += _l1_loop(table.table.detach().numpy(), table.buffer().numpy(), table.marks,
-                          table.part_starts.astype(np.int64), l1_coefficients(table, weight))
+        n = table.n_rows
+        totals = np.zeros(n, np.float64)
+        arrays = (table.table.detach().numpy(), table.buffer().numpy(), table.marks, table.part_starts.astype(np.int64),
+                  l1_coefficients(table, weight), totals)
+        parts = compiled.parts(n, MIN_ROWS_A_PART)
+
+        def part(i: int, arrays: tuple = arrays, n: int = n, parts: int = parts) -> None:
+            _l1_loop(*arrays, n * i // parts, n * (i + 1) // parts)
+
+        compiled.run_parts(part, parts)
+        total += float(totals.sum())
     return total
+
+
+def _tv_at_marks(table: np.ndarray, grad: np.ndarray, marks: np.ndarray, start: int, h: int, w: int,
+                 scale_y: float, scale_x: float) -> float:
+    """``_tv_plane`` over all ``h`` lines of one plane, bands of lines on every thread; the value
+    summed line by line in order, so the same on any thread count."""
+    totals = np.zeros(h, np.float64)
+    parts = compiled.parts(h * w, MIN_ROWS_A_PART)
+
+    def part(i: int) -> None:
+        _tv_plane_loop(table, grad, marks, start, h, w, scale_y, scale_x, totals, h * i // parts, h * (i + 1) // parts)
+
+    compiled.run_parts(part, parts)
+    return float(totals.sum())
 
 
 def add_total_variation_at_marks(grid: VMGrid, grads: RowGradients, weight: float) -> float:
@@ -105,10 +128,10 @@ def add_total_variation_at_marks(grid: VMGrid, grads: RowGradients, weight: floa
         w, h = int(res[a]), int(res[b])
         scale_y = scale / max(1, (h - 1) * w * c) if h > 1 else 0.0
         scale_x = scale / max(1, h * (w - 1) * c) if w > 1 else 0.0
-        total += _tv_plane_loop(table, grad, grads.plane.marks, int(plane_off[i]), h, w, scale_y, scale_x)
+        total += _tv_at_marks(table, grad, grads.plane.marks, int(plane_off[i]), h, w, scale_y, scale_x)
     table, grad = lines.detach().numpy(), grads.line.buffer().numpy()
     for i, (_, axis) in enumerate(MODES):
         n = int(res[axis])
         scale_y = scale / max(1, (n - 1) * c) if n > 1 else 0.0
-        total += _tv_plane_loop(table, grad, grads.line.marks, int(line_off[i]), n, 1, scale_y, 0.0)
+        total += _tv_at_marks(table, grad, grads.line.marks, int(line_off[i]), n, 1, scale_y, 0.0)
     return total

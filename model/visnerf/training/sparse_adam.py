@@ -7,7 +7,7 @@ gradient from its ``TableGradient`` (``representation.table_gradients``):
 
 - pending taps (one process, no prior that reads a row's neighbours): one pass over the touched
   rows sums each row's taps, adds the L1 prior where one is set, and updates the row, its moments
-  and its count; no table-sized gradient exists. A small table (``SCATTER_ROWS``: a grid's
+  and its count; no table-sized gradient exists. A small table (``table_gradients.SCATTER_ROWS``: a grid's
   lines, which every sample reads) takes its taps sample by sample into a row buffer of its
   own instead, then updates the rows they marked: the same sums in the same order;
 - a materialized gradient (``.grad`` with row marks: ranks, total variation): the marked rows
@@ -28,15 +28,11 @@ import torch
 from torch import Tensor, nn
 
 from visnerf import compiled
+from visnerf.representation import table_gradients
 from visnerf.representation.table_gradients import TableGradient, TapIndex, row_parts
 
 _FLOAT_TYPES = {torch.float32: np.float32, torch.float64: np.float64}
 _NO_MARKS = np.zeros(1, np.uint8)
-SCATTER_ROWS = 4096
-"""Tables of at most this many rows (the lines of a grid) take their taps sample by sample into a
-row buffer instead of sorting them by row: every sample reads every line, so a few hundred rows
-hold most of the taps, and a sorted gather reads the samples' gradients in random order for each
-of them (docs/decisions.md, "Small tables gather their taps sample by sample")."""
 _NO_COEFFICIENTS = np.zeros(1, np.float64)
 _NO_PARTS = np.zeros(2, np.int64)
 
@@ -151,23 +147,7 @@ def _taps_source(ft: type):  # noqa: ANN202 - the loop numba compiles for float 
     return _adam_taps
 
 
-@no_type_check  # compiled by numba
-def _scatter_taps(grad, marks, rows, weights, corners, values):  # noqa: ANN001, ANN202
-    """Add one backward's taps (``PendingTaps``) into ``grad`` sample by sample and mark their
-    rows: each row's sum runs over its taps in sample order, as ``_adam_taps`` sums them."""
-    c = grad.shape[1]
-    for s in range(rows.shape[0]):
-        for i in range(3):
-            for k in range(corners.shape[1]):
-                row = rows[s, i] + corners[i, k]
-                w = weights[s, i, k]
-                marks[row] = 1
-                for ch in range(c):
-                    grad[row, ch] += w * values[i, s, ch]
-
-
 _LOOPS = {ft: (compiled.jit(_marked_source(ft)), compiled.jit(_taps_source(ft))) for ft in (np.float32, np.float64)}
-_SCATTER_TAPS = compiled.jit(_scatter_taps)
 
 
 def _rows(t: Tensor) -> Tensor:
@@ -189,7 +169,7 @@ class RowSparseAdam(torch.optim.Optimizer):
         self._most_updates: int | None = None
         """A bound on any row's count of updates (from the state at the first step, plus one a step)."""
         self._row_buffers: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-        """``id(parameter)``: the gradient rows and marks of a small table (``SCATTER_ROWS``), zero
+        """``id(parameter)``: the gradient rows and marks of a small table (``table_gradients.SCATTER_ROWS``), zero
         between steps."""
 
     def set_row_source(self, param: nn.Parameter, source: TableGradient) -> None:
@@ -279,7 +259,7 @@ class RowSparseAdam(torch.optim.Optimizer):
 
     def _update_from_taps(self, p: Tensor, source: TableGradient, hyper: tuple) -> None:
         self._check(p)
-        if source.n_rows <= SCATTER_ROWS:
+        if source.n_rows <= table_gradients.SCATTER_ROWS:
             self._update_from_scattered_taps(p, source, hyper)
             return
         state = self._state_of(p)
@@ -311,9 +291,7 @@ class RowSparseAdam(torch.optim.Optimizer):
             buffer = (np.zeros(_rows(p).shape, ft), np.zeros(_rows(p).shape[0], np.uint8))
             self._row_buffers[id(p)] = buffer
         grad, marks = buffer
-        pending, source.pending = source.pending, []
-        for taps in pending:
-            _SCATTER_TAPS(grad, marks, taps.rows, taps.weights, taps.corners, taps.values)
+        source.scatter(grad, marks)
         use_l1 = source.l1_coefficients is not None
         adam_marked = _LOOPS[ft][0]
         source.l1_value = float(adam_marked(

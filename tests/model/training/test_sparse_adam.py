@@ -5,10 +5,11 @@ import numpy as np
 import pytest
 import torch
 
+from visnerf.representation import table_gradients
 from visnerf.representation.table_gradients import RowGradients, TableGradient
 from visnerf.representation.vm import VMGrid
 from visnerf.representation.vm_rows import GridRows
-from visnerf.training import sparse_adam
+from visnerf.training import row_priors
 from visnerf.training.regularizers import add_grid_l1_, add_grid_total_variation_
 from visnerf.training.row_priors import add_l1_at_marks, add_total_variation_at_marks, l1_coefficients
 from visnerf.training.sparse_adam import RowSparseAdam
@@ -97,9 +98,9 @@ def test_small_tables_taken_sample_by_sample_update_as_the_sorted_gather(monkeyp
     q = torch.rand(6, 4, generator=g)
     weights = torch.randn(300, 3 * 8 + 4 + 9, generator=g)
     results = []
-    default_rows = sparse_adam.SCATTER_ROWS
+    default_rows = table_gradients.SCATTER_ROWS
     for scatter_rows in (default_rows, 0):
-        monkeypatch.setattr(sparse_adam, "SCATTER_ROWS", scatter_rows)
+        monkeypatch.setattr(table_gradients, "SCATTER_ROWS", scatter_rows)
         torch.manual_seed(3)
         grid = VMGrid(8, (6, 7, 8), 0.5)
         grads = RowGradients.of(grid)
@@ -167,3 +168,46 @@ def test_every_mark_set_gives_the_dense_priors_value() -> None:
     assert add_l1_at_marks(grid, grads, 0.3) == pytest.approx(0.3 * float(grid.l1().detach()), rel=1e-12)
     assert add_total_variation_at_marks(grid, grads, 0.3) == pytest.approx(0.3 * float(grid.total_variation().detach()),
                                                                            rel=1e-12)
+
+
+@pytest.mark.parametrize("prior", [add_l1_at_marks, add_total_variation_at_marks], ids=["l1", "tv"])
+def test_grid_priors_at_marks_are_the_same_on_any_thread_count(prior, monkeypatch) -> None:  # noqa: ANN001
+    torch.manual_seed(2)
+    grid = VMGrid(4, (9, 10, 11), 0.5)
+    results = []
+    before = torch.get_num_threads()
+    try:
+        for threads, least in ((1, 10**9), (2, 4)):  # one part a table; parts of a few rows on two threads
+            torch.set_num_threads(threads)
+            monkeypatch.setattr(row_priors, "MIN_ROWS_A_PART", least)
+            grads = RowGradients.of(grid)
+            grads.plane.marks[::3] = 1
+            grads.line.marks[1::2] = 1
+            value = prior(grid, grads, 0.7)
+            results.append((value, grads.plane.buffer().clone(), grads.line.buffer().clone()))
+            grid.plane_table.grad = grid.line_table.grad = None
+    finally:
+        torch.set_num_threads(before)
+    (v1, p1, l1), (v2, p2, l2) = results
+    assert v1 == v2 and torch.equal(p1, p2) and torch.equal(l1, l2)
+    assert float(p1.abs().sum()) > 0.0
+
+
+def test_a_small_table_materialized_sample_by_sample_is_the_sorted_gather(monkeypatch: pytest.MonkeyPatch) -> None:
+    g = torch.Generator().manual_seed(6)
+    batches = [(torch.rand(400, 3, generator=g) * 1.8 - 0.9, torch.randint(0, 5, (400,), generator=g)) for _ in range(2)]
+    q = torch.rand(5, 4, generator=g)
+    weights = torch.randn(400, 3 * 8 + 4 + 9, generator=g)
+    results = []
+    for scatter_rows in (table_gradients.SCATTER_ROWS, 0):
+        monkeypatch.setattr(table_gradients, "SCATTER_ROWS", scatter_rows)
+        torch.manual_seed(4)
+        grid = VMGrid(8, (6, 7, 8), 0.5)
+        grads = RowGradients.of(grid)
+        for coords, ray in batches:  # two backwards: two pending parts a table
+            (GridRows(grid, grads).rows(coords, ray, q, n_freqs=1) * weights).sum().backward()
+        grads.materialize()
+        results.append([(t.buffer().clone(), t.marks.copy()) for t in grads.tables()])
+    for (grad_a, marks_a), (grad_b, marks_b) in zip(*results, strict=True):
+        assert torch.equal(grad_a, grad_b) and np.array_equal(marks_a, marks_b)
+        assert marks_a.sum() > 0 and float(grad_a.abs().sum()) > 0.0
