@@ -42,10 +42,15 @@ class Taps:
     def __len__(self) -> int:
         return self.plane_rows.shape[0]
 
-    def select(self, index: np.ndarray) -> "Taps":
-        """The taps of samples ``index``."""
-        return Taps(self.plane_rows[index], self.plane_weights[index], self.line_rows[index], self.line_weights[index],
-                    np.ascontiguousarray(self.plane_values[:, index]))
+    def select(self, index: Tensor) -> "Taps":
+        """The taps of samples ``index`` (int64), gathered by torch on every thread (numpy's fancy
+        indexing runs on one: 0.9 against 0.3 ms for the traced half of a Nyx step's samples)."""
+
+        def take(a: np.ndarray, dim: int = 0) -> np.ndarray:
+            return torch.from_numpy(a).index_select(dim, index).numpy()
+
+        return Taps(take(self.plane_rows), take(self.plane_weights), take(self.line_rows), take(self.line_weights),
+                    take(self.plane_values, 1))
 
 
 def _forward(rows: "GridRows", q: Tensor, coords: Tensor, ray: Tensor, tail: Tensor, n_freqs: int,
@@ -120,8 +125,7 @@ class _Selected(torch.autograd.Function):
     def backward(ctx, grad_out):  # noqa: ANN001, ANN205
         q, index = ctx.saved_tensors
         taken: TakenRows = ctx.taken
-        chosen = index.numpy()
-        grad_q = _backward(taken.grid_rows, q, taken.ray.index_select(0, index), taken.taps.select(chosen), grad_out)
+        grad_q = _backward(taken.grid_rows, q, taken.ray.index_select(0, index), taken.taps.select(index), grad_out)
         return grad_q, None, None, None, None
 
 

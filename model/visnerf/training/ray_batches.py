@@ -137,6 +137,8 @@ def micro_batches(per_ray: Int[Tensor, " n"], max_rays: int, max_samples: int) -
     backward pass's fixed work (a sort of its taps per table, the decoders' weight gradients), so
     fewer, fuller micro-batches are faster.
     """
+    if 0 < per_ray.shape[0] <= max_rays and int(per_ray.sum()) <= max_samples:
+        return [slice(0, per_ray.shape[0])]  # the common case, without a loop over the rays in Python
     counts = per_ray.tolist()
     slices, start, total = [], 0, 0
     for i, c in enumerate(counts):

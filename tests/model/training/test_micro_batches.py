@@ -103,6 +103,9 @@ def test_a_single_ray_above_the_sample_budget_is_a_micro_batch_of_its_own() -> N
     assert micro_batches(per_ray, 10, 20) == [slice(0, 1), slice(1, 2), slice(2, 6)]
     assert micro_batches(per_ray, 2, 10**6) == [slice(0, 2), slice(2, 4), slice(4, 6)]
     assert micro_batches(torch.zeros(0, dtype=torch.long), 4, 4) == []
+    assert micro_batches(per_ray, 6, 72) == [slice(0, 6)]  # everything fits: one micro-batch
+    assert micro_batches(per_ray, 6, 71) == [slice(0, 5), slice(5, 6)]
+    assert micro_batches(per_ray, 5, 72) == [slice(0, 5), slice(5, 6)]
 
 
 def test_windowed_positions_shade_like_positions_along_the_whole_box_span() -> None:
