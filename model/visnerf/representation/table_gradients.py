@@ -91,6 +91,7 @@ class TableGradient:
 
     def __post_init__(self) -> None:
         self.marks = np.zeros(self.table.shape[0], np.uint8)
+        self._counts: np.ndarray | None = None
 
     @property
     def n_rows(self) -> int:
@@ -124,7 +125,7 @@ class TableGradient:
         starts = np.empty(self.n_rows + 1, np.int64)
         taps = np.empty(rows.size * corners.shape[1], np.int64)
         tap_weights = np.empty(taps.shape[0], values.dtype)
-        tap_index(rows, weights, corners, self.n_rows, starts, taps, tap_weights)
+        tap_index(rows, weights, corners, self.n_rows, starts, taps, tap_weights, self._sort_counts())
         return TapIndex(starts, taps, tap_weights, values.reshape(3 * m, c))
 
     def scatter(self, grad: np.ndarray, marks: np.ndarray) -> None:
@@ -133,6 +134,13 @@ class TableGradient:
         pending, self.pending = self.pending, []
         for taps in pending:
             _scatter_loop(grad, marks, taps.rows, taps.weights, taps.corners, taps.values)
+
+    def _sort_counts(self) -> np.ndarray:
+        """Scratch counts of ``tap_index``, one row per thread, made once per table."""
+        threads = max(1, torch.get_num_threads())
+        if self._counts is None or self._counts.shape[0] < threads:
+            self._counts = np.zeros((threads, self.n_rows + 1), np.int64)
+        return self._counts
 
     def materialize(self) -> None:
         """Add the pending taps into the buffer and mark the rows they reach: a small table's

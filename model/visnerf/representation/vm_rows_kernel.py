@@ -179,33 +179,74 @@ def gather_loop(c: int, float_type: type):  # noqa: ANN201 - a numba dispatcher
 
 
 @no_type_check  # compiled by numba
-def _tap_index(rows, weights, corner_offsets, n_rows, starts, taps, tap_weights):  # noqa: ANN001, ANN202
+def _tap_counts(rows, corner_offsets, counts, first, stop):  # noqa: ANN001, ANN202
+    """``counts[row + 1]``: the taps of samples ``first <= s < stop`` that read table row ``row``
+    (tap ``(s, i, k)`` reads row ``rows[s, i] + corner_offsets[i, k]``); ``counts`` is zeroed here."""
+    counts[:] = 0
+    for s in range(first, stop):
+        for i in range(3):
+            for k in range(corner_offsets.shape[1]):
+                counts[rows[s, i] + corner_offsets[i, k] + 1] += 1
+
+
+@no_type_check
+def _tap_starts(counts, starts):  # noqa: ANN001, ANN202
+    """Each row's first tap over all parts (``starts``, ``n_rows + 1``), and in place of the counts
+    where each part's taps of that row begin (``counts[p, row]``): after the parts before it."""
+    total = 0
+    for row in range(starts.shape[0] - 1):
+        starts[row] = total
+        for p in range(counts.shape[0]):
+            n = counts[p, row + 1]  # this row's count; counts[p, row], the row before's, is read
+            counts[p, row] = total
+            total += n
+    starts[starts.shape[0] - 1] = total
+
+
+@no_type_check
+def _tap_place(rows, weights, corner_offsets, cursor, taps, tap_weights, first, stop):  # noqa: ANN001, ANN202
+    """The taps of samples ``first <= s < stop`` into ``taps`` (the flat index ``i * m + s``) and
+    ``tap_weights`` at their row's ``cursor``, in sample order."""
+    m = rows.shape[0]
+    for s in range(first, stop):
+        for i in range(3):
+            for k in range(corner_offsets.shape[1]):
+                row = rows[s, i] + corner_offsets[i, k]
+                at = cursor[row]
+                taps[at] = i * m + s
+                tap_weights[at] = weights[s, i, k]
+                cursor[row] = at + 1
+
+
+_tap_counts_loop = compiled.jit(_tap_counts)
+_tap_starts_loop = compiled.jit(_tap_starts)
+_tap_place_loop = compiled.jit(_tap_place)
+MIN_SAMPLES_A_SORT_PART = 4096
+"""Fewest samples worth a thread of their own in ``tap_index``."""
+
+
+def tap_index(rows: np.ndarray, weights: np.ndarray, corner_offsets: np.ndarray, n_rows: int, starts: np.ndarray,
+              taps: np.ndarray, tap_weights: np.ndarray, counts: np.ndarray) -> None:
     """Counting sort of the taps by table row: tap ``(s, i, k)`` reads row ``rows[s, i] +
     corner_offsets[i, k]`` with weight ``weights[s, i, k]``. Writes each row's first tap into
     ``starts`` (``n_rows + 1``) and the taps, row by row in sample order, into ``taps`` (the flat
-    index ``i * m + s``) and ``tap_weights``."""
+    index ``i * m + s``) and ``tap_weights``. The samples are counted and placed in consecutive
+    parts on every thread (``counts``: scratch of at least ``[threads, n_rows + 1]``); part ``p``'s
+    taps of a row follow those of the parts before it, so the order is sample order on any thread
+    count."""
     m = rows.shape[0]
-    corners = weights.shape[2]
-    counts = np.zeros(n_rows + 1, np.int64)
-    for s in range(m):
-        for i in range(3):
-            for k in range(corners):
-                counts[rows[s, i] + corner_offsets[i, k] + 1] += 1
-    for row in range(n_rows):
-        counts[row + 1] += counts[row]
-    for row in range(n_rows + 1):
-        starts[row] = counts[row]
-    for s in range(m):
-        for i in range(3):
-            for k in range(corners):
-                row = rows[s, i] + corner_offsets[i, k]
-                at = counts[row]
-                taps[at] = i * m + s
-                tap_weights[at] = weights[s, i, k]
-                counts[row] = at + 1
+    parts = min(compiled.parts(m, MIN_SAMPLES_A_SORT_PART), counts.shape[0])
 
+    def count(p: int) -> None:
+        _tap_counts_loop(rows, corner_offsets, counts[p], m * p // parts, m * (p + 1) // parts)
 
-tap_index = compiled.jit(_tap_index)
+    def place(p: int) -> None:
+        _tap_place_loop(rows, weights, corner_offsets, counts[p], taps, tap_weights, m * p // parts,
+                        m * (p + 1) // parts)
+
+    compiled.run_parts(count, parts)
+    _tap_starts_loop(counts[:parts], starts)
+    compiled.run_parts(place, parts)
 
 
 @functools.cache

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 
+from visnerf.representation import vm_rows_kernel
 from visnerf.representation.decoders import encode_position
 from visnerf.representation.field import modulate
 from visnerf.representation.table_gradients import RowGradients
@@ -76,3 +77,27 @@ def test_a_table_of_another_type_or_device_is_refused() -> None:
     with pytest.raises(ValueError, match="float32 or float64"):
         GridRows(VMGrid(4, (4, 4, 4), 0.5).half())
     assert np.float64 is GridRows(VMGrid(4, (4, 4, 4), 0.5).double()).float_type
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_the_taps_sorted_by_row_on_any_thread_count_are_a_stable_sort(threads: int, monkeypatch) -> None:  # noqa: ANN001
+    rng = np.random.default_rng(4)
+    m, n_rows = 3001, 97
+    corners = np.array([[0, 1, 9, 10], [0, 1, 7, 8], [0, 1, 5, 6]], np.int64)
+    rows = rng.integers(0, n_rows - 10, (m, 3))
+    weights = rng.random((m, 3, 4), dtype=np.float32)
+    monkeypatch.setattr(vm_rows_kernel, "MIN_SAMPLES_A_SORT_PART", 100)  # several parts where threads allow
+    starts, taps = np.empty(n_rows + 1, np.int64), np.empty(m * 12, np.int64)
+    tap_weights = np.empty(m * 12, np.float32)
+    before = torch.get_num_threads()
+    try:
+        torch.set_num_threads(threads)
+        vm_rows_kernel.tap_index(rows, weights, corners, n_rows, starts, taps, tap_weights, np.zeros((2, n_rows + 1), np.int64))
+    finally:
+        torch.set_num_threads(before)
+    s, i, k = np.meshgrid(np.arange(m), np.arange(3), np.arange(4), indexing="ij")  # taps in sample order
+    row_of = (rows[s, i] + corners[i, k]).ravel()
+    order = np.argsort(row_of, kind="stable")
+    assert np.array_equal(starts, np.concatenate([[0], np.cumsum(np.bincount(row_of, minlength=n_rows))]))
+    assert np.array_equal(taps, (i * m + s).ravel()[order])
+    assert np.array_equal(tap_weights, weights[s, i, k].ravel()[order])
