@@ -8,7 +8,7 @@ path, as every device but the CPU does.
 import os
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from typing import Any
+from typing import Any, TypeVar
 
 import torch
 
@@ -47,6 +47,7 @@ def jit(fn: Callable[..., Any], inline: bool = False, fastmath: set[str] | None 
 
 
 _helpers: "ThreadPoolExecutor | None" = None
+T = TypeVar("T")
 
 
 def parts(n: int, least: int) -> int:
@@ -70,3 +71,17 @@ def run_parts(fn: Callable[[int], None], parts: int) -> None:
     finally:
         for future in futures:
             future.result()
+
+
+def run_ranges(fn: Callable[[int, int], T], n: int, least: int) -> list[T]:
+    """``fn(start, stop)`` over consecutive ranges that cover ``range(n)`` in order, one per thread
+    with at least ``least`` items each (``parts``, ``run_parts``); returns each range's result in
+    range order, so that a caller that sums them sums in the same order on any thread count."""
+    count = parts(n, least)
+    results: list[Any] = [None] * count
+
+    def part(i: int) -> None:
+        results[i] = fn(n * i // count, n * (i + 1) // count)
+
+    run_parts(part, count)
+    return results

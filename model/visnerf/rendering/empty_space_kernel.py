@@ -148,11 +148,10 @@ def sample_windows(
     for start in range(0, n, RAYS_PER_CALL):
         raise_if_cancelled(cancel)
         rays = min(n, start + RAYS_PER_CALL) - start
-        parts = compiled.parts(rays, RAYS_PER_PART)
 
-        def part(i: int, start: int = start, rays: int = rays, parts: int = parts) -> None:
-            sl = slice(start + rays * i // parts, start + rays * (i + 1) // parts)
-            _compiled(*(a[sl] for a in arrays[:3]), step, *(a[sl] for a in arrays[3:]), int(near), *tables, of[sl], ol[sl])
+        def part(a: int, b: int, start: int = start) -> None:
+            sl = slice(start + a, start + b)
+            _compiled(*(x[sl] for x in arrays[:3]), step, *(x[sl] for x in arrays[3:]), int(near), *tables, of[sl], ol[sl])
 
-        compiled.run_parts(part, parts)
+        compiled.run_ranges(part, rays, RAYS_PER_PART)
     return out_first.to(first.dtype), out_last.to(last.dtype)

@@ -153,22 +153,12 @@ class TableGradient:
             return
         grad = self.buffer().numpy()
         loop = gather_loop(grad.shape[1], grad.dtype.type)
-        parts = row_parts(self.n_rows)
-
-        def part(i: int) -> None:
-            loop(grad, self.marks, index.starts, index.taps, index.weights, index.values,
-                 self.n_rows * i // parts, self.n_rows * (i + 1) // parts)
-
-        compiled.run_parts(part, parts)
+        compiled.run_ranges(lambda a, b: loop(grad, self.marks, index.starts, index.taps, index.weights,
+                                              index.values, a, b), self.n_rows, MIN_ROWS_A_PART)
 
     def mark_all(self) -> None:
         """Count every row as holding a gradient (a rank's or a prior's reached all of them)."""
         self.marks[:] = 1
-
-
-def row_parts(n_rows: int) -> int:
-    """Threads for a pass over ``n_rows`` table rows."""
-    return compiled.parts(n_rows, MIN_ROWS_A_PART)
 
 
 @dataclass

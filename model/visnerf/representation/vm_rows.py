@@ -65,12 +65,7 @@ def _forward(rows: "GridRows", q: Tensor, coords: Tensor, ray: Tensor, tail: Ten
     arrays = (_np(coords), _np(ray), _np(q), _np(tail), planes.detach().numpy(), lines.detach().numpy(),
               res, plane_off, line_off, n_freqs, out.numpy(), bool(save), taps.plane_rows, taps.plane_weights,
               taps.line_rows, taps.line_weights, taps.plane_values)
-    parts = compiled.parts(m, MIN_SAMPLES_A_PART)
-
-    def part(i: int) -> None:
-        forward(*arrays, m * i // parts, m * (i + 1) // parts)
-
-    compiled.run_parts(part, parts)
+    compiled.run_ranges(lambda a, b: forward(*arrays, a, b), m, MIN_SAMPLES_A_PART)
     return out, taps
 
 
@@ -84,17 +79,17 @@ def _backward(rows: "GridRows", q: Tensor, ray: Tensor, taps: Taps, grad_out: Te
     _, row_gradients = rows.loops(q.shape[1])
     planes, lines = rows.grid.row_tables()
     m, c = ray.shape[0], rows.n_components
-    parts = compiled.parts(m, MIN_SAMPLES_A_PART)
-    grad_q = [torch.zeros_like(q) for _ in range(parts)]
     grad_plane_value = np.empty((3, m, c), rows.float_type)
     grad_line_value = np.empty((3, m, c), rows.float_type)
     arrays = (_np(ray), _np(q), _np(grad_out.to(planes.dtype)), lines.detach().numpy(), taps.line_rows,
               taps.line_weights, taps.plane_values, grad_plane_value, grad_line_value)
 
-    def per_sample(i: int) -> None:
-        row_gradients(*arrays, grad_q[i].numpy(), m * i // parts, m * (i + 1) // parts)
+    def per_sample(a: int, b: int) -> Tensor:
+        grad_q = torch.zeros_like(q)  # one per range: the ranges' sums are added in range order
+        row_gradients(*arrays, grad_q.numpy(), a, b)
+        return grad_q
 
-    compiled.run_parts(per_sample, parts)
+    grad_q = compiled.run_ranges(per_sample, m, MIN_SAMPLES_A_PART)
     grads.plane.add(PendingTaps(taps.plane_rows, taps.plane_weights, rows.plane_corners, grad_plane_value))
     grads.line.add(PendingTaps(taps.line_rows, taps.line_weights, rows.line_corners, grad_line_value))
     return sum(grad_q[1:], grad_q[0])

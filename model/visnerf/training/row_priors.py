@@ -92,12 +92,7 @@ def add_l1_at_marks(grid: VMGrid, grads: RowGradients, weight: float) -> float:
         totals = np.zeros(n, np.float64)
         arrays = (table.table.detach().numpy(), table.buffer().numpy(), table.marks, table.part_starts.astype(np.int64),
                   l1_coefficients(table, weight), totals)
-        parts = compiled.parts(n, MIN_ROWS_A_PART)
-
-        def part(i: int, arrays: tuple = arrays, n: int = n, parts: int = parts) -> None:
-            _l1_loop(*arrays, n * i // parts, n * (i + 1) // parts)
-
-        compiled.run_parts(part, parts)
+        compiled.run_ranges(lambda a, b, arrays=arrays: _l1_loop(*arrays, a, b), n, MIN_ROWS_A_PART)
         total += float(totals.sum())
     return total
 
@@ -107,12 +102,9 @@ def _tv_at_marks(table: np.ndarray, grad: np.ndarray, marks: np.ndarray, start: 
     """``_tv_plane`` over all ``h`` lines of one plane, bands of lines on every thread; the value
     summed line by line in order, so the same on any thread count."""
     totals = np.zeros(h, np.float64)
-    parts = compiled.parts(h * w, MIN_ROWS_A_PART)
-
-    def part(i: int) -> None:
-        _tv_plane_loop(table, grad, marks, start, h, w, scale_y, scale_x, totals, h * i // parts, h * (i + 1) // parts)
-
-    compiled.run_parts(part, parts)
+    lines_a_band = -(-MIN_ROWS_A_PART // w)  # bands of at least MIN_ROWS_A_PART rows
+    compiled.run_ranges(lambda a, b: _tv_plane_loop(table, grad, marks, start, h, w, scale_y, scale_x, totals, a, b),
+                        h, lines_a_band)
     return float(totals.sum())
 
 

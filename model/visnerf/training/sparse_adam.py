@@ -29,7 +29,7 @@ from torch import Tensor, nn
 
 from visnerf import compiled
 from visnerf.representation import table_gradients
-from visnerf.representation.table_gradients import TableGradient, TapIndex, row_parts
+from visnerf.representation.table_gradients import MIN_ROWS_A_PART, TableGradient, TapIndex
 
 _FLOAT_TYPES = {torch.float32: np.float32, torch.float64: np.float64}
 _NO_MARKS = np.zeros(1, np.uint8)
@@ -249,13 +249,7 @@ class RowSparseAdam(torch.optim.Optimizer):
                   _rows(state["exp_avg_sq"]).numpy(), state["step"].numpy(), _NO_MARKS if marks is None else marks,
                   marks is not None, _NO_PARTS, _NO_COEFFICIENTS, False, *hyper)
         loop = _LOOPS[_FLOAT_TYPES[p.dtype]][0]
-        rows = _rows(p).shape[0]
-        parts = row_parts(rows)
-
-        def part(i: int) -> None:
-            loop(*arrays, rows * i // parts, rows * (i + 1) // parts)
-
-        compiled.run_parts(part, parts)
+        compiled.run_ranges(lambda a, b: loop(*arrays, a, b), _rows(p).shape[0], MIN_ROWS_A_PART)
 
     def _update_from_taps(self, p: Tensor, source: TableGradient, hyper: tuple) -> None:
         self._check(p)
@@ -270,14 +264,7 @@ class RowSparseAdam(torch.optim.Optimizer):
                   source.part_starts.astype(np.int64), source.l1_coefficients if use_l1 else _NO_COEFFICIENTS,
                   use_l1, *hyper)
         loop = _LOOPS[_FLOAT_TYPES[p.dtype]][1]
-        rows = _rows(p).shape[0]
-        parts = row_parts(rows)
-        totals = [0.0] * parts
-
-        def part(i: int) -> None:
-            totals[i] = loop(*arrays, rows * i // parts, rows * (i + 1) // parts)
-
-        compiled.run_parts(part, parts)
+        totals = compiled.run_ranges(lambda a, b: loop(*arrays, a, b), _rows(p).shape[0], MIN_ROWS_A_PART)
         source.l1_value = float(sum(totals))
 
     def _update_from_scattered_taps(self, p: Tensor, source: TableGradient, hyper: tuple) -> None:
