@@ -147,6 +147,23 @@ def _row_gradients_source(c: int, n_q: int, ft: type):  # noqa: ANN202 - the loo
     return _row_gradients
 
 
+@no_type_check  # compiled by numba, inlined into the loops that sum a row's taps
+def _sum_taps(acc, c, a, b, taps, tap_weights, values):  # noqa: ANN001, ANN202
+    """``acc[:c] = sum_t tap_weights[t] * values[taps[t]]`` over taps ``a <= t < b`` (a table row's,
+    in sample order): the one sum of a row's taps, so that a gradient gathered into the table and
+    the sparse Adam's update from the same taps add them alike."""
+    for ch in range(c):
+        acc[ch] = 0
+    for t in range(a, b):
+        w = tap_weights[t]
+        k = taps[t]
+        for ch in range(c):
+            acc[ch] += w * values[k, ch]
+
+
+sum_taps = compiled.jit(_sum_taps, inline=True)
+
+
 def _gather_source(c: int, ft: type):  # noqa: ANN202 - the loop numba compiles
     @no_type_check
     def _gather_gradients(grad_table, marks, starts, taps, tap_weights, grad_values, first, stop):  # noqa: ANN001, ANN202
@@ -158,13 +175,7 @@ def _gather_source(c: int, ft: type):  # noqa: ANN202 - the loop numba compiles
             a, b = starts[row], starts[row + 1]
             if a == b:
                 continue
-            for ch in range(c):
-                acc[ch] = 0
-            for t in range(a, b):
-                w = tap_weights[t]
-                k = taps[t]
-                for ch in range(c):
-                    acc[ch] += w * grad_values[k, ch]
+            sum_taps(acc, c, a, b, taps, tap_weights, grad_values)
             for ch in range(c):
                 grad_table[row, ch] += acc[ch]
             marks[row] = 1

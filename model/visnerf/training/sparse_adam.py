@@ -30,6 +30,7 @@ from torch import Tensor, nn
 from visnerf import compiled
 from visnerf.representation import table_gradients
 from visnerf.representation.table_gradients import MIN_ROWS_A_PART, TableGradient, TapIndex
+from visnerf.representation.vm_rows_kernel import sum_taps
 
 _FLOAT_TYPES = {torch.float32: np.float32, torch.float64: np.float64}
 _NO_MARKS = np.zeros(1, np.uint8)
@@ -131,13 +132,7 @@ def _taps_source(ft: type):  # noqa: ANN202 - the loop numba compiles for float 
             a, b = starts[row], starts[row + 1]
             if a == b:
                 continue
-            for ch in range(c):
-                g[ch] = 0
-            for t in range(a, b):
-                w = tap_weights[t]
-                k = taps[t]
-                for ch in range(c):
-                    g[ch] += w * values[k, ch]
+            sum_taps(g, c, a, b, taps, tap_weights, values)
             if use_l1:
                 part, value = row_l1(param, row, g, l1, part_starts, part)
                 total += value
