@@ -1,5 +1,6 @@
 """Random ray batches made on the fly from uint8 images (no per-pixel ray storage)."""
 
+import math
 from dataclasses import dataclass
 
 import torch
@@ -44,11 +45,23 @@ def silhouette_pixels(
     return torch.cat(out) if out else torch.zeros(0, dtype=torch.long)
 
 
+REDRAW_MARGIN = 1.25
+"""Candidates a redraw round draws, over the count its share of hits would need: a round falls
+short of the missing rays only rarely (the next round then draws for the rest)."""
+MIN_HIT_SHARE = 0.05
+"""The least share of hits a redraw round assumes, so that a box hardly any ray hits does not
+draw twenty times the batch."""
+
+
 class RayBatchSampler:
     """Uniformly random pixels of random frames; rays that miss ``aabb`` are redrawn.
 
     Missing the content box means the pixel can only show the background, which the box already
-    guarantees, so such rays are filtered (up to ``max_redraws`` rounds). With a silhouette band
+    guarantees, so such rays are filtered (up to ``max_redraws`` rounds). A round draws enough
+    candidates for the rays still missing at the share of hits seen so far (``REDRAW_MARGIN``) and
+    gives each missing ray the next hit in draw order: rejection sampling, so the kept rays are
+    uniform over the pixels whose rays hit, in one or two rounds where a round per share of misses
+    cost a few dispatches of a dozen operations each. With a silhouette band
     (``set_silhouette_band``), a fixed share of each batch is drawn uniformly from the band's pixels
     instead: an emphasis, not an unbiased estimate, on the pixels where an opaque surface's error lies.
     """
@@ -85,18 +98,27 @@ class RayBatchSampler:
     def _pixel_rays(self, frame: Tensor, px: Tensor, py: Tensor) -> tuple[Tensor, Tensor]:
         """Rays through the centres of pixels (px, py) of these frames."""
         s = self.scene
-        return rays_from_pixels(s.c2w[frame], s.intrinsics, px.float() + 0.5, py.float() + 0.5)
+        return rays_from_pixels(s.c2w.index_select(0, frame), s.intrinsics, px.float() + 0.5, py.float() + 0.5)
 
     def _hits(self, rays_o: Tensor, rays_d: Tensor) -> Tensor:
         if self.aabb is None:
             return torch.ones(rays_o.shape[0], dtype=torch.bool)
         return intersect_aabb(rays_o, rays_d, self.aabb)[2]
 
+    def _pixels(self, frame: Tensor, px: Tensor, py: Tensor) -> Tensor:
+        """The images' colours at these pixels, ``[n, 3]`` uint8 (``index_select`` on the flat
+        pixels: advanced indexing costs several times as much a call on the CPU)."""
+        images = self.scene.images
+        if not images.is_contiguous():
+            return images[frame, py, px]
+        _, h, w, c = images.shape
+        return images.view(-1, c).index_select(0, (frame * h + py) * w + px)
+
     def _draw_band(self, n: int) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
         assert self.band is not None
         s = self.scene
         h, w = s.intrinsics.height, s.intrinsics.width
-        flat = self.band[torch.randint(0, self.band.numel(), (n,), generator=self.generator)]
+        flat = self.band.index_select(0, torch.randint(0, self.band.numel(), (n,), generator=self.generator))
         frame, pixel = flat // (h * w), flat % (h * w)
         py, px = pixel // w, pixel % w
         return frame, px, py, *self._pixel_rays(frame, px, py)
@@ -104,23 +126,28 @@ class RayBatchSampler:
     def sample(self, n: int, max_redraws: int = 4) -> RayBatch:
         n_band = min(int(round(self.band_fraction * n)), n - 1) if self.band is not None else 0
         frame, px, py, rays_o, rays_d, hit = self._draw(n - n_band)
+        drawn, hits = hit.numel(), int(hit.sum())
         for _ in range(max_redraws):
             miss = (~hit).nonzero()[:, 0]
             if miss.numel() == 0:
                 break
-            f2, x2, y2, o2, d2, h2 = self._draw(miss.numel())
-            frame[miss], px[miss], py[miss] = f2, x2, y2
-            rays_o[miss], rays_d[miss], hit[miss] = o2, d2, h2
+            share = max(hits / max(drawn, 1), MIN_HIT_SHARE)
+            f2, x2, y2, o2, d2, h2 = self._draw(math.ceil(miss.numel() / share * REDRAW_MARGIN))
+            drawn, hits = drawn + h2.numel(), hits + int(h2.sum())
+            take = h2.nonzero()[: miss.numel(), 0]  # the first hits, in draw order
+            slots = miss[: take.numel()]
+            for into, source in ((frame, f2), (px, x2), (py, y2), (rays_o, o2), (rays_d, d2), (hit, h2)):
+                into.index_copy_(0, slots, source.index_select(0, take))
         if n_band > 0:  # kept even where a ray misses the box: background beside content
             fb, xb, yb, ob, db = self._draw_band(n_band)
             frame, px, py = torch.cat([frame, fb]), torch.cat([px, xb]), torch.cat([py, yb])
             rays_o, rays_d = torch.cat([rays_o, ob]), torch.cat([rays_d, db])
-        rgb = self.scene.images[frame, py, px].float() / 255.0  # [n, 3]
+        rgb = self._pixels(frame, px, py).float() / 255.0
         return RayBatch(
             rays_o.to(self.device),
             rays_d.to(self.device),
             rgb.to(self.device),
-            self.params_norm[frame].to(self.device),
+            self.params_norm.index_select(0, frame).to(self.device),
             frame, px, py,
         )
 

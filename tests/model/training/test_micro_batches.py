@@ -66,7 +66,7 @@ def test_micro_batched_gradients_equal_the_whole_batch_when_chunks_count_occupie
     monkeypatch: pytest.MonkeyPatch, fused: bool
 ) -> None:
     _assert_same_step(_gradients(10_000, 10**9, monkeypatch, _occupied_ball(), fused),
-                      _gradients(10_000, 40, monkeypatch, _occupied_ball(), fused))
+                      _gradients(10_000, 25, monkeypatch, _occupied_ball(), fused))  # a few samples a chunk: > 3 chunks
 
 
 def test_micro_batches_hold_the_samples_each_ray_evaluates_within_both_budgets() -> None:
