@@ -68,25 +68,29 @@ def _place_source(ft: type):  # noqa: ANN202 - the loop numba compiles for float
         ``use_occupancy``) into ``out_points`` / ``out_ray``; ``offsets[r + 1]`` their running count."""
         m = 0
         offsets[0] = 0
+        n0, n1, n2 = int(res[0]), int(res[1]), int(res[2])
         for r in range(origins.shape[0]):
             if hit[r]:
+                o0, o1, o2 = origins[r, 0], origins[r, 1], origins[r, 2]  # the ray's, read once
+                d0, d1, d2 = directions[r, 0], directions[r, 1], directions[r, 2]
+                near, far, u = t_near[r], t_far[r], jitter[r]
                 for i in range(start[r], stop[r] + 1):
-                    t = t_near[r] + step * (ft(i) + jitter[r])
-                    if not t < t_far[r]:
+                    t = near + step * (ft(i) + u)
+                    if not t < far:
                         break
-                    p0 = origins[r, 0] + directions[r, 0] * t
-                    p1 = origins[r, 1] + directions[r, 1] * t
-                    p2 = origins[r, 2] + directions[r, 2] * t
+                    p0 = o0 + d0 * t
+                    p1 = o1 + d1 * t
+                    p2 = o2 + d2 * t
                     if use_occupancy:
                         r0 = (p0 - lower[0]) / extent[0]
                         r1 = (p1 - lower[1]) / extent[1]
                         r2 = (p2 - lower[2]) / extent[2]
                         if not (r0 >= 0 and r0 <= 1 and r1 >= 0 and r1 <= 1 and r2 >= 0 and r2 <= 1):
                             continue
-                        i0 = min(max(int(r0 * res[0]), 0), int(res[0]) - 1)
-                        i1 = min(max(int(r1 * res[1]), 0), int(res[1]) - 1)
-                        i2 = min(max(int(r2 * res[2]), 0), int(res[2]) - 1)
-                        if occupied[(i0 * int(res[1]) + i1) * int(res[2]) + i2] == 0:
+                        i0 = min(max(int(r0 * res[0]), 0), n0 - 1)
+                        i1 = min(max(int(r1 * res[1]), 0), n1 - 1)
+                        i2 = min(max(int(r2 * res[2]), 0), n2 - 1)
+                        if occupied[(i0 * n1 + i1) * n2 + i2] == 0:
                             continue
                     out_points[m, 0] = p0
                     out_points[m, 1] = p1

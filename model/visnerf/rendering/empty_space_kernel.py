@@ -39,12 +39,14 @@ def available(device: torch.device) -> bool:
 @no_type_check  # compiled by numba
 def _flat_cell(cells, last_cell, strides):  # noqa: ANN001, ANN202
     """Flat index of the cell holding continuous cell coordinates ``cells`` (a 3-tuple), clamped
-    to the grid: ``EmptySpace.cell_index`` in the compiled loops (the walk and ``march_kernel``)."""
-    flat = 0
-    for a in range(3):
-        whole = min(max(math.floor(cells[a]), np.float32(0.0)), last_cell[a])
-        flat += int(whole) * strides[a]
-    return flat
+    to the grid: ``EmptySpace.cell_index`` in the compiled loops (the walk and ``march_kernel``).
+    Floored and clamped in float32, as there (``math.floor`` gives an integer, and the mixed
+    comparisons after it cost a placing loop half its time)."""
+    zero = np.float32(0.0)
+    x = min(max(np.floor(cells[0]), zero), last_cell[0])
+    y = min(max(np.floor(cells[1]), zero), last_cell[1])
+    z = min(max(np.floor(cells[2]), zero), last_cell[2])
+    return int(x) * strides[0] + int(y) * strides[1] + int(z) * strides[2]
 
 
 @no_type_check
@@ -66,7 +68,7 @@ def _first_near(o, d, tn, step, u, bound, sign, near, distance, lower, cpu, last
         reach = f32(k) - one - f32(near)
         for a in range(3):
             vel = d[a] * f32(sign) * cpu[a]
-            cell = f32(math.floor(cells[a]))
+            cell = np.floor(cells[a])
             if vel > 0:
                 gap = cell + one + reach - cells[a]
             else:

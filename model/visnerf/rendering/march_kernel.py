@@ -44,16 +44,17 @@ def _place(origins, directions, t_near, t_far, first, last, s0, seg, step64, use
     half = np.float32(0.5)
     m = 0
     for r in range(origins.shape[0]):
-        for j in range(seg):
-            i = first[r] + s0 + j
-            if i > last[r]:
+        o0, o1, o2 = origins[r, 0], origins[r, 1], origins[r, 2]  # the ray's, read once
+        d0, d1, d2 = directions[r, 0], directions[r, 1], directions[r, 2]
+        near, far = t_near[r], t_far[r]
+        base = first[r] + s0
+        for j in range(min(seg, last[r] - base + 1)):
+            t = near + step * (np.float32(base + j) + half)
+            if not t < far:
                 break
-            t = t_near[r] + step * (np.float32(i) + half)
-            if not t < t_far[r]:
-                break
-            p0 = origins[r, 0] + directions[r, 0] * t
-            p1 = origins[r, 1] + directions[r, 1] * t
-            p2 = origins[r, 2] + directions[r, 2] * t
+            p0 = o0 + d0 * t
+            p1 = o1 + d1 * t
+            p2 = o2 + d2 * t
             if use_occupancy:
                 cells = ((p0 - lower[0]) * cpu[0], (p1 - lower[1]) * cpu[1], (p2 - lower[2]) * cpu[2])
                 if occupied[flat_cell(cells, last_cell, strides)] == 0:
