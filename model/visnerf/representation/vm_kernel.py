@@ -51,8 +51,8 @@ def axis_loop(ft: type):  # noqa: ANN202 - an inlined numba helper
             x = one
         half = ft(0.5) * ft(n - 1)
         pos = half * x + half
-        lo = min(math.floor(pos), n - 2)
-        return np.uint64(lo), pos - ft(lo)
+        lo = min(np.floor(pos), ft(n - 2))  # in ``ft``: no round trip through an integer
+        return np.uint64(lo), pos - lo
 
     return compiled.jit(_axis, inline=True)
 
