@@ -60,8 +60,8 @@ class RayBatchSampler:
     guarantees, so such rays are filtered (up to ``max_redraws`` rounds). A round draws enough
     candidates for the rays still missing at the share of hits seen so far (``REDRAW_MARGIN``) and
     gives each missing ray the next hit in draw order: rejection sampling, so the kept rays are
-    uniform over the pixels whose rays hit, in one or two rounds where a round per share of misses
-    cost a few dispatches of a dozen operations each. With a silhouette band
+    uniform over the pixels whose rays hit, and a round's fixed cost is paid once or twice a batch
+    rather than once per share of misses. With a silhouette band
     (``set_silhouette_band``), a fixed share of each batch is drawn uniformly from the band's pixels
     instead: an emphasis, not an unbiased estimate, on the pixels where an opaque surface's error lies.
     """
