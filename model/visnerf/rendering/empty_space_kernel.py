@@ -2,8 +2,8 @@
 
 The torch walk (``EmptySpace.walk``) moves every ray one jump per round in a batch: about twenty
 small tensor operations a round for up to ``MAX_JUMPS`` rounds, a fixed cost that dominated the
-walk. Here each ray walks from its first sample up and from its last sample down in plain loops,
-with the same arithmetic in float32 (the cell of a lattice sample is computed exactly as
+walk. Here each ray walks from its first sample up and from its last sample down in one plain loop,
+the two walks taking turns, with the same arithmetic in float32 (the cell of a lattice sample is computed exactly as
 ``EmptySpace.occupied_at`` does), and without a cap on the jumps: every ray's window ends at its
 first and last sample in a cell within ``near`` cells of an occupied one, which the torch walk
 reaches only when its jumps do not run out. The loop releases the GIL.
@@ -49,63 +49,97 @@ def _flat_cell(cells, last_cell, strides):  # noqa: ANN001, ANN202
     return int(x) * strides[0] + int(y) * strides[1] + int(z) * strides[2]
 
 
+WALKING, FOUND, LEFT = 0, 1, 2
+"""What one probe of a walk finds: go on from the next index, this index is near content, or the
+ray leaves the grid (or its path is not finite) before any."""
+
+
 @no_type_check
-def _first_near(o, d, tn, step, u, bound, sign, near, distance, lower, cpu, last_cell, strides):  # noqa: ANN001, ANN202
-    """From lattice index ``sign * u`` (``u`` grows), the first index whose cell is within
-    ``near`` cells of content, or an index past ``sign * bound`` where there is none."""
+def _probe(o, d, tn, step, inv_step, inv_speed, u, sign, near, distance, lower, cpu, last_cell, strides):  # noqa: ANN001, ANN202
+    """One probe of a walk at lattice index ``sign * u`` (``u`` grows): ``(FOUND, u)`` where its
+    cell is within ``near`` cells of content, else ``(WALKING, next u)`` past the cells that are not,
+    or ``(LEFT, u)``. ``inv_speed[a]``: cells crossed per unit of ``t`` along axis ``a``, inverted
+    (0 where the ray does not move along it)."""
     f32 = np.float32
     one = f32(1.0)
-    while u <= bound:
-        t = tn + step * (f32(sign * u) + f32(0.5))
-        exit_t = f32(np.inf)
-        c0 = (o[0] + d[0] * t - lower[0]) * cpu[0]
-        c1 = (o[1] + d[1] * t - lower[1]) * cpu[1]
-        c2 = (o[2] + d[2] * t - lower[2]) * cpu[2]
-        cells = (c0, c1, c2)
-        k = distance[flat_cell(cells, last_cell, strides)]
-        if k <= near:
-            return sign * u
-        reach = f32(k) - one - f32(near)
-        for a in range(3):
-            vel = d[a] * f32(sign) * cpu[a]
+    t = tn + step * (f32(sign * u) + f32(0.5))
+    c0 = (o[0] + d[0] * t - lower[0]) * cpu[0]
+    c1 = (o[1] + d[1] * t - lower[1]) * cpu[1]
+    c2 = (o[2] + d[2] * t - lower[2]) * cpu[2]
+    cells = (c0, c1, c2)
+    k = distance[flat_cell(cells, last_cell, strides)]
+    if k <= near:
+        return FOUND, u
+    reach = f32(k) - one - f32(near)
+    exit_t = f32(np.inf)
+    for a in range(3):
+        if inv_speed[a] > 0:
             cell = np.floor(cells[a])
-            if vel > 0:
+            if d[a] * f32(sign) > 0:
                 gap = cell + one + reach - cells[a]
             else:
                 gap = cells[a] - cell + reach
-            speed = abs(vel)
-            if speed > 0:
-                exit_t = min(exit_t, gap / speed)
-        jump = f32(u) + exit_t / step - f32(GUARD)
-        if not jump < f32(2.0**40):  # the ray leaves the grid along its path (or is not finite)
-            return sign * (bound + 1)
-        u = max(math.ceil(jump), u + 1)  # at least one sample on
-    return sign * u
+            exit_t = min(exit_t, gap * inv_speed[a])
+    jump = f32(u) + exit_t * inv_step - f32(GUARD)
+    if not jump < f32(2.0**40):
+        return LEFT, u
+    return WALKING, max(math.ceil(jump), u + 1)  # at least one sample on
 
 
 @no_type_check
 def _windows(rays_o, rays_d, t_near, step64, first, last, near, distance, lower, cpu, last_cell, strides,  # noqa: ANN001, ANN202
              out_first, out_last):
     """Each ray's window ``[first, last]`` narrowed to its samples near content (``first > last``:
-    none) into ``out_first``, ``out_last``."""
-    step = np.float32(step64)
+    none) into ``out_first``, ``out_last``. The walk up from ``first`` and the walk down from
+    ``last`` take turns in one loop: each probe waits on the one before it, and two independent
+    walks let the core overlap them. The walk down stops at the sample the walk up found."""
+    f32 = np.float32
+    step = f32(step64)
+    inv_step = f32(1.0) / step
+    inv_speed = np.empty(3, f32)
     for r in range(rays_o.shape[0]):
         lo, hi = first[r], last[r]
         if lo > hi:
             out_first[r], out_last[r] = lo, hi
             continue
         o, d, tn = rays_o[r], rays_d[r], t_near[r]
-        a = first_near(o, d, tn, step, lo, hi, 1, near, distance, lower, cpu, last_cell, strides)
-        if a > hi:  # nothing near content: an empty window
-            out_first[r], out_last[r] = a, hi
-            continue
-        # down from the last sample; the walk up found content, so this one stops at or above ``a``
-        b = first_near(o, d, tn, step, -hi, -a, -1, near, distance, lower, cpu, last_cell, strides)
-        out_first[r], out_last[r] = a, b
+        for a in range(3):
+            speed = abs(d[a] * cpu[a])
+            inv_speed[a] = f32(1.0) / speed if speed > 0 else f32(0.0)
+        up, down = lo, -hi  # the walk down counts ``-index`` up to ``down_bound``
+        down_bound = -lo
+        up_state, down_state = WALKING, WALKING
+        while up_state == WALKING or down_state == WALKING:
+            if up_state == WALKING:
+                up_state, nxt = probe(o, d, tn, step, inv_step, inv_speed, up, 1, near, distance, lower, cpu,
+                                      last_cell, strides)
+                if up_state == FOUND:
+                    down_bound = -up
+                elif up_state == LEFT or nxt > hi:  # nothing near content: an empty window
+                    up = hi + 1 if up_state == LEFT else nxt
+                    up_state = LEFT
+                    break
+                else:
+                    up = nxt
+            if down_state == WALKING:
+                if down > down_bound:
+                    down_state = LEFT
+                else:
+                    down_state, nxt = probe(o, d, tn, step, inv_step, inv_speed, down, -1, near, distance, lower, cpu,
+                                            last_cell, strides)
+                    if down_state == WALKING:
+                        down = nxt
+        out_first[r] = up
+        if up_state == LEFT:
+            out_last[r] = hi
+        elif down_state == LEFT:  # the walk down passed the walk up's sample (float rounding): empty
+            out_last[r] = up - 1
+        else:
+            out_last[r] = -down
 
 
 flat_cell = compiled.jit(_flat_cell, inline=True)
-first_near = compiled.jit(_first_near, inline=True)
+probe = compiled.jit(_probe, inline=True)
 _compiled = compiled.jit(_windows)
 
 
