@@ -27,7 +27,7 @@ from visnerf.representation.field import VisNerfField
 from visnerf.representation.table_gradients import TableGradient
 from visnerf.representation.training_field import TrainingField
 from visnerf.training.ray_batches import micro_batches
-from visnerf.training.regularizers import RegularizerWeights, regularization
+from visnerf.training.regularizers import RegularizerWeights, backward_param_priors
 from visnerf.training.row_priors import add_l1_at_marks, add_total_variation_at_marks, l1_coefficients
 from visnerf.training.sparse_adam import RowSparseAdam
 
@@ -132,10 +132,7 @@ class FusedStep:
         if weights.tv_appearance > 0:
             values["tv_appearance"] = add_total_variation_at_marks(self.field.appearance_grid, appearance_grads,
                                                                    weights.tv_appearance)
-        rest = regularization(self.field, RegularizerWeights(0.0, weights.param_l1, 0.0, 0.0, weights.tv_params))
-        if rest:
-            sum(rest.values()).backward()
-            values.update({k: float(v.detach()) for k, v in rest.items()})
+        values.update(backward_param_priors(self.field, weights.param_l1, weights.tv_params))
         return values
 
     def after_step(self) -> dict[str, float]:

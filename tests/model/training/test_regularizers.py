@@ -9,6 +9,7 @@ from visnerf.training.regularizers import (
     RegularizerWeights,
     add_grid_l1_,
     add_grid_total_variation_,
+    add_param_priors_,
     backward_regularization,
     regularization,
 )
@@ -81,3 +82,31 @@ def test_a_grid_one_node_wide_along_an_axis_has_no_difference_there() -> None:
     value = add_grid_total_variation_(grid, 1.0)
     assert torch.isfinite(value)
     torch.testing.assert_close(value, _tv_reference(grid).detach(), rtol=1e-5, atol=0)
+
+
+@pytest.mark.parametrize("axes", [[("a", [0.0, 0.5, 1.0]), ("b", [1.0, 2.0]), ("c", [4.0])], []])
+def test_the_parameter_terms_in_closed_form_equal_autograds(axes) -> None:  # noqa: ANN001
+    """A single-value axis has no difference; no axis, no term; the gradient adds to what is there."""
+    def field():  # noqa: ANN202
+        f, _ = make_tiny_field(axes, seed=4, resolution=5)
+        gen = torch.Generator().manual_seed(9)
+        with torch.no_grad():
+            for table in [*f.density_params.tables, *f.appearance_params.tables]:
+                table.add_(0.2 * torch.randn(table.shape, generator=gen))
+                table.grad = torch.full_like(table, 0.25)
+            if axes:
+                f.appearance_params.tables[0][0, 0] = 1.0  # sign(0) = 0, as autograd's subgradient of |1 - w|
+        return f
+
+    reference = field()
+    expected_values = regularization(reference, RegularizerWeights(0.0, 2e-3, 0.0, 0.0, 0.05))
+    if expected_values:
+        sum(expected_values.values()).backward()
+    got = field()
+    values = add_param_priors_(got, 2e-3, 0.05)
+    assert values.keys() == expected_values.keys() == ({"param_l1", "tv_params"} if axes else set())
+    for k, v in values.items():
+        assert v == pytest.approx(float(expected_values[k]), rel=1e-6)
+    for a, b in zip(got.parameters(), reference.parameters(), strict=True):
+        if b.grad is not None:
+            torch.testing.assert_close(a.grad, b.grad, rtol=1e-6, atol=1e-9)
