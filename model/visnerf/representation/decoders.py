@@ -107,7 +107,8 @@ class Decoder(nn.Module):
         if self.bf16 and x.device.type in ("cpu", "cuda"):
             n = x.shape[0]
             if x.device.type == "cpu":  # a few shapes for oneDNN's bf16 kernels (``padded_rows``)
-                padded = x.new_zeros((padded_rows(n), x.shape[1]), dtype=torch.bfloat16)
+                padded = x.new_empty((padded_rows(n), x.shape[1]), dtype=torch.bfloat16)
+                padded[n:].zero_()
                 padded[:n] = x  # cast once, into the padded rows (autocast would cast a padded copy)
                 x = padded
             with torch.autocast(x.device.type, dtype=torch.bfloat16):
