@@ -2,11 +2,11 @@
 
 The torch walk (``EmptySpace.walk``) moves every ray one jump per round in a batch: about twenty
 small tensor operations a round for up to ``MAX_JUMPS`` rounds, a fixed cost that dominated the
-walk. Here each ray walks from its first sample up and from its last sample down in one plain loop,
-the two walks taking turns, with the same arithmetic in float32 (the cell of a lattice sample is computed exactly as
-``EmptySpace.occupied_at`` does), and without a cap on the jumps: every ray's window ends at its
-first and last sample in a cell within ``near`` cells of an occupied one, which the torch walk
-reaches only when its jumps do not run out. The loop releases the GIL.
+walk. Here each ray walks from its first sample up and from its last sample down, the two walks
+taking turns in one plain loop, with the same arithmetic in float32 (the cell of a lattice sample
+is computed exactly as ``EmptySpace.occupied_at`` does), and without a cap on the jumps: every
+ray's window ends at its first and last sample in a cell within ``near`` cells of an occupied one,
+which the torch walk reaches only when its jumps do not run out. The loop releases the GIL.
 """
 
 import math

@@ -92,8 +92,8 @@ def add_param_priors_(field: VisNerfField, param_l1: float, tv_params: float) ->
     """The parameter-vector terms of ``regularization`` (``param_l1``, ``tv_params``: their values),
     their gradients added into the tables' ``.grad`` in closed form: ``sign(w - 1) / (T n)`` for the
     mean distance to one, ``2 d / (T' n_d)`` into ``w[i + 1]`` and out of ``w[i]`` for the mean
-    squared difference ``d``. A few hundred values: numpy on the tables in place of autograd's
-    graph, which cost as much as a small batch's shading."""
+    squared difference ``d``. Numpy on the tables: for a few hundred values, autograd's graph of
+    small operations costs many times the arithmetic."""
     values: dict[str, float] = {}
     if field.cfg.n_params == 0:
         return values
