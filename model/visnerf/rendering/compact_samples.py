@@ -141,7 +141,7 @@ def place_compact(
     ray = torch.empty(bound, dtype=torch.int64)
     offsets = torch.empty(rays_o.shape[0] + 1, dtype=torch.int64)
     use = occupancy is not None
-    grid = occupancy.reshape(-1).to(torch.uint8) if use else torch.zeros(1, dtype=torch.uint8)
+    grid = occupancy.reshape(-1).view(torch.uint8) if use else torch.zeros(1, dtype=torch.uint8)  # bool bytes, no copy
     res = torch.tensor(occupancy.shape if use else (1, 1, 1), dtype=dtype)
     extent = (aabb[1] - aabb[0]).clamp_min(torch.finfo(dtype).eps).to(dtype)
     ft = np.float32 if dtype == torch.float32 else np.float64
