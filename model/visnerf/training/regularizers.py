@@ -92,8 +92,9 @@ def add_param_priors_(field: VisNerfField, param_l1: float, tv_params: float) ->
     """The parameter-vector terms of ``regularization`` (``param_l1``, ``tv_params``: their values),
     their gradients added into the tables' ``.grad`` in closed form: ``sign(w - 1) / (T n)`` for the
     mean distance to one, ``2 d / (T' n_d)`` into ``w[i + 1]`` and out of ``w[i]`` for the mean
-    squared difference ``d``. Numpy on the tables: for a few hundred values, autograd's graph of
-    small operations costs many times the arithmetic."""
+    squared difference ``d`` (``_add_difference_terms_``'s rule). Numpy on the tables: for a few
+    hundred values, autograd's graph, or torch's operations one by one, cost many times the
+    arithmetic."""
     values: dict[str, float] = {}
     if field.cfg.n_params == 0:
         return values
@@ -103,7 +104,7 @@ def add_param_priors_(field: VisNerfField, param_l1: float, tv_params: float) ->
         for module in axes:
             n_tables = len(module.tables)
             for table in module.tables:
-                w, g = _value_and_grad(table)
+                w, g = table.detach().numpy(), grad_buffer(table).numpy()
                 offset = w - np.float32(1.0)
                 total += float(np.abs(offset, dtype=np.float64).sum()) / (n_tables * w.size)
                 g += np.sign(offset) * np.float32(param_l1 / (n_tables * w.size))
@@ -113,7 +114,7 @@ def add_param_priors_(field: VisNerfField, param_l1: float, tv_params: float) ->
         for module in axes:
             varying = [t for t in module.tables if t.shape[0] > 1]
             for table in varying:
-                w, g = _value_and_grad(table)
+                w, g = table.detach().numpy(), grad_buffer(table).numpy()
                 d = w[1:] - w[:-1]
                 total += float(np.dot(d.ravel().astype(np.float64), d.ravel())) / (len(varying) * d.size)
                 d *= np.float32(2.0 * tv_params / (len(varying) * d.size))
@@ -121,13 +122,6 @@ def add_param_priors_(field: VisNerfField, param_l1: float, tv_params: float) ->
                 g[:-1] -= d
         values["tv_params"] = tv_params * total
     return values
-
-
-def _value_and_grad(table: Tensor) -> tuple[np.ndarray, np.ndarray]:
-    """A CPU parameter's values and its ``.grad`` (made, zero, where there is none) as numpy views."""
-    if table.grad is None:
-        table.grad = torch.zeros_like(table)
-    return table.detach().numpy(), table.grad.numpy()
 
 
 def backward_regularization(field: VisNerfField, w: RegularizerWeights) -> dict[str, float]:
