@@ -46,6 +46,58 @@ def jit(fn: Callable[..., Any], inline: bool = False, fastmath: set[str] | None 
         return numba.njit(nogil=True, boundscheck=False, **flags)(fn)
 
 
+PREFETCH_LINES = 4
+"""``prefetch_row`` asks for at most this many 64-byte lines of a row (the tables' rows hold at most
+48 float32 channels: 3 lines)."""
+
+
+def _prefetch_row_intrinsic():  # noqa: ANN202 - a numba intrinsic
+    """``prefetch_row(table, row)``: ask the CPU for the cache lines of ``table[row]`` (2-d,
+    C-contiguous) up to ``PREFETCH_LINES``, to be read soon and kept in every cache level (LLVM's
+    ``prefetch``: no fault, no value; the lines' count is decided by branches, not a loop)."""
+    from llvmlite import ir
+    from numba import types
+    from numba.core import cgutils
+    from numba.extending import intrinsic
+
+    @intrinsic
+    def prefetch_row(typingctx, table, row):  # noqa: ANN001, ANN202, ARG001 - numba's signature
+        def codegen(context, builder, signature, args):  # noqa: ANN001, ANN202
+            table_type = signature.args[0]
+            data = context.make_array(table_type)(context, builder, args[0])
+            zero = context.get_constant(types.intp, 0)
+            first = cgutils.get_item_pointer(context, builder, table_type, data, [args[1], zero], wraparound=False)
+            i32, i64 = ir.IntType(32), ir.IntType(64)
+            declared = ir.FunctionType(ir.VoidType(), [first.type, i32, i32, i32])
+            name = f"llvm.prefetch.{first.type.intrinsic_name}"  # p0 (opaque pointers) or p0f32 (typed)
+            call = cgutils.get_or_insert_function(builder.module, declared, name)
+            columns = cgutils.unpack_tuple(builder, data.shape, 2)[1]
+            row_bytes = builder.mul(columns, context.get_constant(types.intp, table_type.dtype.bitwidth // 8))
+            address = builder.ptrtoint(first, i64)
+            for line in range(PREFETCH_LINES):
+                offset = context.get_constant(types.intp, 64 * line)
+                with builder.if_then(builder.icmp_signed("<", offset, row_bytes), likely=True):
+                    pointer = builder.inttoptr(builder.add(address, offset), first.type)
+                    # read (0), kept in every level (3), data (1)
+                    builder.call(call, [pointer, ir.Constant(i32, 0), ir.Constant(i32, 3), ir.Constant(i32, 1)])
+            return context.get_dummy_value()
+
+        return types.void(table, row), codegen
+
+    return prefetch_row
+
+
+if numba is not None:
+    prefetch_row = _prefetch_row_intrinsic()
+    """``prefetch_row(table, row)``: ask for the lines of ``table[row]`` a few iterations before a
+    loop reads it in random order (a lookup's next sample, an update's next row), so that the
+    reads overlap instead of waiting on memory one after another. Compiled loops only."""
+else:  # pragma: no cover - numba is a core dependency
+
+    def prefetch_row(table: Any, row: int) -> None:
+        """Nothing to ask for without numba."""
+
+
 _helpers: "ThreadPoolExecutor | None" = None
 T = TypeVar("T")
 

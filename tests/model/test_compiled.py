@@ -1,7 +1,9 @@
-"""Splitting a compiled loop's work over the threads (``visnerf.compiled``)."""
+"""Splitting a compiled loop's work over the threads, and asking for a row's cache lines (``visnerf.compiled``)."""
 
+import re
 import threading
 
+import numpy as np
 import pytest
 import torch
 
@@ -44,3 +46,41 @@ def test_an_error_in_a_range_reaches_the_caller(threads) -> None:
 
     with pytest.raises(ValueError, match="range 5:10"):
         compiled.run_ranges(fail_second, 10, 1)
+
+
+def _rows_sum_prefetching(table, rows):  # noqa: ANN001, ANN202 - compiled below
+    total = 0.0
+    for i in range(rows.shape[0]):
+        if i + 2 < rows.shape[0]:
+            compiled.prefetch_row(table, rows[i + 2])
+        for ch in range(table.shape[1]):
+            total += table[rows[i], ch]
+    return total
+
+
+def _rows_sum(table, rows):  # noqa: ANN001, ANN202 - the same loop, asking for nothing
+    total = 0.0
+    for i in range(rows.shape[0]):
+        for ch in range(table.shape[1]):
+            total += table[rows[i], ch]
+    return total
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("columns", [1, 16, 17, 48])
+def test_prefetching_rows_leaves_a_loops_values_as_they_are(dtype, columns) -> None:
+    loop = compiled.jit(_rows_sum_prefetching)
+    table = np.random.default_rng(0).random((50, columns)).astype(dtype)
+    rows = np.array([49, 0, 7, 7, 48, 3, 49], np.int64)  # first and last rows, repeats
+    assert loop(table, rows) == pytest.approx(float(table[rows].astype(np.float64).sum()), rel=1e-6)
+
+
+def test_prefetching_a_row_puts_llvm_prefetch_calls_in_the_compiled_code() -> None:
+    loop = compiled.numba.njit(_rows_sum_prefetching)  # not cached: numba inspects only what it compiled
+    loop(np.zeros((4, 48), np.float32), np.arange(4))
+    (llvm,) = loop.inspect_llvm().values()
+    calls = re.findall(r"call void @llvm\.prefetch\.\w+\([^)]*i32 0, i32 3, i32 1\)", llvm)
+    assert calls  # read, kept in every level, data (LLVM unrolls the loop: as many call sites as it likes)
+    plain = compiled.numba.njit(_rows_sum)
+    plain(np.zeros((4, 48), np.float32), np.arange(4))
+    assert "llvm.prefetch" not in next(iter(plain.inspect_llvm().values()))

@@ -53,10 +53,39 @@ def _rest_loop(c: int, n_q: int, ft: type):  # noqa: ANN202 - an inlined numba h
     return compiled.jit(_write_rest, inline=True)
 
 
+PREFETCH_SAMPLES = 2
+"""The forward asks for the table rows of the sample this many ahead: a step's samples lie on rays
+drawn at random, so their rows are seldom in cache, and one sample's reads would otherwise wait on
+memory before the next's begin."""
+
+
+@functools.cache
+def _prefetch_loop(ft: type):  # noqa: ANN202 - an inlined numba helper
+    """Ask for the plane and line rows that sample ``s`` reads (``compiled.prefetch_row``)."""
+    interpolation = interpolation_loop(ft)
+
+    @no_type_check
+    def _prefetch_sample(coords, s, res, plane, line, plane_off, line_off, lower, frac):  # noqa: ANN001, ANN202
+        interpolation(coords, s, res, lower, frac)
+        for i in range(3):
+            pa, pb, la = plane_axes(i)
+            w = res[pa]
+            r00 = plane_off[i] + lower[pb] * w + lower[pa]
+            compiled.prefetch_row(plane, r00)
+            compiled.prefetch_row(plane, r00 + 1)
+            compiled.prefetch_row(plane, r00 + w)
+            compiled.prefetch_row(plane, r00 + w + 1)
+            compiled.prefetch_row(line, line_off[i] + lower[la])  # a small table: its next row is near
+
+    return compiled.jit(_prefetch_sample, inline=True)
+
+
 def _forward_source(c: int, n_q: int, ft: type):  # noqa: ANN202 - the loop numba compiles
     """``forward`` for tables of ``c`` channels and ``n_q`` parameter features in ``ft``."""
     interpolation = interpolation_loop(ft)
+    prefetch_sample = _prefetch_loop(ft)
     write_rest = _rest_loop(c, n_q, ft)
+    ahead = PREFETCH_SAMPLES
 
     @no_type_check
     def _forward(coords, ray, q, tail, plane, line, res, plane_off, line_off, n_freqs, out,  # noqa: ANN001, ANN202
@@ -68,8 +97,12 @@ def _forward_source(c: int, n_q: int, ft: type):  # noqa: ANN202 - the loop numb
         lower = np.empty(3, np.int64)
         frac = np.empty(3, ft)
         q_rep = np.empty(c, ft)
+        lower_ahead = np.empty(3, np.int64)
+        frac_ahead = np.empty(3, ft)
         last_ray = -1
         for s in range(first, stop):
+            if s + ahead < stop:
+                prefetch_sample(coords, s + ahead, res, plane, line, plane_off, line_off, lower_ahead, frac_ahead)
             interpolation(coords, s, res, lower, frac)
             r = ray[s]
             if r != last_ray:
@@ -164,17 +197,43 @@ def _sum_taps(acc, c, a, b, taps, tap_weights, values):  # noqa: ANN001, ANN202
 sum_taps = compiled.jit(_sum_taps, inline=True)
 
 
+PREFETCH_ROWS = 2
+"""Loops over the rows that taps reach ask for the rows of the touched row this many ahead: its taps'
+gradients (and, in the sparse Adam, its value and moments) lie in random order in memory, and their
+reads would otherwise wait on memory one row after another."""
+
+
+@no_type_check  # compiled by numba, inlined into the loops over touched rows
+def _prefetch_touched(starts, taps, values, row, stop):  # noqa: ANN001, ANN202
+    """The first row from ``row`` on (before ``stop``) that taps reach, with its taps' rows of
+    ``values`` asked for (``compiled.prefetch_row``); ``stop`` where there is none."""
+    while row < stop and starts[row] == starts[row + 1]:
+        row += 1
+    if row < stop:
+        for t in range(starts[row], starts[row + 1]):
+            compiled.prefetch_row(values, taps[t])
+    return row
+
+
+prefetch_touched = compiled.jit(_prefetch_touched, inline=True)
+
+
 def _gather_source(c: int, ft: type):  # noqa: ANN202 - the loop numba compiles
+    rows_ahead = PREFETCH_ROWS
     @no_type_check
     def _gather_gradients(grad_table, marks, starts, taps, tap_weights, grad_values, first, stop):  # noqa: ANN001, ANN202
         """``grad_table[row] += sum_t tap_weights[t] * grad_values[taps[t]]`` over the taps of each
         row ``first <= row < stop`` (``taps[starts[row]:starts[row + 1]]``, flat ``mode * m + s``
         indices into ``grad_values`` viewed ``[3 m, c]``), which are marked."""
         acc = np.empty(c, ft)
+        ahead = first
+        for _ in range(rows_ahead):
+            ahead = prefetch_touched(starts, taps, grad_values, ahead, stop) + 1
         for row in range(first, stop):
             a, b = starts[row], starts[row + 1]
             if a == b:
                 continue
+            ahead = prefetch_touched(starts, taps, grad_values, ahead, stop) + 1
             sum_taps(acc, c, a, b, taps, tap_weights, grad_values)
             for ch in range(c):
                 grad_table[row, ch] += acc[ch]

@@ -30,7 +30,7 @@ from torch import Tensor, nn
 from visnerf import compiled
 from visnerf.representation import table_gradients
 from visnerf.representation.table_gradients import MIN_ROWS_A_PART, TableGradient, TapIndex
-from visnerf.representation.vm_rows_kernel import sum_taps
+from visnerf.representation.vm_rows_kernel import PREFETCH_ROWS, prefetch_touched, sum_taps
 
 _FLOAT_TYPES = {torch.float32: np.float32, torch.float64: np.float64}
 _NO_MARKS = np.zeros(1, np.uint8)
@@ -113,9 +113,25 @@ def _marked_source(ft: type):  # noqa: ANN202 - the loop numba compiles for floa
     return _adam_marked
 
 
+@no_type_check  # compiled by numba, inlined into the update from taps
+def _prefetch_update(param, exp_avg, exp_avg_sq, starts, taps, values, row, stop):  # noqa: ANN001, ANN202
+    """Ask for the first touched row from ``row`` on: its taps' gradients, value and moments
+    (``vm_rows_kernel.PREFETCH_ROWS``); returns the row after it."""
+    row = prefetch_touched(starts, taps, values, row, stop)
+    if row < stop:
+        compiled.prefetch_row(param, row)
+        compiled.prefetch_row(exp_avg, row)
+        compiled.prefetch_row(exp_avg_sq, row)
+    return row + 1
+
+
+prefetch_update = compiled.jit(_prefetch_update, inline=True)
+
+
 def _taps_source(ft: type):  # noqa: ANN202 - the loop numba compiles for float type ``ft``
     update = _update_loop(ft)
     row_l1 = _row_l1_loop(ft)
+    rows_ahead = PREFETCH_ROWS
 
     @no_type_check
     def _adam_taps(param, exp_avg, exp_avg_sq, steps, starts, taps, tap_weights, values, part_starts,  # noqa: ANN001, ANN202
@@ -128,10 +144,14 @@ def _taps_source(ft: type):  # noqa: ANN202 - the loop numba compiles for float 
         g = np.empty(c, ft)
         total = 0.0
         part = 0
+        ahead = first
+        for _ in range(rows_ahead):
+            ahead = prefetch_update(param, exp_avg, exp_avg_sq, starts, taps, values, ahead, stop)
         for row in range(first, stop):
             a, b = starts[row], starts[row + 1]
             if a == b:
                 continue
+            ahead = prefetch_update(param, exp_avg, exp_avg_sq, starts, taps, values, ahead, stop)
             sum_taps(g, c, a, b, taps, tap_weights, values)
             if use_l1:
                 part, value = row_l1(param, row, g, l1, part_starts, part)
