@@ -81,9 +81,27 @@ def _row_l1_loop(ft: type):  # noqa: ANN202 - an inlined numba helper
     return compiled.jit(_row_l1, inline=True)
 
 
+@no_type_check  # compiled by numba, inlined into the update at marked rows
+def _prefetch_marked(param, grad, exp_avg, exp_avg_sq, marks, row, stop):  # noqa: ANN001, ANN202
+    """Ask for the first marked row from ``row`` on: its gradient, value and moments
+    (``vm_rows_kernel.PREFETCH_ROWS``); returns the row after it."""
+    while row < stop and marks[row] == 0:
+        row += 1
+    if row < stop:
+        compiled.prefetch_row(grad, row)
+        compiled.prefetch_row(param, row)
+        compiled.prefetch_row(exp_avg, row)
+        compiled.prefetch_row(exp_avg_sq, row)
+    return row + 1
+
+
+prefetch_marked = compiled.jit(_prefetch_marked, inline=True)
+
+
 def _marked_source(ft: type):  # noqa: ANN202 - the loop numba compiles for float type ``ft``
     update = _update_loop(ft)
     row_l1 = _row_l1_loop(ft)
+    rows_ahead = PREFETCH_ROWS
 
     @no_type_check
     def _adam_marked(param, grad, exp_avg, exp_avg_sq, steps, marks, use_marks, part_starts, l1, use_l1,  # noqa: ANN001, ANN202
@@ -96,9 +114,15 @@ def _marked_source(ft: type):  # noqa: ANN202 - the loop numba compiles for floa
         b1, b2, b2c, e = ft(1.0 - beta1), ft(beta2), ft(1.0 - beta2), ft(eps)
         total = 0.0
         part = 0
+        ahead = first
+        if use_marks:  # every row in order needs no asking
+            for _ in range(rows_ahead):
+                ahead = prefetch_marked(param, grad, exp_avg, exp_avg_sq, marks, ahead, stop)
         for row in range(first, stop):
             if use_marks and marks[row] == 0:
                 continue
+            if use_marks:
+                ahead = prefetch_marked(param, grad, exp_avg, exp_avg_sq, marks, ahead, stop)
             g = grad[row]
             if use_l1:
                 part, value = row_l1(param, row, g, l1, part_starts, part)
