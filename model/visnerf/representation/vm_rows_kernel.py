@@ -220,6 +220,7 @@ prefetch_touched = compiled.jit(_prefetch_touched, inline=True)
 
 def _gather_source(c: int, ft: type):  # noqa: ANN202 - the loop numba compiles
     rows_ahead = PREFETCH_ROWS
+
     @no_type_check
     def _gather_gradients(grad_table, marks, starts, taps, tap_weights, grad_values, first, stop):  # noqa: ANN001, ANN202
         """``grad_table[row] += sum_t tap_weights[t] * grad_values[taps[t]]`` over the taps of each

@@ -46,9 +46,9 @@ def _tv_plane(table, grad, marks, start, h, w, scale_y, scale_x, totals, y_first
     ``y_first <= y < y_stop``; ``totals[y]``: the terms of line ``y``'s differences whose lower row
     is marked. A marked row's gradient is written by its own line alone.
 
-    A neighbour outside the plane is read as the row itself (a difference of 0, which adds 0): the
-    channel loop has no branch, and the terms are summed per channel, then over the channels, so
-    that LLVM can vectorise it (a sum in one running total waits on each addition before)."""
+    A neighbour outside the plane is read as the row itself (a difference of 0, which adds 0), so
+    the channel loop has no branch; the terms are summed per channel, then over the channels, so
+    that the channels' additions do not wait on one another (one running total waited on each)."""
     c = table.shape[1]
     sums = np.zeros(c, np.float64)
     for y in range(y_first, y_stop):
