@@ -81,6 +81,17 @@ def _row_l1_loop(ft: type):  # noqa: ANN202 - an inlined numba helper
     return compiled.jit(_row_l1, inline=True)
 
 
+@no_type_check  # compiled by numba, inlined into both updates' prefetches
+def _prefetch_state(param, exp_avg, exp_avg_sq, row):  # noqa: ANN001, ANN202
+    """Ask for row ``row``'s value and moments, which its update reads and writes."""
+    compiled.prefetch_row(param, row)
+    compiled.prefetch_row(exp_avg, row)
+    compiled.prefetch_row(exp_avg_sq, row)
+
+
+prefetch_state = compiled.jit(_prefetch_state, inline=True)
+
+
 @no_type_check  # compiled by numba, inlined into the update at marked rows
 def _prefetch_marked(param, grad, exp_avg, exp_avg_sq, marks, row, stop):  # noqa: ANN001, ANN202
     """Ask for the first marked row from ``row`` on: its gradient, value and moments
@@ -89,9 +100,7 @@ def _prefetch_marked(param, grad, exp_avg, exp_avg_sq, marks, row, stop):  # noq
         row += 1
     if row < stop:
         compiled.prefetch_row(grad, row)
-        compiled.prefetch_row(param, row)
-        compiled.prefetch_row(exp_avg, row)
-        compiled.prefetch_row(exp_avg_sq, row)
+        prefetch_state(param, exp_avg, exp_avg_sq, row)
     return row + 1
 
 
@@ -143,9 +152,7 @@ def _prefetch_update(param, exp_avg, exp_avg_sq, starts, taps, values, row, stop
     (``vm_rows_kernel.PREFETCH_ROWS``); returns the row after it."""
     row = prefetch_touched(starts, taps, values, row, stop)
     if row < stop:
-        compiled.prefetch_row(param, row)
-        compiled.prefetch_row(exp_avg, row)
-        compiled.prefetch_row(exp_avg_sq, row)
+        prefetch_state(param, exp_avg, exp_avg_sq, row)
     return row + 1
 
 
