@@ -1,8 +1,53 @@
-"""Ray / axis-aligned box intersection (slab method), exact for axis-parallel rays."""
+"""Ray / axis-aligned box intersection (slab method), exact for axis-parallel rays.
+
+On the CPU one compiled loop over the rays (``_intersect``) replaces the torch version's two dozen
+small operations (four calls a training step: 0.85 ms of a 31 to 36 ms Nyx step on two threads);
+it does the same float arithmetic in the rays' own type, so the two agree bit for bit (tested).
+"""
+
+import math
+from typing import no_type_check
 
 import torch
 from jaxtyping import Bool, Float
 from torch import Tensor
+
+from visnerf import compiled
+
+
+@no_type_check  # compiled by numba
+def _intersect(rays_o, rays_d, lower, upper, near, t_near, t_far, hit):  # noqa: ANN001, ANN202
+    """``intersect_aabb`` ray by ray: NaN propagates through the minima and maxima as in torch's
+    ``minimum``, ``maximum``, ``amax``, ``amin`` and ``clamp_min``."""
+    ft = rays_o.dtype.type
+    inf = ft(math.inf)
+    zero = ft(0.0)
+    near_f = ft(near)
+    for r in range(rays_o.shape[0]):
+        lo, hi = -inf, inf
+        for a in range(3):
+            o, d = rays_o[r, a], rays_d[r, a]
+            if d == 0:  # +0.0 and -0.0: the whole axis when the origin lies in its slab, else nothing
+                inside = o >= lower[a] and o <= upper[a]
+                a_lo, a_hi = (-inf, inf) if inside else (inf, -inf)
+            else:
+                t0 = (lower[a] - o) / d
+                t1 = (upper[a] - o) / d
+                a_lo = t0 if (t0 < t1 or t0 != t0) else t1  # torch.minimum
+                a_hi = t0 if (t0 > t1 or t0 != t0) else t1  # torch.maximum
+            lo = lo if (lo > a_lo or lo != lo) else a_lo  # amax
+            hi = hi if (hi < a_hi or hi != hi) else a_hi  # amin
+        tn = lo if (lo > near_f or lo != lo) else near_f  # clamp_min
+        h = hi > tn
+        tf = hi if h else tn
+        if not (tn > -inf and tn < inf):  # not finite: NaN or an infinity
+            tn = zero
+        t_near[r] = tn
+        t_far[r] = tf if h else tn
+        hit[r] = h
+
+
+_intersect_loop = compiled.jit(_intersect)
 
 
 def intersect_aabb(
@@ -18,6 +63,36 @@ def intersect_aabb(
     of R when the origin lies inside it, and empty otherwise, so no 0 * inf appears. Rays that miss
     get ``t_near == t_far`` and ``hit == False``. Not differentiable in a useful way.
     """
+    if _compiled_serves(rays_o, rays_d, aabb):
+        n = rays_o.shape[0]
+        t_near = torch.empty(n, dtype=rays_o.dtype)
+        t_far = torch.empty(n, dtype=rays_o.dtype)
+        hit = torch.empty(n, dtype=torch.bool)
+        box = aabb.detach().to(rays_o.dtype).numpy()
+        _intersect_loop(rays_o.detach().numpy(), rays_d.detach().numpy(), box[0], box[1], float(near),
+                        t_near.numpy(), t_far.numpy(), hit.numpy())
+        return t_near, t_far, hit
+    return intersect_aabb_torch(rays_o, rays_d, aabb, near)
+
+
+def _compiled_serves(rays_o: Tensor, rays_d: Tensor, aabb: Tensor) -> bool:
+    """The compiled loop takes CPU rays of one float type (any strides: a batch's origins are often
+    one camera's, expanded) with no gradient wanted."""
+    return (compiled.serves(rays_o.device) and aabb.device.type == "cpu" and rays_o.dtype in _LOOP_TYPES
+            and rays_d.dtype == rays_o.dtype and rays_o.dim() == 2 and rays_o.shape == rays_d.shape and rays_o.shape[1] == 3
+            and not (torch.is_grad_enabled() and (rays_o.requires_grad or rays_d.requires_grad)))
+
+
+_LOOP_TYPES = (torch.float32, torch.float64)
+
+
+def intersect_aabb_torch(
+    rays_o: Float[Tensor, "n 3"],
+    rays_d: Float[Tensor, "n 3"],
+    aabb: Float[Tensor, "2 3"],
+    near: float = 0.0,
+) -> tuple[Float[Tensor, " n"], Float[Tensor, " n"], Bool[Tensor, " n"]]:
+    """``intersect_aabb`` as torch operations (every device; the compiled loop's slow twin)."""
     lower, upper = aabb[0], aabb[1]
     zero = rays_d == 0  # [n, 3]; True for -0.0 too
     safe_d = torch.where(zero, torch.ones_like(rays_d), rays_d)
