@@ -63,13 +63,13 @@ class CompactSamples:
 def _place_source(ft: type):  # noqa: ANN202 - the loop numba compiles for float type ``ft``
     @no_type_check  # compiled by numba
     def _place(origins, directions, t_near, t_far, start, stop, hit, jitter, step, use_occupancy, occupied, lower,  # noqa: ANN001, ANN202
-                extent, res, out_points, out_ray, offsets):
-        """Samples ``start[r] .. stop[r]`` of each ray before ``t_far`` (in an occupied cell with
-        ``use_occupancy``) into ``out_points`` / ``out_ray``; ``offsets[r + 1]`` their running count."""
-        m = 0
-        offsets[0] = 0
+                extent, res, out_points, out_ray, offsets, first, last, m0):
+        """Samples ``start[r] .. stop[r]`` of each ray ``first <= r < last`` before ``t_far`` (in an
+        occupied cell with ``use_occupancy``) into ``out_points`` / ``out_ray`` from row ``m0`` on;
+        ``offsets[r + 1]`` the row after ray ``r``'s. Returns the row after the last."""
+        m = m0
         n0, n1, n2 = int(res[0]), int(res[1]), int(res[2])
-        for r in range(origins.shape[0]):
+        for r in range(first, last):
             if hit[r]:
                 o0, o1, o2 = origins[r, 0], origins[r, 1], origins[r, 2]  # the ray's, read once
                 d0, d1, d2 = directions[r, 0], directions[r, 1], directions[r, 2]
@@ -103,6 +103,8 @@ def _place_source(ft: type):  # noqa: ANN202 - the loop numba compiles for float
     return _place
 
 
+MIN_RAYS_A_PART = 256
+"""Fewest rays worth a thread of their own when a batch's samples are placed."""
 _PLACE_LOOPS = {np.float32: compiled.jit(_place_source(np.float32)), np.float64: compiled.jit(_place_source(np.float64))}
 
 
@@ -136,10 +138,11 @@ def place_compact(
         stop = torch.full_like(start, n_samples - 1)
     else:
         start, stop = windows[0].clamp_min(0), windows[1].clamp_max(n_samples - 1)
-    bound = int((stop - start + 1).clamp_min(0).sum())
-    points = torch.empty(bound, 3, dtype=dtype)
-    ray = torch.empty(bound, dtype=torch.int64)
-    offsets = torch.empty(rays_o.shape[0] + 1, dtype=torch.int64)
+    n = rays_o.shape[0]
+    room = torch.cat([start.new_zeros(1), (stop - start + 1).clamp_min(0).cumsum(0)])  # [n + 1] each ray's rows at most
+    points = torch.empty(int(room[-1]), 3, dtype=dtype)
+    ray = torch.empty(int(room[-1]), dtype=torch.int64)
+    offsets = torch.zeros(n + 1, dtype=torch.int64)
     use = occupancy is not None
     grid = occupancy.reshape(-1).view(torch.uint8) if use else torch.zeros(1, dtype=torch.uint8)  # bool bytes, no copy
     res = torch.tensor(occupancy.shape if use else (1, 1, 1), dtype=dtype)
@@ -147,6 +150,24 @@ def place_compact(
     ft = np.float32 if dtype == torch.float32 else np.float64
     arrays = [t.contiguous().numpy() for t in (rays_o, rays_d, t_near, t_far, start.to(torch.int64),
                                                stop.to(torch.int64), hit, jitter)]
-    m = _PLACE_LOOPS[ft](*arrays, ft(step), use, grid.numpy(), aabb[0].to(dtype).numpy(), extent.numpy(), res.numpy(),
-                    points.numpy(), ray.numpy(), offsets.numpy())
+    rest = (ft(step), use, grid.numpy(), aabb[0].to(dtype).numpy(), extent.numpy(), res.numpy(), points.numpy(),
+            ray.numpy(), offsets.numpy())
+    loop = _PLACE_LOOPS[ft]
+    # ranges of rays on every thread, each writing from its rays' first possible row, then packed
+    count = compiled.parts(n, MIN_RAYS_A_PART)
+    cuts = [n * i // count for i in range(count + 1)]
+    ends = [0] * count
+
+    def part(i: int) -> None:
+        ends[i] = loop(*arrays, *rest, cuts[i], cuts[i + 1], int(room[cuts[i]]))
+
+    compiled.run_parts(part, count)
+    m = ends[0]
+    for i in range(1, count):  # move each range's rows to follow the ones before (order kept)
+        base, k = int(room[cuts[i]]), ends[i] - int(room[cuts[i]])
+        if base != m:
+            points[m:m + k] = points[base:base + k].clone()
+            ray[m:m + k] = ray[base:base + k].clone()
+            offsets[cuts[i] + 1:cuts[i + 1] + 1] -= base - m
+        m += k
     return CompactSamples(points[:m], ray[:m], offsets)

@@ -5,6 +5,7 @@ import pytest
 import torch
 
 from visnerf.config import FieldConfig
+from visnerf.rendering import compact_samples
 from visnerf.rendering.compact_samples import place_compact
 from visnerf.rendering.training_render import place_samples
 from visnerf.representation.field import VisNerfField
@@ -28,19 +29,29 @@ def setup():
 @pytest.mark.parametrize("use_windows", [False, True])
 @pytest.mark.parametrize("use_occupancy", [False, True])
 @pytest.mark.parametrize("jitter", [False, True])
+@pytest.mark.parametrize("threads", [1, 3])
 def test_compact_samples_are_the_padded_ones_in_order(setup, use_windows: bool, use_occupancy: bool,
-                                                      jitter: bool) -> None:
+                                                      jitter: bool, threads: int,
+                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    """Placed on one thread or in three ranges of rays (then packed), the same samples."""
     field, origins, directions, occupancy, windows = setup
     occ = occupancy if use_occupancy else None
     win = windows if use_windows else None
     gens = [torch.Generator().manual_seed(3) if jitter else None for _ in range(2)]
     padded = place_samples(field, origins, directions, 0.05, 1024, occ, gens[0], win)
-    compact = place_compact(field.aabb, origins, directions, 0.05, 1024, occ, gens[1], win)
+    monkeypatch.setattr(compact_samples, "MIN_RAYS_A_PART", 16)
+    previous = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        compact = place_compact(field.aabb, origins, directions, 0.05, 1024, occ, gens[1], win)
+    finally:
+        torch.set_num_threads(previous)
     assert len(compact) > 100
     assert torch.equal(compact.points, padded.points[padded.valid])  # bit for bit
     assert torch.equal(compact.per_ray(), padded.valid.sum(dim=1))
     rays = torch.arange(origins.shape[0])[:, None].expand_as(padded.valid)[padded.valid]
     assert torch.equal(compact.ray, rays)
+    assert int(compact.offsets[0]) == 0 and torch.equal(compact.offsets[1:], padded.valid.sum(dim=1).cumsum(0))
 
 
 def test_selecting_rays_and_samples_keeps_the_layout(setup) -> None:
