@@ -156,15 +156,16 @@ def place_compact(
     # ranges of rays on every thread, each writing from its rays' first possible row, then packed
     count = compiled.parts(n, MIN_RAYS_A_PART)
     cuts = [n * i // count for i in range(count + 1)]
+    bases = [int(room[c]) for c in cuts[:-1]]  # each range's first row
     ends = [0] * count
 
     def part(i: int) -> None:
-        ends[i] = loop(*arrays, *rest, cuts[i], cuts[i + 1], int(room[cuts[i]]))
+        ends[i] = loop(*arrays, *rest, cuts[i], cuts[i + 1], bases[i])
 
     compiled.run_parts(part, count)
     m = ends[0]
     for i in range(1, count):  # move each range's rows to follow the ones before (order kept)
-        base, k = int(room[cuts[i]]), ends[i] - int(room[cuts[i]])
+        base, k = bases[i], ends[i] - bases[i]
         if base != m:
             points[m:m + k] = points[base:base + k].clone()
             ray[m:m + k] = ray[base:base + k].clone()
