@@ -24,7 +24,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     )
     make.add_argument("name", help="scene name (see `visnerf scenes`)")
     make.add_argument("--out", type=Path, required=True, help="output directory")
-    make.add_argument("--res", type=int, default=128, help="image width and height in pixels (default 128)")
+    make.add_argument("--res", type=int, default=None, help="image width and height in pixels (default: the "
+                      "scene's, 128 for most, 800 for the shells; `visnerf scenes`)")
     make.add_argument(
         "--views", type=int, default=None, help="training views per parameter setting (default: the scene's, "
         "42 for most; `visnerf scenes`)"
@@ -57,6 +58,8 @@ def make_scene_command(args: argparse.Namespace) -> int:
         spec = get_scene(args.name)
     except KeyError as exc:
         return _fail(str(exc.args[0]))
+    if args.res is None:
+        args.res = spec.resolution
     if args.res < 8:
         return _fail(f"--res must be at least 8, got {args.res}")
     views = spec.n_views if args.views is None else args.views
@@ -98,6 +101,8 @@ def describe_scene(spec: SceneSpec) -> dict:
         ],
         "fixed": dict(spec.fixed),
         "views_per_setting": spec.n_views,
+        "resolution": spec.resolution,
+        "rgba": spec.rgba,
     }
 
 
@@ -112,6 +117,7 @@ def list_scenes_command(args: argparse.Namespace) -> int:
         params = ", ".join(f"{p['name']} [{p['min']:g}, {p['max']:g}] x{p['count']}" for p in scene["params"])
         if not params:
             params = "static: " + ", ".join(f"{k}={v:g}" for k, v in scene["fixed"].items())
-        print(f"{scene['name']:<{width}}  {scene['kind']:<3}  K={len(scene['params'])}  {params}")
+        print(f"{scene['name']:<{width}}  {scene['kind']:<3}  K={len(scene['params'])}  {params}  "
+              f"({scene['views_per_setting']} views, {scene['resolution']} px{', RGBA' if scene['rgba'] else ''})")
         print(f"{'':<{width}}  {scene['title']}: {scene['description']}")
     return 0

@@ -176,6 +176,87 @@ class CosmicWebField:
 
 
 @dataclass(frozen=True)
+class ShellsField:
+    """Many small buoyant blobs in a turbulent flow: a combustion or mantle-like field whose narrow
+    transfer-function peaks draw nested thin shells around every blob.
+
+    ``n_blobs`` Gaussian blobs (radii 0.03 to 0.065) rise and swirl about the vertical axis while
+    they grow and fade; the space they are sampled in is displaced by ``n_modes`` plane waves
+    whose phases travel with time (a moving turbulent warp), so their shells wrinkle and the
+    wrinkles move. Values lie in [0, 1): ``1 - exp(-sum of blob densities)``.
+    """
+
+    time: float
+    """Normalised time in [0, 1]."""
+    n_blobs: int = 24
+    """Number of blobs."""
+    n_modes: int = 8
+    """Plane waves of the turbulent displacement."""
+    warp: float = 0.03
+    """Largest displacement (world units): the waves' amplitudes add up to it."""
+    seed: int = 11
+    """Seed of the blobs' paths and the waves."""
+    block_points: int = 16384
+    """Points evaluated together (a speed setting only)."""
+
+    def blobs(self, dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor, Tensor]:
+        """Centres ``[b, 3]``, inverse squared radii ``[b]`` and peak heights ``[b]`` at ``time``."""
+        gen = torch.Generator().manual_seed(self.seed)
+        b, t = self.n_blobs, self.time
+        radius0 = 0.03 + 0.035 * torch.rand(b, generator=gen, dtype=torch.float64)  # [b]
+        ring = 0.04 + 0.3 * torch.rand(b, generator=gen, dtype=torch.float64)  # distance to the axis
+        angle0 = 2.0 * math.pi * torch.rand(b, generator=gen, dtype=torch.float64)
+        height0 = -0.32 + 0.5 * torch.rand(b, generator=gen, dtype=torch.float64)
+        rise = 0.1 + 0.15 * torch.rand(b, generator=gen, dtype=torch.float64)
+        spin = (0.6 + 0.9 * torch.rand(b, generator=gen, dtype=torch.float64)) * torch.where(
+            torch.rand(b, generator=gen, dtype=torch.float64) < 0.5, -1.0, 1.0
+        )
+        phase = 2.0 * math.pi * torch.rand(b, generator=gen, dtype=torch.float64)
+        angle = angle0 + spin * t  # [b] swirl about the vertical axis
+        rho = ring * (1.0 + 0.25 * torch.sin(3.0 * t + phase))  # [b] breathing in and out
+        centres = torch.stack(
+            [rho * torch.cos(angle), height0 + rise * t, rho * torch.sin(angle)], dim=-1
+        )  # [b, 3]
+        radius = radius0 * (0.8 + 0.35 * t + 0.1 * torch.sin(4.0 * t + phase))  # [b] grow as they rise
+        height = 1.3 + 0.5 * torch.sin(2.5 * t + 2.0 * phase)  # [b] flicker: shells appear and vanish
+        return (
+            centres.to(dtype=dtype, device=device),
+            (1.0 / radius.square()).to(dtype=dtype, device=device),
+            height.to(dtype=dtype, device=device),
+        )
+
+    def waves(self, dtype: torch.dtype, device: torch.device) -> tuple[Tensor, Tensor, Tensor]:
+        """Wave vectors ``[3, m]``, phases at ``time`` ``[m]`` and displacements ``[m, 3]``."""
+        gen = torch.Generator().manual_seed(self.seed + 1)
+        m = self.n_modes
+        direction = torch.randn(3, m, generator=gen, dtype=torch.float64)
+        direction = direction / torch.linalg.norm(direction, dim=0, keepdim=True)  # [3, m]
+        k = 2.0 * math.pi * torch.linspace(2.0, 6.0, m, dtype=torch.float64)  # [m] wavelengths 0.5 .. 0.17
+        speed = 1.0 + 2.0 * torch.rand(m, generator=gen, dtype=torch.float64)
+        phase = 2.0 * math.pi * torch.rand(m, generator=gen, dtype=torch.float64) + 2.0 * math.pi * speed * self.time
+        across = torch.linalg.cross(direction.T, torch.randn(m, 3, generator=gen, dtype=torch.float64))  # [m, 3]
+        across = across / torch.linalg.norm(across, dim=-1, keepdim=True)  # transverse: no compression
+        amplitude = k[0] / k  # [m] finer waves displace less
+        amplitude = self.warp * amplitude / amplitude.sum()  # no point moves farther than ``warp``
+        return (
+            (direction * k).to(dtype=dtype, device=device),
+            phase.to(dtype=dtype, device=device),
+            (across * amplitude[:, None]).to(dtype=dtype, device=device),
+        )
+
+    def __call__(self, points: Float[Tensor, "n 3"]) -> Float[Tensor, " n"]:
+        centres, inv_r2, height = self.blobs(points.dtype, points.device)
+        wave, phase, displacement = self.waves(points.dtype, points.device)
+        total = torch.empty_like(points[:, 0])  # [n]
+        for start in range(0, points.shape[0], self.block_points):  # keeps [block, b] in cache
+            block = points[start : start + self.block_points]
+            warped = block + torch.sin(torch.addmm(phase, block, wave)) @ displacement  # [block, 3]
+            d2 = (warped[:, None, :] - centres).square().sum(-1)  # [block, b]
+            total[start : start + self.block_points] = torch.exp(-0.5 * d2 * inv_r2) @ height
+        return -torch.expm1(-total) * radial_window(points)
+
+
+@dataclass(frozen=True)
 class ConstantField:
     """The same value everywhere (a homogeneous medium once clipped to a box)."""
 

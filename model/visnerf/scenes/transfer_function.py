@@ -173,3 +173,19 @@ def shells_tf() -> TransferFunction:
     colours.append((1.0, 0.55, 0.1))
     opacities.append(0.0)
     return TransferFunction(tuple(knots), tuple(colours), tuple(opacities))
+
+
+def nested_shells_tf() -> TransferFunction:
+    """Nested shells around every blob: narrow opacity peaks at 0.3 (a faint blue outer shell),
+    0.55 (a green middle one) and 0.8 (a nearly opaque orange core), transparent between them, as a
+    scientist's contour-style transfer function picks a few values of a turbulent field."""
+    knots, colours, opacities = [0.0], [(0.2, 0.45, 1.0)], [0.0]
+    for centre, colour, alpha in ((0.3, (0.2, 0.45, 1.0), 0.22), (0.55, (0.35, 0.85, 0.3), 0.45),
+                                  (0.8, (1.0, 0.45, 0.1), 0.9)):
+        knots += [centre - 0.03, centre, centre + 0.03]
+        colours += [colour] * 3
+        opacities += [0.0, alpha, 0.0]
+    knots.append(1.0)
+    colours.append((1.0, 0.45, 0.1))
+    opacities.append(0.0)
+    return TransferFunction(tuple(knots), tuple(colours), tuple(opacities))

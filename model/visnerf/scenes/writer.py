@@ -1,6 +1,7 @@
 """Write a synthetic scene as a dataset in the project's data format (NeRF-Blender convention).
 
-Layout: ``DIR/train/r_N.png``, ``DIR/test/r_N.png`` (8-bit RGB, white background) and
+Layout: ``DIR/train/r_N.png``, ``DIR/test/r_N.png`` (8-bit RGB on a white background, or RGBA with
+straight alpha for a scene that says ``rgba``) and
 ``DIR/transforms_{train,test}.json``. The images come first, then the test JSON, and the training
 JSON last, each JSON written to a temporary name and renamed: an interrupted run never leaves a
 complete-looking dataset behind.
@@ -30,7 +31,8 @@ from visnerf.scenes.protocol import (
     path_params,
     training_directions,
 )
-from visnerf.scenes.reference_renderer import MarchConfig, render_image
+from visnerf.scenes.reference_renderer import MarchConfig, RayOutput
+from visnerf.scenes.shells_kernel import render_image_fast
 
 
 @dataclass(frozen=True)
@@ -88,13 +90,25 @@ def plan_frames(spec: SceneSpec, options: DatasetOptions) -> list[Frame]:
     return frames
 
 
-def render_frame(spec: SceneSpec, frame: Frame, resolution: int) -> UInt8[np.ndarray, "h w 3"]:
-    """The 8-bit RGB image of one frame."""
+def render_frame(spec: SceneSpec, frame: Frame, resolution: int) -> UInt8[np.ndarray, "h w c"]:
+    """The 8-bit RGB image of one frame (RGBA, ``c = 4``, for a scene that says ``rgba``)."""
     c2w = torch.tensor(orbit_c2w(frame.azimuth, frame.elevation, spec.camera_distance), dtype=torch.float32)
     intrinsics = Intrinsics.from_fov(resolution, resolution, spec.fov_x_rad)
-    output = render_image(spec.volume_at(frame.params), c2w, intrinsics, MarchConfig(step=spec.step))
-    rgb = output.rgb.reshape(resolution, resolution, 3).clamp(0.0, 1.0)
-    return (rgb * 255.0).round().to(torch.uint8).numpy()
+    config = MarchConfig(step=spec.step)
+    output = render_image_fast(spec.volume_at(frame.params), c2w, intrinsics, config)
+    image = straight_rgba(output, config.background) if spec.rgba else output.rgb.clamp(0.0, 1.0)
+    return (image.reshape(resolution, resolution, -1) * 255.0).round().to(torch.uint8).numpy()
+
+
+def straight_rgba(output: RayOutput, background: tuple[float, float, float]) -> torch.Tensor:
+    """``[n, 4]`` colour and opacity with straight (not premultiplied) alpha: the colour that,
+    composited over ``background`` with the ray's opacity, gives the rendered colour (0 where the
+    ray is clear). Guarded: the division only where the opacity is above float32's tiny."""
+    alpha = output.opacity.clamp(0.0, 1.0)[:, None]  # [n, 1]
+    back = torch.tensor(background, dtype=output.rgb.dtype, device=output.rgb.device)
+    seen = alpha > torch.finfo(torch.float32).tiny
+    colour = (output.rgb - (1.0 - alpha) * back) / torch.where(seen, alpha, torch.ones_like(alpha))
+    return torch.cat([torch.where(seen, colour, torch.zeros_like(colour)).clamp(0.0, 1.0), alpha], dim=-1)
 
 
 def output_dir_problem(out_dir: Path, force: bool) -> str | None:
