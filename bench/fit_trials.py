@@ -36,7 +36,8 @@ from visnerf.inference import load_scene
 from visnerf.rendering.render_settings import RenderSettings
 
 ROOT = Path(__file__).resolve().parent.parent
-COLUMNS = ("change", "data", "minutes", "steps", "train dB", "held-out dB", "test dB", "CPU", "commit", "kept")
+COLUMNS = ("change", "data", "minutes", "steps", "train dB", "held-out dB", "test dB", "test frames", "CPU", "commit",
+           "kept")
 
 
 def evenly(indices: list[int], count: int) -> list[int]:

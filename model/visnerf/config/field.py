@@ -79,14 +79,6 @@ class FieldConfig:
     10.6 degrees from the view), too narrow for one ReLU layer to draw from the cosine alone; the
     decoder mixes the powers instead (docs/decisions.md, "Configuration defaults"). (): the
     cosine alone, as checkpoints that do not name this field."""
-    normal_cosines: bool = False
-    """Whether the colour decoder reads the cosine between the density field's normal (the
-    gradient of the density decoder's output, from four probes ``level_normal_step`` voxels away)
-    and the view, and ``level_cosine_powers`` of its absolute value: a lit translucent volume is
-    shaded about the gradient of its scalar field on both sides of every shell, with highlights
-    too narrow for spherical harmonics. A field with a level axis reads its level field's normal
-    always (one-sided: the outside of the surface faces the eye). Checkpoints that do not name
-    this field read none."""
     density_shift: float = -2.0
     """Added to the raw density before softplus, so that a fresh field is a faint fog (0.13 per world
     unit at a ``density_scale`` of 1): at TensoRF's -10 the photometric gradient behind the density

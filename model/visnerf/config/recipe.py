@@ -63,8 +63,10 @@ class RecipeConfig:
     """A translucent scene with fewer training images a setting than this gets total variation on
     its factors (``sparse_view_tv``): a 20-view series gained by it, Nyx's 42 views did not."""
     sparse_view_tv: float = 0.1
-    """``TrainConfig.tv_weight_density`` and ``tv_weight_appearance`` for such a scene: few views fit
-    its density and colours with speckle between them, which the images do not pin down."""
+    """``TrainConfig.tv_weight_density`` and ``tv_weight_appearance`` for such a scene with parameter
+    axes: few views fit its density and colours with speckle between them, which the images do not
+    pin down. A scene of one setting gets none: it smears nested thin shells into fog
+    (docs/decisions.md, "Thin lit shells: no total variation for one setting")."""
     sparse_view_sh_degree: int = 1
     """``FieldConfig.sh_degree`` for such a scene: the 16 view terms of degree 3 fit each of its few
     views' colours and miss the views between them; a 20-view series gained at degree 2 and more

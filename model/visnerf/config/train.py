@@ -164,12 +164,6 @@ class TrainConfig:
     """Share of each batch's rays drawn from the training images' silhouette band (pixels within
     one pixel of a boundary between background and content, ``training.ray_batches``) instead of
     from every pixel. An opaque surface's error lies almost all in that band. 0: every pixel alike."""
-    image_pyramid: bool = False
-    """Draw each step's rays through blocks of pixels as wide as the largest power of two that fits
-    in a voxel's footprint at the content (at most ``MAX_PIXEL_BLOCK``), each ray's target the
-    block's mean colour, recomputed as the grid grows (``training.ray_batches.RayBatchSampler.
-    set_block``): a coarse grid cannot draw detail finer than its voxels, and a step's rays then
-    stand for all the pixels of their blocks. False: every ray through one pixel."""
     weight_average_span: float = 0.03
     """Return the parameters' moving average over the end of the run instead of their last values
     (``training/weight_average.py``): the span of progress over which an old value's weight falls

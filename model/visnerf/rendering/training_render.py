@@ -70,9 +70,9 @@ def _shade_samples(
     if shade.numel() > 0:
         shade_rays = torch.div(shade, s, rounding_mode="floor")
         shade_points, shade_dirs = flat_points.index_select(0, shade), rays_d.index_select(0, shade_rays)
-        if not field.reads_normals:
+        if field.levels is None:
             colors = field.color(shade_points, shade_dirs, q_appearance.index_select(0, shade_rays))  # [k, 3]
-        else:  # the normal cosines need the density features too
+        else:  # the level field's normal needs the density features too
             colors = field.color(shade_points, shade_dirs, q_appearance.index_select(0, shade_rays),
                                  q_density.index_select(0, shade_rays))
         rgb = rgb.index_add(0, shade_rays, shade_weights[:, None] * colors)

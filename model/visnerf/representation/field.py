@@ -56,22 +56,20 @@ N_PROBES = len(TETRAHEDRON)
 
 
 def level_cosines(
-    raw_probes: Float[Tensor, "n 4"], directions: Float[Tensor, "n 3"], powers: tuple[int, ...] = (),
-    two_sided: bool = False,
+    raw_probes: Float[Tensor, "n 4"], directions: Float[Tensor, "n 3"], powers: tuple[int, ...] = ()
 ) -> Float[Tensor, "n p"]:
     """Cosine between the gradient of the level field ``g`` and the unit view direction, from ``g``
     at the probes of ``probe_points``, then each of ``powers`` of its positive part (``p = 1 +
     len(powers)`` columns). ``g`` grows inwards, so the cosine is that of the outward normal with
     the direction to the eye: positive on the side of a surface facing the camera. A flat ``g``
-    gives 0 (guarded division). ``two_sided``: the powers are of the cosine's absolute value (a
-    translucent shell lit from whichever side faces the eye)."""
+    gives 0 (guarded division)."""
     vertices = torch.tensor(TETRAHEDRON, device=raw_probes.device)  # [4, 3]
     grad = raw_probes.float() @ vertices  # [n, 3], 4h times the gradient
     length = torch.sqrt(grad.pow(2).sum(-1, keepdim=True) + FACING_EPS)
     cosine = (grad * directions.float()).sum(-1, keepdim=True) / length  # [n, 1]
     if not powers:
         return cosine
-    facing = (cosine.abs() if two_sided else cosine).clamp(0.0, 1.0)  # a rounding past 1 must not grow under a high power
+    facing = cosine.clamp(0.0, 1.0)  # a rounding past 1 must not grow under a high power
     return torch.cat([cosine, *(facing.pow(k) for k in powers)], dim=-1)
 
 
@@ -107,17 +105,11 @@ class VisNerfField(nn.Module):
         )
         self.color_decoder = Decoder(
             3 * cfg.n_appearance_components + pc + sh_dim(cfg.sh_degree) + cfg.facing_vectors
-            + (1 + len(cfg.level_cosine_powers) if self.reads_normals else 0), cfg.hidden_width, 3
+            + (1 + len(cfg.level_cosine_powers) if self.levels is not None else 0), cfg.hidden_width, 3
         )
         self.facing: nn.Linear | None = None
         if cfg.facing_vectors > 0:
             self.facing = nn.Linear(3 * cfg.n_appearance_components, 3 * cfg.facing_vectors, bias=False)
-
-    @property
-    def reads_normals(self) -> bool:
-        """Whether the colour decoder reads normal cosines: of the level field with a level axis,
-        of the density field with ``normal_cosines``."""
-        return self.levels is not None or self.cfg.normal_cosines
 
     @property
     def device(self) -> torch.device:
@@ -197,7 +189,7 @@ class VisNerfField(nn.Module):
         probes = probe_points(points, self.cfg.level_normal_step * self.voxel_size())  # [4n, 3]
         coords = self.to_grid(probes)
         raw = self.raw_density(coords, self.density_grid.sample(coords), q.repeat_interleave(N_PROBES, dim=0))
-        return level_cosines(raw.view(-1, N_PROBES), directions, self.cfg.level_cosine_powers, self.levels is None)
+        return level_cosines(raw.view(-1, N_PROBES), directions, self.cfg.level_cosine_powers)
 
     def color(
         self,
@@ -216,9 +208,9 @@ class VisNerfField(nn.Module):
         parts = [feats, q_appearance, sh]
         if self.facing is not None:
             parts.append(facing_cosines(self.facing(feats), directions))
-        if self.reads_normals:
+        if self.levels is not None:
             if q_density is None:
-                raise ValueError("a field that reads normal cosines needs the density features for its colour")
+                raise ValueError("a field with a level axis needs the density features for its colour")
             parts.append(self.level_normal_cosines(points, directions, q_density).to(feats.dtype))
         raw = self.color_decoder(torch.cat(parts, dim=-1))
         return torch.sigmoid(raw)

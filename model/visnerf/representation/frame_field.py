@@ -199,7 +199,7 @@ class FrameField:
         if dtype == torch.bfloat16 and self.compiled and output_kernel.available(q_density.device):
             self._density_out_f32 = output_kernel.OutputLayer(dd.weight.detach() * sharpness, dd.bias.detach() * sharpness)
             self._color_out_f32 = output_kernel.OutputLayer(cd.weight, cd.bias)
-        self._level_step = None if not field.reads_normals else cfg.level_normal_step * field.voxel_size()
+        self._level_step = None if field.levels is None else cfg.level_normal_step * field.voxel_size()
         self._grid_scale = 2.0 / field.grid_extent(field.aabb.dtype)  # [3], world units to grid coordinates (``to_grid``)
         self._grid_offset = -field.aabb[0] * self._grid_scale - 1.0  # [3]
         self._with_directions = self._facing is not None or self._level_step is not None
@@ -278,8 +278,7 @@ class FrameField:
         for start in range(0, len(probes), self.sub_chunk):
             sl = slice(start, start + self.sub_chunk)
             raw[sl] = self._raw_density(probes.coords[sl], probes.select(sl).taps)
-        return level_cosines(raw.view(-1, N_PROBES), directions, self.field.cfg.level_cosine_powers,
-                             self.field.levels is None)
+        return level_cosines(raw.view(-1, N_PROBES), directions, self.field.cfg.level_cosine_powers)
 
     def _color(self, samples: SampleTaps, ray_terms: Float[Tensor, "m e"]) -> Float[Tensor, "m 3"]:
         m = len(samples)

@@ -103,8 +103,7 @@ class TrainingField:
         q, _ = field.split_density_features(q_density)
         probes = probe_points(points, field.cfg.level_normal_step * field.voxel_size())  # [4m, 3]
         raw = self.raw_density(field.to_grid(probes), ray.repeat_interleave(N_PROBES), q)
-        return level_cosines(raw.view(-1, N_PROBES), directions.index_select(0, ray), field.cfg.level_cosine_powers,
-                             field.levels is None)
+        return level_cosines(raw.view(-1, N_PROBES), directions.index_select(0, ray), field.cfg.level_cosine_powers)
 
     def color(
         self,
@@ -123,7 +122,7 @@ class TrainingField:
         if field.facing is not None:
             feats = rows[:, : 3 * field.cfg.n_appearance_components]
             parts.append(facing_cosines(field.facing(feats), directions.index_select(0, ray)).to(rows.dtype))
-        if field.reads_normals:
+        if field.levels is not None:
             parts.append(self.level_normal_cosines(points, ray, directions, q_density).to(rows.dtype))
         x = rows if len(parts) == 1 else torch.cat(parts, dim=-1)
         return torch.sigmoid(field.color_decoder(x))

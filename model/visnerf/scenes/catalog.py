@@ -120,7 +120,7 @@ def scene_catalog() -> dict[str, SceneSpec]:
     # (measured at 64x64: plume 0.08, cosmo 0.43 at 1/128; vortex TF-1 0.27, TF-2 0.28 at 1/256).
     # IR: the step only has to catch thin parts; bisection refines the hit.
     # Nested shells' peaks are 0.06 of the value wide, 1 to 4 pixels at 800x800: at 1/512 the images
-    # differ from step 1/1536 by 1.0 to 1.3 levels at the 99th percentile (62 to 63 dB, 160x160).
+    # differ from step 1/1536 by 1.0 to 1.3 levels at the 99th percentile (160x160).
     coarse, fine, thin = 1.0 / 128.0, 1.0 / 256.0, 1.0 / 512.0
     scenes = (
         SceneSpec("plume_time", "Merging plumes over time", "dvr", _plume, (time,),

@@ -26,19 +26,6 @@ class RayBatch:
     py: Int[Tensor, " n"]
 
 
-def block_means(images: UInt8[Tensor, "n h w 3"], block: int, chunk: int = 16) -> UInt8[Tensor, "n hb wb 3"]:
-    """Each ``block`` x ``block`` block's mean colour, rounded to uint8 (``hb = h // block``; the
-    pixels past the last whole block are left out)."""
-    n, h, w, _ = images.shape
-    hb, wb = h // block, w // block
-    out = torch.empty(n, hb, wb, 3, dtype=torch.uint8)
-    for start in range(0, n, chunk):
-        part = images[start : start + chunk, : hb * block, : wb * block].float()  # [c, hb*b, wb*b, 3]
-        means = part.view(-1, hb, block, wb, block, 3).mean(dim=(2, 4))
-        out[start : start + chunk] = means.round_().clamp_(0, 255).to(torch.uint8)
-    return out
-
-
 def silhouette_pixels(
     images: UInt8[Tensor, "n h w 3"], background: tuple[float, float, float], tolerance: int, chunk: int = 64
 ) -> Int[Tensor, " m"]:
@@ -87,9 +74,6 @@ class RayBatchSampler:
         self.aabb: Tensor | None = None
         self.band: Int[Tensor, " m"] | None = None
         self.band_fraction = 0.0
-        self.block = 1
-        """Pixels a side of the blocks rays are drawn through (``set_block``); 1: every pixel."""
-        self._blocks: dict[int, UInt8[Tensor, "n hb wb 3"]] = {}
 
     def set_silhouette_band(self, band: Int[Tensor, " m"] | None, fraction: float) -> None:
         """Draw ``fraction`` of each batch from the flat pixel indices ``band`` (``silhouette_pixels``);
@@ -100,46 +84,31 @@ class RayBatchSampler:
         self.band = None if empty else band.to(torch.long).cpu()
         self.band_fraction = 0.0 if empty else fraction
 
-    def set_block(self, block: int) -> None:
-        """Draw rays through the centres of ``block`` x ``block`` pixel blocks, each ray's target
-        the block's mean colour (an image pyramid's level: a coarse grid learns from many more
-        pixels a step). Blocks that do not fit whole at the right and bottom edges are left out.
-        1: every pixel, its own colour. A band of silhouette pixels is drawn at full size."""
-        if not isinstance(block, int) or block < 1:
-            raise ValueError(f"a pixel block is a whole number of pixels >= 1, got {block!r}")
-        h, w = self.scene.intrinsics.height, self.scene.intrinsics.width
-        self.block = min(block, h, w)
-        if self.block > 1 and self.block not in self._blocks:
-            self._blocks[self.block] = block_means(self.scene.images, self.block)
-
     def set_aabb(self, aabb: Tensor | None) -> None:
         self.aabb = None if aabb is None else aabb.detach().cpu()
 
     def _draw(self, n: int) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor, Tensor]:
-        """``n`` draws: frames, pixel (or block) columns and rows, their rays, whether they hit."""
-        s, b = self.scene, self.block
+        s = self.scene
         frame = torch.randint(0, s.n_frames, (n,), generator=self.generator)
-        px = torch.randint(0, s.intrinsics.width // b, (n,), generator=self.generator)
-        py = torch.randint(0, s.intrinsics.height // b, (n,), generator=self.generator)
-        rays_o, rays_d = self._pixel_rays(frame, px, py, b)
+        px = torch.randint(0, s.intrinsics.width, (n,), generator=self.generator)
+        py = torch.randint(0, s.intrinsics.height, (n,), generator=self.generator)
+        rays_o, rays_d = self._pixel_rays(frame, px, py)
         return frame, px, py, rays_o, rays_d, self._hits(rays_o, rays_d)
 
-    def _pixel_rays(self, frame: Tensor, px: Tensor, py: Tensor, block: int = 1) -> tuple[Tensor, Tensor]:
-        """Rays through the centres of pixels (px, py) of these frames (of ``block``-pixel blocks)."""
+    def _pixel_rays(self, frame: Tensor, px: Tensor, py: Tensor) -> tuple[Tensor, Tensor]:
+        """Rays through the centres of pixels (px, py) of these frames."""
         s = self.scene
-        u, v = (px.float() + 0.5) * block, (py.float() + 0.5) * block
-        return rays_from_pixels(s.c2w.index_select(0, frame), s.intrinsics, u, v)
+        return rays_from_pixels(s.c2w.index_select(0, frame), s.intrinsics, px.float() + 0.5, py.float() + 0.5)
 
     def _hits(self, rays_o: Tensor, rays_d: Tensor) -> Tensor:
         if self.aabb is None:
             return torch.ones(rays_o.shape[0], dtype=torch.bool)
         return intersect_aabb(rays_o, rays_d, self.aabb)[2]
 
-    def _pixels(self, frame: Tensor, px: Tensor, py: Tensor, block: int = 1) -> Tensor:
-        """The images' colours at these pixels (of ``block``-pixel blocks: their means), ``[n, 3]``
-        uint8 (``index_select`` on the flat pixels: advanced indexing costs several times as much a
-        call on the CPU)."""
-        images = self.scene.images if block == 1 else self._blocks[block]
+    def _pixels(self, frame: Tensor, px: Tensor, py: Tensor) -> Tensor:
+        """The images' colours at these pixels, ``[n, 3]`` uint8 (``index_select`` on the flat
+        pixels: advanced indexing costs several times as much a call on the CPU)."""
+        images = self.scene.images
         if not images.is_contiguous():
             return images[frame, py, px]
         _, h, w, c = images.shape
@@ -156,7 +125,6 @@ class RayBatchSampler:
 
     def sample(self, n: int, max_redraws: int = 4) -> RayBatch:
         n_band = min(int(round(self.band_fraction * n)), n - 1) if self.band is not None else 0
-        block = self.block
         frame, px, py, rays_o, rays_d, hit = self._draw(n - n_band)
         drawn, hits = hit.numel(), int(hit.sum())
         for _ in range(max_redraws):
@@ -170,13 +138,11 @@ class RayBatchSampler:
             slots = miss[: take.numel()]
             for into, source in ((frame, f2), (px, x2), (py, y2), (rays_o, o2), (rays_d, d2), (hit, h2)):
                 into.index_copy_(0, slots, source.index_select(0, take))
-        rgb = self._pixels(frame, px, py, block).float() / 255.0
-        px, py = px * block + block // 2, py * block + block // 2  # the pixel at (or right below) a block's centre
         if n_band > 0:  # kept even where a ray misses the box: background beside content
             fb, xb, yb, ob, db = self._draw_band(n_band)
             frame, px, py = torch.cat([frame, fb]), torch.cat([px, xb]), torch.cat([py, yb])
             rays_o, rays_d = torch.cat([rays_o, ob]), torch.cat([rays_d, db])
-            rgb = torch.cat([rgb, self._pixels(fb, xb, yb).float() / 255.0])
+        rgb = self._pixels(frame, px, py).float() / 255.0
         return RayBatch(
             rays_o.to(self.device),
             rays_d.to(self.device),

@@ -45,8 +45,9 @@ the images and cameras alone, each choice with the reason ``visnerf info`` shows
   view's colours and miss the views between them;
 - total variation on the density and appearance factors (``TrainConfig.tv_weight_density``,
   ``tv_weight_appearance``) for opaque scenes: the surface and its colours between the views, and
-  between training isovalues, stay smooth; and for translucent scenes seen by fewer than
-  ``RECIPE.sparse_views`` images a setting, whose few views leave speckle between them;
+  between training isovalues, stay smooth; and for translucent scenes with parameter axes seen by
+  fewer than ``RECIPE.sparse_views`` images a setting, whose few views leave speckle between them
+  and between settings; a translucent scene of one setting gets none (its thin shells fog);
 - a level-set axis (``FieldConfig.level_set_axis``) for opaque scenes whose settings' visual hulls
   are nested along an axis (``data.nesting``): an isovalue sweep. Its surfaces are then the level
   sets of one learnt field, and a value between two training values gives the surface between
@@ -275,6 +276,10 @@ def _total_variation(opaque_value: float, opaque_reason: str, what: str) -> Call
         views = ctx.traits.views_per_setting
         if ctx.traits.opaque:
             return opaque_value, opaque_reason
+        if views < RECIPE.sparse_views and ctx.traits.n_params == 0:
+            return None, (f"translucent content of one setting seen by {views:g} views: total variation would "
+                          "smear its thin shells into fog, and no setting between training values needs it "
+                          "(docs/decisions.md, \"Thin lit shells: no total variation for one setting\")")
         if views < RECIPE.sparse_views:
             return RECIPE.sparse_view_tv, (f"translucent content seen by {views:g} views a setting (under "
                                            f"{RECIPE.sparse_views}): so few views fit its {what} with speckle "

@@ -13,10 +13,6 @@ import torch
 
 from visnerf.config import TrainConfig
 from visnerf.training.grid_budget import GridBudget
-from visnerf.training.scene_traits import pixel_footprint
-
-MAX_PIXEL_BLOCK = 8
-"""The widest pixel block of the image pyramid (``TrainConfig.image_pyramid``)."""
 
 
 def resolution_for_box(extent: torch.Tensor, voxels_per_axis: int | float) -> tuple[int, int, int]:
@@ -98,16 +94,6 @@ class Schedule:
         if (self.state.upsamples_done, self.state.occupancy_done, self.state.refines_done) != done:
             self.ranks.broadcast_field(self.field)  # the ranks' grids stay identical
             self.sampler.set_aabb(self.field.aabb)
-            self.sampler.set_block(self.pixel_block())
-
-    def pixel_block(self) -> int:
-        """Pixels a side of the blocks the rays are drawn through (``TrainConfig.image_pyramid``):
-        the largest power of two within a voxel's footprint, 1 without the pyramid."""
-        if not self.cfg.image_pyramid:
-            return 1
-        centre = 0.5 * (self.field.aabb[0] + self.field.aabb[1])
-        ratio = self.field.voxel_size() / max(pixel_footprint(self.scene, centre.cpu()), 1e-12)
-        return int(min(MAX_PIXEL_BLOCK, 2 ** max(0, math.floor(math.log2(max(ratio, 1.0))))))
 
     def _schedule_milestones(self) -> None:
         p = self.progress()

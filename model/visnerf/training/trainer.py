@@ -120,7 +120,6 @@ class Trainer(Schedule, OccupancyPolicy, Stepping, Resumable, Recording):
         """Rays of the training frames inside the field's box, a share on the silhouettes' band."""
         sampler = RayBatchSampler(self.scene, self.device, self.generator)
         sampler.set_aabb(self.field.aabb)
-        sampler.set_block(self.pixel_block())
         if self.cfg.silhouette_ray_fraction > 0.0:
             band = silhouette_pixels(self.scene.images, self.scene.background, self.cfg.carve_tolerance)
             sampler.set_silhouette_band(band, self.cfg.silhouette_ray_fraction)

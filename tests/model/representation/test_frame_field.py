@@ -17,13 +17,11 @@ from visnerf.representation.frame_field import FrameField, ModeTables
 from visnerf.testing import make_tiny_field
 
 
-@pytest.fixture(params=[(-1, False), (0, False), (-1, True)], ids=["factors", "level-axis", "normal-cosines"])
+@pytest.fixture(params=[-1, 0], ids=["factors", "level-axis"])
 def field(request):
-    """Parameter factors on both axes, or axis ``a`` a level axis (``param_axes.LevelAxis``), or
-    factors with the density field's normal cosines (``FieldConfig.normal_cosines``)."""
-    axis, normals = request.param
+    """Parameter factors on both axes, or axis ``a`` a level axis (``param_axes.LevelAxis``)."""
     f, _ = make_tiny_field([("a", [0.0, 0.5, 1.0]), ("b", [0.0, 1.0])], seed=3, resolution=12,
-                           level_set_axis=axis, normal_cosines=normals)
+                           level_set_axis=request.param)
     return f.eval()
 
 

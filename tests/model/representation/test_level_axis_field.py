@@ -144,31 +144,3 @@ def test_colour_of_a_level_axis_field_needs_its_density_features(field):
     with pytest.raises(ValueError, match="density features"):
         field.color(points, dirs, q_a)
     assert field.color(points, dirs, q_a, q_d).shape == (3, 3)
-
-
-def test_normal_cosines_of_a_volume_are_two_sided() -> None:
-    """Without a level axis the powers are of |cos|: a shell lit from whichever side faces the eye.
-    ``g = x`` seen along -x and +x: cosines -1 and 1, every power 1 both ways."""
-    from visnerf.representation.field import TETRAHEDRON, level_cosines
-
-    probes = torch.tensor([[v[0] for v in TETRAHEDRON]] * 2)  # g = x at the four probes
-    directions = torch.tensor([[-1.0, 0.0, 0.0], [1.0, 0.0, 0.0]])
-    two = level_cosines(probes, directions, (4, 16), two_sided=True)
-    one = level_cosines(probes, directions, (4, 16))
-    assert torch.allclose(two, torch.tensor([[-1.0, 1.0, 1.0], [1.0, 1.0, 1.0]]), atol=1e-6)
-    assert torch.allclose(one, torch.tensor([[-1.0, 0.0, 0.0], [1.0, 1.0, 1.0]]), atol=1e-6)
-
-
-def test_a_field_with_normal_cosines_reads_them_and_needs_the_density_features() -> None:
-    from visnerf.testing import make_tiny_field
-
-    plain, _ = make_tiny_field([("a", [0.0, 1.0])], seed=1)
-    lit, _ = make_tiny_field([("a", [0.0, 1.0])], seed=1, normal_cosines=True, level_cosine_powers=(4, 16))
-    assert lit.reads_normals and not plain.reads_normals
-    assert lit.color_decoder.hidden.in_features == plain.color_decoder.hidden.in_features + 3
-    points = torch.rand(10, 3) - 0.5
-    directions = torch.nn.functional.normalize(torch.randn(10, 3), dim=-1)
-    q_d, q_a = lit.param_features(torch.zeros(10, 1))
-    with pytest.raises(ValueError, match="density features"):
-        lit.color(points, directions, q_a)
-    assert lit.color(points, directions, q_a, q_d).shape == (10, 3)

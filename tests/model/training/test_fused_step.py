@@ -29,7 +29,6 @@ KINDS = {
     "volume K=3": (3, {}, 0.0),
     "surface, facing cosines, occluded dropped": (2, {"facing_vectors": 2, "density_scale": 20.0}, 1e-2),
     "level axis": (2, {"level_set_axis": 0, "level_cosine_powers": (4, 16), "density_scale": 20.0}, 1e-3),
-    "lit volume, normal cosines": (1, {"normal_cosines": True, "level_cosine_powers": (4, 16)}, 0.0),
 }
 
 

@@ -68,35 +68,3 @@ def test_a_box_no_ray_hits_keeps_the_batch_size(surface_scene) -> None:
     batch = sampler.sample(64)
     assert batch.rays_o.shape == (64, 3) and not bool(intersect_aabb(batch.rays_o, batch.rays_d,
                                                                        sampler.aabb)[2].any())
-
-
-def test_block_rays_pass_through_block_centres_with_the_block_means(surface_scene) -> None:
-    """``set_block(b)``: each ray through the centre of a b x b block (continuous coordinates
-    ``(X + 0.5) b``), its target the mean of the block's pixels (uint8, rounded), recomputed here
-    pixel by pixel; 1 again gives every pixel's own ray."""
-    sampler = RayBatchSampler(surface_scene, torch.device("cpu"), torch.Generator().manual_seed(1))
-    sampler.set_block(2)
-    batch = sampler.sample(300)
-    bx, by = batch.px // 2, batch.py // 2  # the blocks: px, py name the pixel at a block's centre
-    assert torch.equal(batch.px, bx * 2 + 1) and torch.equal(batch.py, by * 2 + 1)
-    o, d = rays_from_pixels(surface_scene.c2w[batch.frame], surface_scene.intrinsics, (bx.float() + 0.5) * 2,
-                            (by.float() + 0.5) * 2)
-    assert torch.equal(o, batch.rays_o) and torch.equal(d, batch.rays_d)
-    images = surface_scene.images.float()
-    for i in range(0, 300, 7):
-        f, x, y = int(batch.frame[i]), int(bx[i]) * 2, int(by[i]) * 2
-        mean = images[f, y:y + 2, x:x + 2].reshape(-1, 3).mean(0).round()
-        assert torch.equal(batch.rgb[i] * 255.0, mean)
-    sampler.set_block(1)
-    again = sampler.sample(50)
-    assert torch.equal(again.rgb, surface_scene.images[again.frame, again.py, again.px].float() / 255.0)
-
-
-def test_a_block_must_be_a_positive_whole_number(surface_scene) -> None:
-    import pytest
-
-    sampler = RayBatchSampler(surface_scene, torch.device("cpu"), torch.Generator().manual_seed(1))
-    for bad in (0, -2):
-        with pytest.raises(ValueError, match="whole number"):
-            sampler.set_block(bad)
-    assert sampler.block == 1

@@ -231,3 +231,20 @@ def test_a_time_budget_bounds_the_grid_by_its_rays_unless_the_grid_is_given(volu
 
 def choices_of_reasons(recipe) -> dict[str, str]:
     return {c.name: c.reason for c in recipe.choices}
+
+
+def test_translucent_content_of_one_setting_seen_by_few_views_gets_no_total_variation(volume_scene):
+    """K = 0 (one setting): thin translucent shells fog under total variation; the view terms stay
+    few as with parameter axes."""
+    import dataclasses
+
+    first = volume_scene.params[0]
+    frames = torch.nonzero((volume_scene.params == first).all(dim=1))[: RECIPE.sparse_views - 1, 0]
+    one = volume_scene.subset(frames)
+    static = dataclasses.replace(one, params=one.params[:, :0], param_axes=())
+    assert static.n_params == 0 and views_per_setting(static) < RECIPE.sparse_views
+    recipe = choose_recipe(static, TrainConfig(), FieldConfig())
+    assert recipe.train.tv_weight_density == recipe.train.tv_weight_appearance == 0.0
+    reasons = choices_of_reasons(recipe)
+    assert "one setting" in reasons["tv_weight_density"] and "fog" in reasons["tv_weight_appearance"]
+    assert recipe.field.sh_degree == RECIPE.sparse_view_sh_degree
