@@ -32,13 +32,23 @@ adds less than ``exp(-14) = 8e-7`` of its height there (the twin's values differ
 
 
 @no_type_check  # compiled by numba: no runtime type checks (tests run jaxtyping's import hook)
-def _value(x, y, z, centres, inv_r2, height, wave, phase, disp, blobs, n_near):  # noqa: ANN001, ANN202 - numba
+def _warp(x, y, z, wave, phase, disp):  # noqa: ANN001, ANN202 - numba
+    """The point moved by the field's turbulent displacement (``ShellsField.waves``)."""
     wx, wy, wz = x, y, z
     for k in range(phase.shape[0]):
         s = math.sin(x * wave[0, k] + y * wave[1, k] + z * wave[2, k] + phase[k])
         wx += s * disp[k, 0]
         wy += s * disp[k, 1]
         wz += s * disp[k, 2]
+    return wx, wy, wz
+
+
+_warp_inline = jit(_warp, inline=True)
+
+
+@no_type_check  # compiled by numba: no runtime type checks (tests run jaxtyping's import hook)
+def _value(x, y, z, centres, inv_r2, height, wave, phase, disp, blobs, n_near):  # noqa: ANN001, ANN202 - numba
+    wx, wy, wz = _warp_inline(x, y, z, wave, phase, disp)
     total = 0.0
     for j in range(n_near):
         i = blobs[j]
@@ -55,12 +65,7 @@ _value_inline = jit(_value, inline=True)
 def _facing(px, py, pz, dx, dy, dz, centres, inv_r2, height, wave, phase, disp, blobs, n_near):  # noqa: ANN001, ANN202
     """|cos| of the field's gradient (in closed form: the warp's Jacobian carries the blobs' gradient
     back to the point) with the ray; 1 where the gradient vanishes."""
-    wx, wy, wz = px, py, pz
-    for k in range(phase.shape[0]):
-        s = math.sin(px * wave[0, k] + py * wave[1, k] + pz * wave[2, k] + phase[k])
-        wx += s * disp[k, 0]
-        wy += s * disp[k, 1]
-        wz += s * disp[k, 2]
+    wx, wy, wz = _warp_inline(px, py, pz, wave, phase, disp)
     total = gx = gy = gz = 0.0  # the blobs' sum and its gradient in the warped point
     for j in range(n_near):
         i = blobs[j]
@@ -161,12 +166,7 @@ def _cell_tables(centres, inv_r2, height, wave, phase, disp, lipschitz, needed, 
         for iy in range(cells):
             for iz in range(cells):
                 x, y, z = -0.5 + (ix + 0.5) * size, -0.5 + (iy + 0.5) * size, -0.5 + (iz + 0.5) * size
-                wx, wy, wz = x, y, z
-                for k in range(phase.shape[0]):
-                    sn = math.sin(x * wave[0, k] + y * wave[1, k] + z * wave[2, k] + phase[k])
-                    wx += sn * disp[k, 0]
-                    wy += sn * disp[k, 1]
-                    wz += sn * disp[k, 2]
+                wx, wy, wz = _warp_inline(x, y, z, wave, phase, disp)
                 bound = 0.0
                 n = 0
                 for i in range(height.shape[0]):

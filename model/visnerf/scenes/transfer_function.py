@@ -160,32 +160,30 @@ def cosmic_tf() -> TransferFunction:
     return TransferFunction(knots, tuple(_plasma(t) for t in (0.0, 0.25, 0.5, 0.8, 1.0)), opacities)
 
 
-def shells_tf() -> TransferFunction:
-    """Three translucent shells: narrow opacity peaks at values 0.25 (blue), 0.5 (green) and 0.75
-    (orange), transparent between them, as a contour-style transfer function draws surfaces."""
-    knots, colours, opacities = [0.0], [(0.1, 0.3, 0.9)], [0.0]
-    for centre, colour, alpha in ((0.25, (0.15, 0.4, 0.95), 0.35), (0.5, (0.2, 0.8, 0.35), 0.5),
-                                  (0.75, (1.0, 0.55, 0.1), 0.8)):
-        knots += [centre - 0.04, centre, centre + 0.04]
+def peaks_tf(peaks: tuple[tuple[float, RGB, float], ...], half_width: float, ends: tuple[RGB, RGB]) -> TransferFunction:
+    """Narrow triangular opacity peaks (centre, colour, opacity), ``half_width`` either side, each
+    in its colour, transparent between them and beyond; ``ends`` colour values 0 and 1."""
+    knots, colours, opacities = [0.0], [ends[0]], [0.0]
+    for centre, colour, alpha in peaks:
+        knots += [centre - half_width, centre, centre + half_width]
         colours += [colour] * 3
         opacities += [0.0, alpha, 0.0]
     knots.append(1.0)
-    colours.append((1.0, 0.55, 0.1))
+    colours.append(ends[1])
     opacities.append(0.0)
     return TransferFunction(tuple(knots), tuple(colours), tuple(opacities))
+
+
+def shells_tf() -> TransferFunction:
+    """Three translucent shells: narrow opacity peaks at values 0.25 (blue), 0.5 (green) and 0.75
+    (orange), transparent between them, as a contour-style transfer function draws surfaces."""
+    peaks = ((0.25, (0.15, 0.4, 0.95), 0.35), (0.5, (0.2, 0.8, 0.35), 0.5), (0.75, (1.0, 0.55, 0.1), 0.8))
+    return peaks_tf(peaks, 0.04, ((0.1, 0.3, 0.9), (1.0, 0.55, 0.1)))
 
 
 def nested_shells_tf() -> TransferFunction:
     """Nested shells around every blob: narrow opacity peaks at 0.3 (a faint blue outer shell),
     0.55 (a green middle one) and 0.8 (a nearly opaque orange core), transparent between them, as a
     scientist's contour-style transfer function picks a few values of a turbulent field."""
-    knots, colours, opacities = [0.0], [(0.2, 0.45, 1.0)], [0.0]
-    for centre, colour, alpha in ((0.3, (0.2, 0.45, 1.0), 0.22), (0.55, (0.35, 0.85, 0.3), 0.45),
-                                  (0.8, (1.0, 0.45, 0.1), 0.9)):
-        knots += [centre - 0.03, centre, centre + 0.03]
-        colours += [colour] * 3
-        opacities += [0.0, alpha, 0.0]
-    knots.append(1.0)
-    colours.append((1.0, 0.45, 0.1))
-    opacities.append(0.0)
-    return TransferFunction(tuple(knots), tuple(colours), tuple(opacities))
+    peaks = ((0.3, (0.2, 0.45, 1.0), 0.22), (0.55, (0.35, 0.85, 0.3), 0.45), (0.8, (1.0, 0.45, 0.1), 0.9))
+    return peaks_tf(peaks, 0.03, ((0.2, 0.45, 1.0), (1.0, 0.45, 0.1)))
