@@ -165,7 +165,7 @@ default applies), ``chunk_rays`` belongs to the machine, not the model."""
 
 V1_TRAIN_DROPPED = ("random_background",)
 """Training settings a version 1 run recorded that are gone: random backgrounds were measured and
-not kept (docs/decisions.md), and every run recorded it off."""
+not kept (docs/trials.md), and every run recorded it off."""
 
 
 def migrate(data: dict[str, Any]) -> dict[str, Any]:

@@ -32,8 +32,7 @@ def jit(fn: Callable[..., Any], inline: bool = False, fastmath: set[str] | None 
 
     Division follows numpy's error model (a zero divisor gives inf or NaN, as torch's does): numba's
     default checks every divisor and raises, which keeps LLVM from vectorising any loop that
-    divides (an Adam update over 5.8 million floats: 13 ms checked, 2.3 ms with numpy's model).
-    The loops guard their divisions themselves."""
+    divides (docs/decisions.md#compiled.error_model). The loops guard their divisions themselves."""
     if numba is None:  # pragma: no cover
         return fn
     if inline:

@@ -105,9 +105,8 @@ TRIM_AFTER_PIXELS = 512 * 512
 """Frames of at least this many pixels give their freed memory back to the system when done
 (``runtime.release_free_memory``). A large frame allocates hundreds of megabytes in many blocks, on
 the calling thread and the chunk threads, each served from a glibc arena of its own; freed, they
-stayed resident: the render server beside four clients asking for 1440x1440 frames grew from 1160
-to 1331 MB in 30 s, and stayed within 10 % with the trim (bench/results/server_load.md). Trimming
-takes milliseconds; smaller frames reuse the same blocks frame after frame."""
+stayed resident and a server's memory grew frame after frame (docs/decisions.md#runtime.trim,
+bench/results/server_load.md). Trimming takes milliseconds; smaller frames reuse the same blocks frame after frame."""
 
 
 class SceneRenderer:

@@ -30,8 +30,8 @@ def release_free_memory() -> bool:
     """Return the allocator's free pages to the system (glibc ``malloc_trim``).
 
     Training allocates tensors of varying size every step; glibc keeps the freed blocks in its
-    heap, so resident memory creeps up to several times what is live (measured on Nyx: 2.8 GB
-    resident against 1.4 GB live after 100 steps). Trimming between steps keeps resident memory
+    heap, so resident memory creeps up to several times what is live
+    (docs/decisions.md#runtime.trim). Trimming between steps keeps resident memory
     near what is live. Returns False where there is no glibc.
     """
     libc = _glibc()
@@ -53,12 +53,9 @@ def keep_freed_blocks() -> bool:
     """Serve blocks of up to 32 MiB from glibc's heap and keep them there once freed (``mallopt``).
 
     With glibc's defaults (a sliding mmap threshold, and the heap's top handed back to the
-    system above twice that), the table-sized tensors of a training step (a 170^3 appearance
-    plane table is 16.6 MB: each micro-batch's gradient of it, Adam's temporaries) kept faulting
-    their pages in: on a trained Nyx step, 34,000 to 85,000 page faults and 0.05 to 0.13 s of
-    system time per step; with the blocks kept, about 1,700 faults, 0.005 s, and the step 1.14 to
-    1.39 times faster; peak RSS within the spread of the runs (1030 to 1190 MB either way,
-    bench/results/train_step_allocator/, a run of bench/train_step_speed.py with both allocators).
+    system above twice that), the table-sized tensors of a training step (each micro-batch's
+    gradient of a plane table, Adam's temporaries) kept faulting their pages in; kept, a step
+    is faster at the same peak memory (docs/decisions.md#runtime.keep_freed_blocks).
     ``release_free_memory`` still returns free pages between steps. Process-wide; returns False
     where there is no glibc.
     """
@@ -109,9 +106,8 @@ def configure(threads: int | None = None) -> None:
 ACCELERATOR_BATCH_FACTOR = 16
 """How many times more rays a frame's chunk, and samples a decoder pass, hold on a GPU than on the
 CPU: each segment of a chunk launches some hundred small kernels and waits for a few counts
-(``nonzero``), so a GPU frame in CPU-sized batches is bound by launches, not by its work. On one
-H200, a 256x256 frame of the bundled cosmo_sim took 312 ms in chunks of 4096 rays, with 29 ms of
-kernels in it, and 42 to 46 ms a frame in batches 16 times larger (bench/results/cuda_check)."""
+(``nonzero``), so a GPU frame in CPU-sized batches is bound by launches, not by its work
+(docs/decisions.md#runtime.accelerator_batch_factor)."""
 
 
 def batch_factor(device: torch.device) -> int:

@@ -27,7 +27,7 @@ from visnerf_server.schemas import MEDIA_TYPES, MatrixCamera, RenderRequest
 
 LARGE_FRAME_PIXELS = inference.TRIM_AFTER_PIXELS
 """Full frames of at least this many pixels (512x512) run one at a time (``render_queue``): a
-1440x1440 frame holds 350 to 400 MB while it renders (docs/decisions.md)."""
+1440x1440 frame holds a few hundred megabytes while it renders (docs/decisions.md#frames.blocks)."""
 
 
 def is_large_frame(width: int, height: int, quality: str) -> bool:
@@ -197,9 +197,8 @@ class FrameRenderer:
                 return render_and_encode()
             finally:
                 # The scene's render trims once the frame is drawn (``inference.TRIM_AFTER_PIXELS``);
-                # the frame's 8-bit copy and its encoding come after that. A server that four
-                # clients had asked for 1440x1440 frames stood at 981 MB and at 654 MB once trimmed
-                # again (455 MB loaded).
+                # the frame's 8-bit copy and its encoding come after that, so a large frame
+                # trims again here (docs/decisions.md#runtime.trim).
                 if job.width * job.height >= inference.TRIM_AFTER_PIXELS:
                     release_free_memory()
 

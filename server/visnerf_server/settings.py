@@ -92,10 +92,8 @@ class Settings(BaseSettings):
     refine_spread: float = FramesConfig.refine_spread
     """Colour difference over a lattice cell's corners above which its pixels are marched, not blended."""
 
-    # Costs per request and per client
-    # (ms per megapixel from bench/results/render_speed.md, 2-core AMD EPYC, 256x256 frames,
-    # slowest scenes: full quality 4490 median / 4920 p95 (cosmo_sim), preview 1650 / 2170
-    # (plume_time).)
+    # Costs per request and per client, from the slowest bundled scenes' cost per megapixel
+    # (docs/decisions.md#server.frame_costs)
     threads: int | None = Field(default=None, ge=1, le=1024)
     """Torch threads for rendering (``VISNERF_THREADS``, ``--threads``); None: the CPU quota of
     the server's cgroup where there is one, else the cores it may run on."""

@@ -53,7 +53,7 @@ class FieldConfig:
     hidden_width: int = 64
     """Hidden layer width of both decoders. 64 rather than 128: the decoders are most of a step's
     and a frame's work, and 64 buys more steps for the same figures, where 32 gains nothing more
-    (docs/decisions.md, "Configuration defaults")."""
+    (docs/decisions.md#field.hidden_width)."""
     pos_encoding_freqs: int = 2
     """Frequencies of the positional encoding of x fed to the density decoder."""
     sh_degree: int = 3
@@ -71,13 +71,13 @@ class FieldConfig:
     level_normal_step: float = 1.0
     """Distance in voxels along each axis of the probes whose values of the level field give its
     normal (``field.level_normal_cosines``; only with a level axis). Closer probes carry the
-    field's voxel-scale ripples into the shading (docs/decisions.md, "Configuration defaults")."""
+    field's voxel-scale ripples into the shading (docs/decisions.md#field.level_normal_step)."""
     level_cosine_powers: tuple[int, ...] = (4, 16, 64)
     """Powers of the positive part of the level field's normal cosine that the colour decoder reads
     beside the cosine itself (only with a level axis). An isosurface renderer's highlight is a high
     power of a cosine (Blinn-Phong with a headlight: exponent 40 in the synthetic scenes, half height
     10.6 degrees from the view), too narrow for one ReLU layer to draw from the cosine alone; the
-    decoder mixes the powers instead (docs/decisions.md, "Configuration defaults"). (): the
+    decoder mixes the powers instead (docs/decisions.md#field.level_cosine_powers). (): the
     cosine alone, as checkpoints that do not name this field."""
     density_shift: float = -2.0
     """Added to the raw density before softplus, so that a fresh field is a faint fog (0.13 per world
@@ -93,8 +93,7 @@ class FieldConfig:
     factor_storage: FactorStorage = "int8"
     """How the checkpoint file stores the VM planes and lines: ``float32``, ``float16`` or ``int8``
     (planes as int8 codes with a float32 scale per row, ``factor_codec``, lines as float16: about
-    a quarter of the float32 bytes, frames indistinguishable from float16's: docs/decisions.md,
-    "Configuration defaults"). The field computes in float32 either way. Checkpoints that do not
+    a quarter of the float32 bytes, frames indistinguishable from float16's: docs/decisions.md#field.factor_storage). The field computes in float32 either way. Checkpoints that do not
     say hold float32."""
 
     def __post_init__(self) -> None:

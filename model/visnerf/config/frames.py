@@ -21,7 +21,7 @@ class FramesConfig:
     ``runtime.batch_factor``)."""
     segment_samples: int = 128
     """Samples marched per segment before finished rays are dropped; 4096 rays by 128 samples was
-    the fastest chunk (docs/decisions.md, "Rendering")."""
+    the fastest chunk (docs/decisions.md#frames.chunks)."""
     first_segment_samples: int = 16
     """Samples in a ray's first segment; each later one doubles, up to ``segment_samples``: rays
     that turn opaque early (surfaces) stop without marching a whole long segment."""
@@ -32,7 +32,7 @@ class FramesConfig:
     """Full-quality frames at one parameter setting before its grid is built: 1 builds at once. The
     web client asks twice when a view settles (the training images' size, then the view's), so 3
     builds at the next view of a setting a slider stopped at, not beside the frame at the view's
-    size, which it slowed (docs/decisions.md, "Frames at the screen's size")."""
+    size, which it slowed (docs/decisions.md#frames.setting_grids)."""
     setting_grid_samples: int = 2
     """Density samples per cell and axis of a setting grid (as the union grid is built)."""
     refine_spacing: int = 4
@@ -42,7 +42,7 @@ class FramesConfig:
     """A lattice cell whose four corners differ by more than this in some channel (colours in
     [0, 1]) has its inner pixels marched; the others are blended from the corners. 12 levels of
     255: the refined frame stays closer to every pixel marched than the fast frame is to the plain
-    renderer, and 16 let a cell's error grow (docs/decisions.md, "A time budget bounds the final grid")."""
+    renderer, and 16 let a cell's error grow (docs/decisions.md#frames.refine)."""
 
     def __post_init__(self) -> None:
         check_types(type(self), self.__dict__)

@@ -1,6 +1,6 @@
 """The recipe's constants (``training.recipe``): how the data's traits turn into settings. The
-measurements behind each are in docs/decisions.md ("Recipe: grid and carving", "Recipe: opaque
-surfaces")."""
+rule and figure behind each are under its ``recipe.*`` id in docs/decisions.md, e.g.
+docs/decisions.md#recipe.voxel_per_pixel."""
 
 from dataclasses import dataclass, field
 
@@ -66,11 +66,11 @@ class RecipeConfig:
     """``TrainConfig.tv_weight_density`` and ``tv_weight_appearance`` for such a scene with parameter
     axes: few views fit its density and colours with speckle between them, which the images do not
     pin down. A scene of one setting gets none: it smears nested thin shells into fog
-    (docs/decisions.md, "Thin lit shells: no total variation for one setting")."""
+    (docs/decisions.md#recipe.sparse_view_tv)."""
     sparse_view_sh_degree: int = 1
     """``FieldConfig.sh_degree`` for such a scene: the 16 view terms of degree 3 fit each of its few
     views' colours and miss the views between them; a 20-view series gained at degree 2 and more
-    at 1 (docs/decisions.md, "Few views a setting: view terms of degree 1")."""
+    at 1 (docs/decisions.md#recipe.sparse_view_sh_degree)."""
     values_per_param_component: int = 3
     """Training values of the longest parameter axis per parameter component: rank 4 serves axes of
     up to 12 values, and a 30-timestep series gains from rank 8 over 4 and from 16 over 8."""

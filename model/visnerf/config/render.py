@@ -33,7 +33,7 @@ class RenderConfig:
     is upsampled); the exhaustive reference samples at the finer of this and half a voxel
     (``renderer.exhaustive_step_ratio``), the preview at that times ``preview_step_factor``. With
     the recipe's voxels (``training.recipe``, 0.93 of a pixel at the content) samples land about
-    1.5 pixels apart, the spacing the Nyx record trained at (docs/decisions.md)."""
+    1.5 pixels apart, the spacing the Nyx record trained at (docs/decisions.md#recipe.voxel_per_pixel)."""
     full_step_ratio: float = 0.75
     """Sample spacing of full-quality inference frames in voxels (stored with each checkpoint):
     training ends by choosing the coarsest spacing whose held-out frames (training frames when none
@@ -54,7 +54,7 @@ class RenderConfig:
     of the ray's decoded samples (``renderer._unshaded_gain``). A sample's weight in a translucent
     medium grows with the spacing, so a threshold per sample skipped more of the medium the finer
     the frame was sampled; per voxel, it skips the same share at every spacing
-    (docs/decisions.md, "Configuration defaults").
+    (docs/decisions.md#render.full_weight_threshold).
     Checkpoints from before store ``full_weight_threshold``, a threshold per sample, which is not
     read: they take this default."""
     early_stop_eps: float = 1e-4

@@ -27,30 +27,28 @@ class TrainConfig:
 
     iterations: int | None = None
     """Steps after which the run ends; none: 30,000 without a time budget, and under one the budget
-    alone ends the run. A fixed limit would end a budgeted run early on a fast machine: Nyx makes
-    30,000 steps in about 24 of its 60 minutes on a 2-core Zen 5 EPYC
-    (bench/results/nyx_middle_hour). With both, the run ends at whichever comes first
+    alone ends the run: a fixed limit would end a budgeted run early on a fast machine
+    (docs/decisions.md#train.time_budget). With both, the run ends at whichever comes first
     (``step_limit``)."""
     time_budget_s: float | None = None
     """Seconds of training (validation excluded). Progress is the larger of the time fraction and
     the step fraction (``step_limit``); the schedule's milestones are fractions of it."""
     batch_rays: int = 2048
     """Rays per iteration: half the paper's 4096; more, noisier steps fit faster on a CPU
-    (docs/decisions.md, "Configuration defaults")."""
+    (docs/decisions.md#train.batch_rays)."""
     micro_batch_rays: int = 4096
     """Most rays rendered and back-propagated together within an iteration; the step is the same
     for any value (``micro_batch_samples`` bounds the memory)."""
     micro_batch_samples: int = 131072
     """Most samples evaluated (in the box, in occupied cells, in front of opaque content) per
-    micro-batch: bounds activation memory (one 4096-ray step of a fresh Nyx-sized fog: +996 MB at
-    131072, +382 MB at 32768) while a late step of 2048 rays stays one micro-batch."""
+    micro-batch: bounds the activations of an early step through fog while a late step of 2048
+    rays stays one micro-batch (docs/decisions.md#train.micro_batch_samples)."""
     trim_every: int = 25
     """Iterations between returns of freed heap memory to the system (bounds resident memory)."""
     lr_factors: float = 0.02
     """Adam learning rate of grid factors and parameter vectors."""
     lr_networks: float = 2e-3
-    """Adam learning rate of the decoders: twice the paper's 0.001 (docs/decisions.md,
-    "Configuration defaults")."""
+    """Adam learning rate of the decoders: twice the paper's 0.001 (docs/decisions.md#train.lr_networks)."""
     betas: tuple[float, float] = (0.9, 0.99)
     """Adam's decay rates of the first and second moment estimates."""
     lr_decay_ratio: float = 0.1
@@ -115,19 +113,19 @@ class TrainConfig:
     """L1 pull of the parameter vectors toward 1."""
     tv_weight_density: float = 0.0
     """Total variation on the density factors: none, as in the paper's Nyx configuration; it smooths
-    the density, and thin filaments need it sharp (docs/decisions.md, "Configuration defaults";
-    the recipe sets it for opaque surfaces)."""
+    the density, and thin filaments need it sharp (docs/decisions.md#train.tv_weights;
+    the recipe sets it per content)."""
     tv_weight_appearance: float = 0.0
     """Total variation on the appearance factors: none, the fit is limited by capacity, not noise
-    (docs/decisions.md, "Configuration defaults"; the recipe sets it for opaque surfaces)."""
+    (docs/decisions.md#train.tv_weights; the recipe sets it per content)."""
     level_curvature_weight: float = 4.0
     """Weight of the curvature prior of a level axis's field ``g`` (``regularizers.level_curvature``:
     its squared second difference along random directions at random points of the box, over the
     squared span of the levels); nothing without a level axis. The images pin ``g`` only at the
     training surfaces, and the surfaces between training values are its level sets; a ``g`` whose
     slope changes smoothly carries the slope across each band, where a merely smooth ``g`` rises
-    evenly between two surfaces and keeps a shrinking blob's arms too long (docs/decisions.md,
-    "Configuration defaults")."""
+    evenly between two surfaces and keeps a shrinking blob's arms too long
+    (docs/decisions.md#train.level_curvature_weight)."""
     level_spacing_weight: float = 0.1
     """Weight of the bound on how much a level axis's neighbouring bands differ in slope
     (``regularizers.level_spacing``, nothing within ``level_spacing_ratio``). Without it an opaque
@@ -135,13 +133,13 @@ class TrainConfig:
     inside that surface; a pull toward even bands instead of a bound fits held-out views far worse.
     What pushed the level is the grid's edge cutting the surface
     (``config.recipe.SurfaceRecipe.carve_dilation`` and ``refine_dilation`` answer it;
-    docs/decisions.md, "Configuration defaults")."""
+    docs/decisions.md#train.level_spacing_weight)."""
     level_spacing_ratio: float = 4.0
     """Factor by which neighbouring bands' slopes may differ at no cost (trained tangle_iso fields
     have 1.3 to 1.5)."""
     level_curvature_points: int = 1024
     """Random points a step for ``level_curvature_weight``: more cost steps and gained nothing
-    (docs/decisions.md, "Configuration defaults")."""
+    (docs/decisions.md#train.level_curvature_points)."""
     tv_weight_params: float = 0.01
     """Total variation on the parameter vectors (smoothness along each parameter axis)."""
     stop_eps: float = 1e-4
@@ -167,7 +165,7 @@ class TrainConfig:
     weight_average_span: float = 0.03
     """Return the parameters' moving average over the end of the run instead of their last values
     (``training/weight_average.py``): the span of progress over which an old value's weight falls
-    by a factor of e. 0: off (docs/decisions.md, "Configuration defaults")."""
+    by a factor of e. 0: off (docs/decisions.md#train.weight_average_span)."""
     weight_average_from: float = 0.5
     """Progress fraction from which the average is kept; it restarts if the grid is upsampled
     later (a resumed run continues it from its run state)."""

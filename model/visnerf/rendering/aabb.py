@@ -1,8 +1,7 @@
 """Ray / axis-aligned box intersection (slab method), exact for axis-parallel rays.
 
 On the CPU one compiled loop over the rays (``_intersect``) replaces the torch version's two dozen
-small operations (four calls a training step: 0.85 ms of a 31 to 36 ms Nyx step on two threads);
-it does the same float arithmetic in the rays' own type, so the two agree bit for bit (tested).
+small operations (four calls a training step; docs/decisions.md#step.compiled_loops); it does the same float arithmetic in the rays' own type, so the two agree bit for bit (tested).
 """
 
 import math

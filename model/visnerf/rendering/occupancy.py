@@ -82,7 +82,7 @@ def build_occupancy(
     depend on the order): where content is much the same at every setting, as in a parameter sweep
     of one simulation, the first setting finds most occupied cells and the others evaluate what is
     left. A 96^3 rebuild of a cosmo_sim field at 27 settings took 63 s of a 10-minute training
-    budget when every setting evaluated every cell (docs/decisions.md).
+    budget when every setting evaluated every cell (docs/decisions.md#frames.setting_grids).
 
     Alpha is taken at the centres of ``samples_per_axis``^3 sub-cells of every cell: a structure
     thinner than a cell (a sharp isosurface, a filament) that passes between cell centres is still

@@ -139,6 +139,6 @@ def map_chunks(fn: Callable[[int], None], n_chunks: int, workers: int) -> None:
     finally:
         # The exception holds this frame in its traceback, and the frame the futures that hold
         # exceptions: a cycle only the garbage collector frees, with every tensor of the render's
-        # frames (65 MB a cancelled 1440x1440 frame, which a server collected rarely and never
-        # trimmed).
+        # frames (tens of megabytes for a cancelled large frame, which a server collected rarely
+        # and never trimmed).
         futures = error = None  # noqa: F841

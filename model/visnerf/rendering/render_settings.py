@@ -27,7 +27,7 @@ EXHAUSTIVE_STEP_RATIO = 0.5
 EXHAUSTIVE_CHUNK_RAYS = 1024
 """Rays per chunk of an exhaustive frame, at most: every sample of every ray is shaded, so a chunk's
 buffers grow with its rays times its segment; fewer rays bound the memory and cost no time (the
-end of training renders such frames to choose the spacing; docs/decisions.md, "Rendering")."""
+end of training renders such frames to choose the spacing; docs/decisions.md#render.exhaustive)."""
 
 
 def rays_per_chunk(settings: "RenderSettings", device: torch.device) -> int:
@@ -79,7 +79,7 @@ class RenderSettings:
         The reference marches the grid because the grid is part of the model: training fits only
         the cells it keeps, and outside them the density has had no photometric loss since the grid
         was last narrowed, and marched everywhere the reference scores far under the frames it
-        judges (docs/decisions.md, "Rendering"; ``evaluation.spacing``)."""
+        judges (docs/decisions.md#render.exhaustive; ``evaluation.spacing``)."""
         if quality not in ("full", "preview", "exhaustive"):
             raise ValueError(f"quality must be 'full', 'preview' or 'exhaustive', got {quality!r}")
         settings = cls(

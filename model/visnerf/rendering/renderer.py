@@ -35,10 +35,9 @@ from visnerf.runtime import batch_factor, bf16_native
 
 BLOCK_RAYS = 262144
 """Rays of a frame made, walked and marched at a time (``render_image``), 512x512 pixels: the
-empty-space walk runs on all of a block's rays at once, and a whole 1440x1440 frame at once
-(2 million rays) raised peak memory by 1.0 to 1.3 GB over the loaded model, in blocks by 0.35 to
-0.40 GB, in about the same time; a frame of at most this many rays is one block, as before
-(docs/decisions.md, "Measurements whose scripts have left the tree")."""
+empty-space walk runs on all of a block's rays at once, so blocks bound a large frame's peak
+memory at the same speed; a frame of at most this many rays is one block
+(docs/decisions.md#frames.blocks)."""
 
 
 def _shade_frame_samples(

@@ -59,9 +59,9 @@ def encode_position(points: Float[Tensor, "n 3"], n_freqs: int) -> Float[Tensor,
 def padded_rows(m: int) -> int:
     """Rows a decoder pass of ``m`` samples is computed on: a multiple of 128 below 1024, of 1024
     above. oneDNN builds (JIT-compiles) a kernel for every new shape of a bf16 matrix product and
-    caches it: with the sample count of every segment a new shape, that cost 0.3 to 0.9 ms per
-    product on top of 0.05 to 0.45 ms of arithmetic (measured here), and its cache grew a
-    server's memory by a GB over 150 frames. Rounded up, passes of up to 16384 samples use one of
+    caches it: with the sample count of every segment a new shape, that cost more than the
+    arithmetic and its cache grew a server's memory without bound
+    (docs/decisions.md#decoders.padded_rows). Rounded up, passes of up to 16384 samples use one of
     at most 24 shapes; the padding rows are zeros and their results are dropped."""
     step = 128 if m <= 1024 else 1024
     return max(step, -(-m // step) * step)

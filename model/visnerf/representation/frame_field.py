@@ -17,7 +17,7 @@ Two more things are done once per frame:
   ``runtime.bf16_native``) the folded weights and the row tables are cast once, and the lookups
   and matrix products run in bf16, as the decoders already do in training; coordinates,
   interpolation fractions, softplus, sigmoid and compositing stay float32: faster frames, the
-  same 8-bit pixels (docs/decisions.md, "Rendering").
+  same 8-bit pixels (docs/decisions.md#frames.compiled_rows).
 
 On the CPU the tables are not copied: one compiled pass per sample (``vm_kernel``) interpolates
 the grid's own float32 tables and writes the decoder's input row (features, and the positional
@@ -299,7 +299,7 @@ class FrameField:
             column = n_spatial + n_sh
             if self._facing is not None:
                 # on the padded rows, as the decoder's products: a bf16 product of every new row count
-                # is a new oneDNN kernel, cached, and that cache grew a server by 1.2 MB a frame
+                # is a new oneDNN kernel, cached, and that cache grew a server frame after frame
                 vectors = F.linear(x[:, :n_spatial], self._facing)[:m]  # [m, 3v]
                 cosines = facing_cosines(vectors, directions)
                 x[:m, column:column + cosines.shape[1]] = cosines.to(self.dtype)

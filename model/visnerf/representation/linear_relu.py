@@ -4,13 +4,12 @@ A decoder's hidden layer is a matrix product, a bias and a ReLU. As ``addmm`` th
 writes the bias into the output, runs the product on it, and reads and writes the whole
 ``[m, 128]`` activation once more for the ReLU. oneDNN's fused linear (``torch.ops.mkldnn.
 _linear_pointwise`` with the ``relu`` post-op, the kernel torch's own CPU compiler emits) does
-all three in the product's epilogue, faster and with the same values (docs/decisions.md,
-"Rendering").
+all three in the product's epilogue, faster and with the same values (docs/decisions.md#frames.compiled_rows).
 
 The fused op is private to torch and exists only in builds with oneDNN, so it is probed once per
 dtype (run on a small input and compared with the plain path) and the plain path is used where it
 is missing, fails, or disagrees, and on every device but the CPU. A CPU without bf16 instructions
-(an AMD EPYC with AVX2 only) has the float32 kernel and no bfloat16 one: oneDNN refuses to create
+(AVX2 only) has the float32 kernel and no bfloat16 one: oneDNN refuses to create
 it, and bfloat16 products there take the plain path.
 """
 

@@ -6,7 +6,7 @@ colour) is oneDNN's, which rounds its output to bfloat16: a raw density of 20 th
 0.06, and a level field's ``g`` times its sharpness by more. Here one loop per sample widens the
 row of activations to float32 (a bfloat16 is the top half of a float32) and sums its products with
 float32 weights and bias, so the only bfloat16 rounding left is that of the activations: faster
-frames, closer to the float32 renderer's (docs/decisions.md, "Rendering").
+frames, closer to the float32 renderer's (docs/decisions.md#frames.compiled_rows).
 
 The loop releases the GIL, like the other compiled passes (``representation.vm_kernel``).
 """

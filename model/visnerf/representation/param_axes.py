@@ -9,8 +9,7 @@ K = 0 the features are ones. Differentiable in the tables.
 Training sees the tables only at their knots, where every interpolant gives the row itself, so the
 interpolant decides nothing but the frames between training values. A feature that a parameter
 moves along a curve is followed along the curve instead of its chords: the monotone cubic beats
-the paper's piecewise-linear interpolant between training values (docs/decisions.md,
-"Parameter interpolation").
+the paper's piecewise-linear interpolant between training values (docs/decisions.md#param.interpolant).
 """
 
 import torch
@@ -21,7 +20,7 @@ from torch import Tensor, nn
 def distinct_rows(params: Float[Tensor, "n k"]) -> tuple[Float[Tensor, "s k"], Int[Tensor, " n"]]:
     """``torch.unique(params, dim=0, return_inverse=True)`` (rows sorted, k >= 1) by one sort per
     column and one of a whole-number key: unique over rows sorts whole rows, a measurable part of
-    a training step (docs/decisions.md, "Frames at the screen's size")."""
+    a training step (docs/decisions.md#param.distinct_rows)."""
     n = params.shape[0]
     key = torch.zeros(n, dtype=torch.long, device=params.device)
     for k in range(params.shape[1]):
@@ -204,8 +203,7 @@ class LevelAxis(nn.Module):
     Training sees the levels only at their knots; the interpolant places every surface between
     them. The levels of a trained sweep are a smooth function of the isovalue, which the natural
     spline (twice continuously differentiable) follows more closely than the monotone cubic of
-    the parameter tables, whose slopes are held back at each knot (docs/decisions.md, "Parameter
-    interpolation"). Each piece is kept between its two knot values.
+    the parameter tables, whose slopes are held back at each knot (docs/decisions.md#param.interpolant). Each piece is kept between its two knot values.
 
     ``sharpness`` multiplies ``g(x) - level(v)``. A surface is opaque where that difference has
     risen by some ten units, so with a fixed scale the field must rise steeply at the training

@@ -29,7 +29,7 @@ SCATTER_ROWS = 4096
 """Tables of at most this many rows (the lines of a grid) take their taps sample by sample into a
 row buffer instead of sorting them by row: every sample reads every line, so a few hundred rows
 hold most of the taps, and a sorted gather reads the samples' gradients in random order for each
-of them (docs/decisions.md, "Small tables gather their taps sample by sample")."""
+of them (docs/decisions.md#step.scatter_rows)."""
 
 
 @no_type_check  # compiled by numba

@@ -5,7 +5,7 @@ three modes) and, for density, its positional encoding. As torch operations that
 passes over ``[m, k]`` arrays: the taps' rows and weights (``TapLayout.taps``), two
 ``embedding_bag`` sums, their product, a cast and the encoding's product and sine. Here one loop
 over the samples computes the interpolation, reads the rows and writes the finished row, in less
-than half the time (docs/decisions.md, "Rendering"). The loop releases the GIL, so the chunk
+than half the time (docs/decisions.md#frames.compiled_rows). The loop releases the GIL, so the chunk
 threads of a frame run it side by side.
 
 The tables are read in float32 (the model's own parameters, no per-frame copy) and a row is
@@ -120,7 +120,7 @@ def mode_loop(c: int, ft: type):  # noqa: ANN202 - an inlined numba helper
     at flat row ``r00`` (``w`` rows to the next line of the plane) times the linear line value at
     flat row ``l0``, ``plane`` and ``line`` flattened. Every index is unsigned: numba wraps a
     signed index that may be negative, a branch per read that keeps LLVM from vectorising the
-    channel loop (docs/decisions.md, "The inference lookups index without sign")."""
+    channel loop (docs/decisions.md#frames.compiled_rows)."""
 
     @no_type_check
     def _mode(plane, line, r00, w, l0, fa, fb, fl, row, col):  # noqa: ANN001, ANN202
@@ -143,7 +143,7 @@ def mode_loop(c: int, ft: type):  # noqa: ANN202 - an inlined numba helper
 def _kernel_source(c: int):  # noqa: ANN202 - the loop numba compiles for ``c`` channels
     """The loop for tables of ``c`` channels, compiled once per channel count (``_compiled``): a
     mode's channel loop of known length over flattened tables with unsigned indices (``mode_loop``)
-    and no view made per sample, which numba counts references to; docs/decisions.md, "Rendering"."""
+    and no view made per sample, which numba counts references to; docs/decisions.md#frames.compiled_rows."""
     axis = axis_loop(np.float32)
     encode = encoding_loop(np.float32)
     mode = mode_loop(c, np.float32)

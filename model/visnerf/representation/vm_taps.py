@@ -156,7 +156,7 @@ class _WeightedRowSum(torch.autograd.Function):
     The table's gradient is ``T^T @ grad`` for the tap matrix ``T [m, n_rows]``; ``T^T`` is built
     in compressed-row form from a stable sort of the taps (``transposed_taps``).
     ``embedding_bag``'s own CPU backward sorts the taps and adds one row per tap, and hands
-    autograd a table-sized gradient to add (docs/decisions.md, "Training step"). The product is
+    autograd a table-sized gradient to add (docs/decisions.md#step.torch_table_gradient). The product is
     deterministic and independent of the thread count (tested)."""
 
     @staticmethod

@@ -56,7 +56,8 @@ the images and cameras alone, each choice with the reason ``visnerf info`` shows
   series of opaque surfaces does not nest;
 - the parameter factors: none for K = 0 (the field has no parameter axes then).
 
-The measurements behind each choice are in docs/decisions.md.
+The rule and figure behind each choice are under its ``recipe.*`` id in docs/decisions.md
+(docs/decisions.md#recipe.sparse_view_tv, say).
 """
 
 import dataclasses
@@ -279,7 +280,7 @@ def _total_variation(opaque_value: float, opaque_reason: str, what: str) -> Call
         if views < RECIPE.sparse_views and ctx.traits.n_params == 0:
             return None, (f"translucent content of one setting seen by {views:g} views: total variation would "
                           "smear its thin shells into fog, and no setting between training values needs it "
-                          "(docs/decisions.md, \"Thin lit shells: no total variation for one setting\")")
+                          "(docs/decisions.md#recipe.sparse_view_tv)")
         if views < RECIPE.sparse_views:
             return RECIPE.sparse_view_tv, (f"translucent content seen by {views:g} views a setting (under "
                                            f"{RECIPE.sparse_views}): so few views fit its {what} with speckle "

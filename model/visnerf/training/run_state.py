@@ -45,8 +45,8 @@ def run_state_path(out: str | Path) -> Path:
 
 def scene_fingerprint(scene: SceneData) -> str:
     """A digest of what the run state refers to: frame count, image size and focal length, every
-    camera pose and every parameter value (not the pixels: hashing 370 MB of Nyx images would cost
-    more than it guards). A resumed run refuses frames with another fingerprint."""
+    camera pose and every parameter value (not the pixels: hashing every image would cost more than it
+    guards). A resumed run refuses frames with another fingerprint."""
     h = hashlib.sha256()
     k = scene.intrinsics
     h.update(json.dumps([scene.n_frames, k.width, k.height, float(k.fx), float(k.fy)]).encode())

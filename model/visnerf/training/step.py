@@ -31,7 +31,7 @@ from visnerf.training.sparse_adam import RowSparseAdam
 
 FUSED_ADAM_DEVICES = ("cpu", "cuda")
 """Devices whose parameters get torch's fused Adam on the torch path: one pass over each tensor
-instead of about ten elementwise kernels, the same update to 1e-6 (docs/decisions.md, "Training step")."""
+instead of about ten elementwise kernels, the same update to 1e-6 (docs/decisions.md#step.torch_fused_adam)."""
 
 
 def make_optimizer(field_: VisNerfField, cfg: TrainConfig, scale: float,

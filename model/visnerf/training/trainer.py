@@ -230,7 +230,7 @@ class Trainer(Schedule, OccupancyPolicy, Stepping, Resumable, Recording):
         if self.cfg.choose_full_spacing:
             # Without held-out frames the training frames serve: the choice weighs each spacing's
             # sampling error against the exhaustive render of the same frame, not how the model
-            # generalises, which costs nothing measurable (docs/decisions.md, "Rendering").
+            # generalises, which costs nothing measurable (docs/decisions.md#render.spacing).
             held_out = self.val_scene is not None
             frames = self.val_scene if held_out else self.scene
             choice = choose_full_spacing(self.field, frames, self.render_cfg, self.cfg.validate_max_images)
