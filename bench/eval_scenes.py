@@ -20,8 +20,8 @@ parameter moving / all moving), also in the .md and .json:
 
     python bench/eval_scenes.py --scenes cosmo_sim --minutes-per-scene 10 --data-root data/eval --results /tmp/cosmo_witness
 
-A full run (every scene at 128x128) writes bench/results/eval_scenes.{json,md} and its table into the
-README; any other run writes eval_scenes.partial.{json,md} and leaves the README alone.
+A full run (every scene at 128x128) writes bench/results/eval_scenes.{json,md}; any other run writes
+eval_scenes.partial.{json,md}.
 """
 
 import visnerf  # noqa: F401  (before torch: it sets the OpenMP wait policy that torch reads once)
@@ -145,7 +145,6 @@ def write_bundle_record(results: Path, root: Path, entries: list[dict], readme: 
 
 ROOT = Path(__file__).resolve().parents[1]
 HOLDOUT_VIEWS = (3, 11, 25)
-README_BEGIN, README_END = "<!-- eval_scenes:begin -->", "<!-- eval_scenes:end -->"
 
 # The paper's figures for the real datasets these scenes stand in for (181 test views each).
 PAPER_PSNR = {
@@ -230,10 +229,9 @@ def bundle_scene(ckpt: Path, folder: Path) -> None:
         tmp.replace(folder / src.name)
 
 
-def table_lines(record: dict, commands: bool = True) -> list[str]:
+def table_lines(record: dict) -> list[str]:
     """The results table, with the paper's PSNR on the real dataset each scene stands in for, and
-    a note on the rows rerun since the record (with their commands unless ``commands`` is False:
-    the README's copy names the scenes and links the details)."""
+    a note on the rows rerun since the record, one group of day, CPU and command a line."""
     lines = [
         "| scene | kind | K | PSNR (dB) | SSIM | iterations | grid | ms per frame | model MB | paper: real counterpart, PSNR |",
         "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
@@ -246,12 +244,12 @@ def table_lines(record: dict, commands: bool = True) -> list[str]:
         lines.append(f"| {name} | {r['kind']} | {r['K']} | {table_cell(r['psnr'], 2)} | {table_cell(r['ssim'], 3)} | "
                      f"{r.get('iterations', 'n/a')} | {grid} | {table_cell(r['ms_per_frame'], 0)} | {table_cell(r['model_mb'], 2)} | "
                      f"{'-' if not paper else paper['dataset'] + ', ' + str(paper['psnr'])} |")
-    # One note naming every rerun, grouped by day, CPU and command (the command only in the
-    # details); the CPU only where it is not the record's.
+    # One note naming every rerun, grouped by day, CPU and command; the CPU only where it is not
+    # the record's.
     groups: dict[tuple[str, str, str, bool], list[str]] = {}
     for r in reruns:
         rerun = r["rerun"]
-        key = (rerun["date"][:10], rerun["cpu"], rerun["command"] if commands else "", rerun.get("rescored", False))
+        key = (rerun["date"][:10], rerun["cpu"], rerun["command"], rerun.get("rescored", False))
         groups.setdefault(key, []).append(r["scene"])
     each = [", ".join(scenes) + f" ({date}"
             + ("" if cpu == record["machine"].get("cpu", "") else f", {cpu}")
@@ -260,12 +258,8 @@ def table_lines(record: dict, commands: bool = True) -> list[str]:
             for (date, cpu, command, rescored), scenes in sorted(groups.items())]
     if not each:
         return lines
-    if commands:  # the details: a list, one group a line
-        return [*lines, "", "\\* Rerun after a change that concerns them (the other rows are the record's):", "",
-                *(f"- {text}" for text in each)]
-    rerun_scenes = sorted({scene for scenes in groups.values() for scene in scenes})
-    return [*lines, "", f"\\* Rerun after a change that concerns them ({', '.join(rerun_scenes)}; when and on which CPU: "
-                        "[details](bench/results/eval_scenes.md)). The other rows are the record's."]
+    return [*lines, "", "\\* Rerun after a change that concerns them (the other rows are the record's):", "",
+            *(f"- {text}" for text in each)]
 
 
 PLACES = {"at_training_values": "at training values", "between_training_values": "between training values",
@@ -327,28 +321,6 @@ def write_markdown(path: Path, record: dict) -> None:
         "",
     ]
     path.write_text("\n".join(lines))
-
-
-def update_readme(readme: Path, record: dict) -> None:
-    """Replace (or add, before "## Layout") the README's evaluation section."""
-    body = "\n".join([
-        "## Evaluation of the synthetic scenes", "",
-        f"`python bench/eval_scenes.py`: {record['minutes_per_scene']:g} minutes a scene, no flags, one at a time, "
-        f"{record['resolution']}x{record['resolution']}, {record['machine'].get('cpu', record['machine']['device'])} "
-        f"with {record['machine']['torch_threads']} threads, {record['date'][:10]}; PSNR and SSIM on each scene's "
-        "181-frame test path, beside the paper's PSNR on the real counterpart "
-        "([details](bench/results/eval_scenes.md)):", "", *table_lines(record, commands=False),
-    ])  # fmt: skip
-    section = f"{README_BEGIN}\n{body}\n{README_END}"
-    text = readme.read_text()
-    replaced = replace_marked_section(text, README_BEGIN, README_END, body)
-    if replaced is not None:
-        text = replaced
-    elif "\n## Layout" in text:
-        text = text.replace("\n## Layout", f"\n{section}\n\n## Layout", 1)
-    else:
-        text = text.rstrip("\n") + f"\n\n{section}\n"
-    readme.write_text(text)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -459,7 +431,6 @@ def main(argv: list[str] | None = None) -> int:
         record = {**kept, "scenes": [replaced.get(r["scene"], r) for r in kept["scenes"]]}
         write_json(args.results / f"{stem}.json", record)
         write_markdown(args.results / f"{stem}.md", record)
-        update_readme(ROOT / "README.md", record)
         print(f"rows of {', '.join(replaced)} replaced in {args.results / stem}.json and .md", file=sys.stderr)
         return 0
     figure = args.results / f"{stem}_training.png"
@@ -468,8 +439,6 @@ def main(argv: list[str] | None = None) -> int:
     args.results.mkdir(parents=True, exist_ok=True)
     write_json(args.results / f"{stem}.json", record)
     write_markdown(args.results / f"{stem}.md", record)
-    if full_run:
-        update_readme(ROOT / "README.md", record)
     print(f"results -> {args.results / stem}.json and .md", file=sys.stderr)
     return 0
 

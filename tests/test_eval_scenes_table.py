@@ -1,6 +1,5 @@
 """bench/eval_scenes.py's results table: the details list every row rerun since the record, grouped by
-day, CPU and command, the CPU only where it is not the record's; the README's note names the rerun
-scenes and points to the details (no CPU strings or dates in the manual)."""
+day, CPU and command, the CPU only where it is not the record's."""
 
 import sys
 from pathlib import Path
@@ -31,16 +30,6 @@ def notes(lines: list[str]) -> list[str]:
 
 def bullets(lines: list[str]) -> list[str]:
     return [line for line in lines if line.startswith("- ")]
-
-
-def test_the_readme_note_names_the_reruns_and_points_to_the_details() -> None:
-    lines = eval_scenes.table_lines(record(), commands=False)
-    assert [line.split(" | ")[0] for line in lines if line.startswith("| ") and "---" not in line][1:] == \
-        ["| a *", "| b *", "| c *", "| d"]
-    (note,) = notes(lines)
-    assert note.strip() == ("\\* Rerun after a change that concerns them (a, b, c; when and on which CPU: "
-                            "[details](bench/results/eval_scenes.md)). The other rows are the record's.")
-    assert "EPYC" not in note and "2026" not in note
 
 
 def test_the_details_list_each_reruns_command() -> None:
