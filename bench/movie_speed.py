@@ -52,7 +52,7 @@ PROBES = {"preview": FrameAsk(128, 128, "preview", "jpeg", pause_s=PROBE_PAUSE_S
 """The interactive clients, each from its own loopback address (the rate limit is per address)."""
 
 
-def orbit_frames(scene, n_frames: int, fps: float) -> list:  # noqa: ANN001
+def orbit_frames(scene, n_frames: int, fps: float) -> list:
     """The frames of `visnerf animate CKPT --orbit N`: one turn from the scene's default camera,
     at its default parameters."""
     cam = scene.info.camera
@@ -71,7 +71,7 @@ def measure(checkpoint: Path, size: int, n_frames: int, fps: float, work: Path) 
     scene.render(first.c2w, first.fov_deg, size, size, first.params, "full")  # untimed: warm-up
     render_s: list[float] = []
 
-    def timed_frames():  # noqa: ANN202
+    def timed_frames():
         """``render_frames``, as `visnerf animate` renders, with the time of each frame kept."""
         rendered = render_frames(scene, frames, settings)
         while True:
@@ -97,7 +97,7 @@ def measure(checkpoint: Path, size: int, n_frames: int, fps: float, work: Path) 
     }  # fmt: skip
 
 
-def probe_phase(server, scene_id: str, seconds: float, seed: int) -> dict[str, list[Sample]]:  # noqa: ANN001
+def probe_phase(server, scene_id: str, seconds: float, seed: int) -> dict[str, list[Sample]]:
     """The probe clients, asking only for ``scene_id``, for ``seconds``; random views and parameter
     values from ``seed`` (each phase its own, so that no phase reads frames another left in the
     server's frame cache)."""

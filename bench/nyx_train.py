@@ -325,7 +325,7 @@ def spacing_chosen(note: str | None) -> str:
 
 
 def summary_table(labels: list[str], runs: list[dict[str, Any]]) -> list[str]:
-    def row(name: str, cell) -> str:  # noqa: ANN001
+    def row(name: str, cell) -> str:
         return f"| {name} | " + " | ".join(cell(r) for r in runs) + " |"
 
     kinds = [k for k in HELD_OUT_KINDS if any(k in final_by_kind(r["final"]) for r in runs)]

@@ -258,7 +258,7 @@ RANK_VARIANTS = (("1 process, 1 thread", 1, 1), ("1 process, {n} threads", 1, No
 
 def timed(fn: Callable, spent: list[float]) -> Callable:
     """``fn``, appending the seconds of each call to ``spent``."""
-    def call(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+    def call(*args, **kwargs):
         t0 = time.perf_counter()
         out = fn(*args, **kwargs)
         spent.append(time.perf_counter() - t0)

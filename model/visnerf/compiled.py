@@ -50,7 +50,7 @@ PREFETCH_LINES = 4
 48 float32 channels: 3 lines)."""
 
 
-def _prefetch_row_intrinsic():  # noqa: ANN202 - a numba intrinsic
+def _prefetch_row_intrinsic():  # a numba intrinsic
     """``prefetch_row(table, row)``: ask the CPU for the cache lines of ``table[row]`` (2-d,
     C-contiguous) up to ``PREFETCH_LINES``, to be read soon and kept in every cache level (LLVM's
     ``prefetch``: no fault, no value; the lines' count is decided by branches, not a loop)."""
@@ -60,8 +60,8 @@ def _prefetch_row_intrinsic():  # noqa: ANN202 - a numba intrinsic
     from numba.extending import intrinsic
 
     @intrinsic
-    def prefetch_row(typingctx, table, row):  # noqa: ANN001, ANN202, ARG001 - numba's signature
-        def codegen(context, builder, signature, args):  # noqa: ANN001, ANN202
+    def prefetch_row(typingctx, table, row):  # numba's signature
+        def codegen(context, builder, signature, args):
             table_type = signature.args[0]
             data = context.make_array(table_type)(context, builder, args[0])
             zero = context.get_constant(types.intp, 0)

@@ -245,7 +245,7 @@ class RenderQueue:
         while (job := self._next_job(previews_only)) is not None:
             try:
                 result = job.fn()
-            except BaseException as exc:  # noqa: BLE001 - handed to whoever waits on the future
+            except BaseException as exc:  # handed to whoever waits on the future
                 self._finish(job, done=False)
                 if isinstance(exc, RenderCancelled):  # a stop that was asked for: its frames tell
                     exc.with_traceback(None)  # nothing, and asyncio's waits keep cycles of their own

@@ -19,7 +19,7 @@ CAMERA = {"azimuth": 30.0, "elevation": 20.0, "distance": 2.5, "view_height": 1.
 
 
 @pytest.fixture(scope="module")
-def ortho_url(tmp_path_factory):  # noqa: ANN201
+def ortho_url(tmp_path_factory):
     folder = tmp_path_factory.mktemp("ortho")
     make_tiny_checkpoint(folder / "flat.safetensors", camera=CAMERA)
     server = start_server(folder, "orthographic")

@@ -23,7 +23,7 @@ class TinyRun:
 
 
 @pytest.fixture
-def one_torch_thread():  # noqa: ANN201
+def one_torch_thread():
     """Small renders on one thread: two threads oversubscribe a shared CPU (10x slower there)."""
     previous = torch.get_num_threads()
     torch.set_num_threads(1)

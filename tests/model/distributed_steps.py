@@ -39,12 +39,12 @@ CONFIG = TrainConfig(iterations=STEPS, batch_rays=BATCH, micro_batch_rays=96, re
 FIELD = FieldConfig(n_density_components=4, n_appearance_components=8, hidden_width=16)
 
 
-def midpoint_samples(field, rays_o, rays_d, step, max_samples, occupancy, generator=None, windows=None):  # noqa: ANN001, ANN201
+def midpoint_samples(field, rays_o, rays_d, step, max_samples, occupancy, generator=None, windows=None):
     """``place_samples`` without its stratified jitter."""
     return place_samples(field, rays_o, rays_d, step, max_samples, occupancy, None, windows)
 
 
-def midpoint_compact(aabb, rays_o, rays_d, step, max_samples, occupancy, generator=None, windows=None):  # noqa: ANN001, ANN201
+def midpoint_compact(aabb, rays_o, rays_d, step, max_samples, occupancy, generator=None, windows=None):
     """``place_compact`` without its stratified jitter."""
     return place_compact(aabb, rays_o, rays_d, step, max_samples, occupancy, None, windows)
 

@@ -21,7 +21,7 @@ from visnerf.arg_types import non_negative_float, non_negative_int, positive_flo
         (non_negative_int, "0", 0),
     ],
 )
-def test_accepts(parse, text, expected) -> None:  # noqa: ANN001
+def test_accepts(parse, text, expected) -> None:
     assert parse(text) == expected
 
 
@@ -44,6 +44,6 @@ def test_accepts(parse, text, expected) -> None:  # noqa: ANN001
         (non_negative_int, "1.5"),
     ],
 )
-def test_rejects_naming_the_value(parse, text) -> None:  # noqa: ANN001
+def test_rejects_naming_the_value(parse, text) -> None:
     with pytest.raises(argparse.ArgumentTypeError, match=rf"^expected .*, got {re.escape(repr(text))}$"):
         parse(text)

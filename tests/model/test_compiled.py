@@ -48,7 +48,7 @@ def test_an_error_in_a_range_reaches_the_caller(threads) -> None:
         compiled.run_ranges(fail_second, 10, 1)
 
 
-def _rows_sum_prefetching(table, rows):  # noqa: ANN001, ANN202 - compiled below
+def _rows_sum_prefetching(table, rows):  # compiled below
     total = 0.0
     for i in range(rows.shape[0]):
         if i + 2 < rows.shape[0]:
@@ -58,7 +58,7 @@ def _rows_sum_prefetching(table, rows):  # noqa: ANN001, ANN202 - compiled below
     return total
 
 
-def _rows_sum(table, rows):  # noqa: ANN001, ANN202 - the same loop, asking for nothing
+def _rows_sum(table, rows):  # the same loop, asking for nothing
     total = 0.0
     for i in range(rows.shape[0]):
         for ch in range(table.shape[1]):

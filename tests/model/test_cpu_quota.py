@@ -31,7 +31,7 @@ def eight_cores(monkeypatch: pytest.MonkeyPatch) -> None:
     [("200000 100000\n", 2.0, 2), ("max 100000\n", None, 8), ("150000 100000", 1.5, 1), ("50000 100000", 0.5, 1),
      ("1600000 100000", 16.0, 8), ("garbage", None, 8)],
 )
-def test_cgroup_v2_cpu_max(cgroup, eight_cores, cpu_max: str, quota: float | None, threads: int) -> None:  # noqa: ANN001
+def test_cgroup_v2_cpu_max(cgroup, eight_cores, cpu_max: str, quota: float | None, threads: int) -> None:
     root, proc = cgroup
     write(proc, "0::/\n")
     write(root / "cpu.max", cpu_max)
@@ -39,7 +39,7 @@ def test_cgroup_v2_cpu_max(cgroup, eight_cores, cpu_max: str, quota: float | Non
     assert default_threads(root, proc) == threads
 
 
-def test_cgroup_v2_the_smallest_limit_on_the_way_up_applies(cgroup, eight_cores) -> None:  # noqa: ANN001
+def test_cgroup_v2_the_smallest_limit_on_the_way_up_applies(cgroup, eight_cores) -> None:
     root, proc = cgroup
     write(proc, "0::/system.slice/visnerf.service\n")
     write(root / "system.slice" / "visnerf.service" / "cpu.max", "max 100000")
@@ -48,7 +48,7 @@ def test_cgroup_v2_the_smallest_limit_on_the_way_up_applies(cgroup, eight_cores)
     assert default_threads(root, proc) == 3
 
 
-def test_cgroup_v1_quota_and_period(cgroup, eight_cores) -> None:  # noqa: ANN001
+def test_cgroup_v1_quota_and_period(cgroup, eight_cores) -> None:
     root, proc = cgroup
     write(proc, "4:memory:/docker/abc\n2:cpu,cpuacct:/docker/abc\n")
     write(root / "cpu,cpuacct" / "cpu.cfs_quota_us", "400000\n")  # the container's view: its own at the root
@@ -60,7 +60,7 @@ def test_cgroup_v1_quota_and_period(cgroup, eight_cores) -> None:  # noqa: ANN00
     assert default_threads(root, proc) == 8
 
 
-def test_no_cgroup_files_means_the_usable_cores(cgroup, eight_cores) -> None:  # noqa: ANN001
+def test_no_cgroup_files_means_the_usable_cores(cgroup, eight_cores) -> None:
     root, proc = cgroup
     assert cgroup_cpu_quota(root, proc) is None
     assert default_threads(root, proc) == 8

@@ -33,7 +33,7 @@ def test_trimming_returns_the_free_pages_of_a_fragmented_heap() -> None:
 
 
 @pytest.fixture()
-def trims(monkeypatch) -> list[int]:  # noqa: ANN001
+def trims(monkeypatch) -> list[int]:
     """Counts the trims; frames of 100 pixels and more count as large."""
     calls: list[int] = []
     monkeypatch.setattr(inference, "release_free_memory", lambda: calls.append(1) or True)
@@ -41,7 +41,7 @@ def trims(monkeypatch) -> list[int]:  # noqa: ANN001
     return calls
 
 
-def test_only_large_frames_trim(tmp_path, trims) -> None:  # noqa: ANN001
+def test_only_large_frames_trim(tmp_path, trims) -> None:
     scene = load_scene(make_tiny_checkpoint(tmp_path / "s.safetensors"))
     c2w = orbit_c2w(20.0, 30.0, 2.2)
     scene.render(c2w, 40.0, 9, 11, {"a": 0.5})
@@ -51,7 +51,7 @@ def test_only_large_frames_trim(tmp_path, trims) -> None:  # noqa: ANN001
     assert len(trims) == 2
 
 
-def test_a_frame_stopped_early_trims_too(tmp_path, trims) -> None:  # noqa: ANN001
+def test_a_frame_stopped_early_trims_too(tmp_path, trims) -> None:
     scene = load_scene(make_tiny_checkpoint(tmp_path / "s.safetensors"))
     with pytest.raises(RenderCancelled):
         scene.render(orbit_c2w(20.0, 30.0, 2.2), 40.0, 32, 32, {"a": 0.5}, cancel=lambda: True)

@@ -66,7 +66,7 @@ def test_keep_freed_blocks_applies_both_settings() -> None:
 
 
 @pytest.mark.parametrize(("visnerf", "omp", "want"), [("3", "1", 3), (None, "1", 1), (None, " 4 ", 4), ("0", None, 1)])
-def test_the_default_takes_visnerf_threads_then_omp_num_threads(monkeypatch, visnerf, omp, want) -> None:  # noqa: ANN001
+def test_the_default_takes_visnerf_threads_then_omp_num_threads(monkeypatch, visnerf, omp, want) -> None:
     for name, value in (("VISNERF_THREADS", visnerf), ("OMP_NUM_THREADS", omp)):
         if value is None:
             monkeypatch.delenv(name, raising=False)

@@ -104,10 +104,10 @@ class SlowRenderer:
         self.delay_s = delay_s
         self.calls = 0
 
-    def __getattr__(self, name: str):  # noqa: ANN204 - view, setting_grid, ... of the real scene
+    def __getattr__(self, name: str):  # view, setting_grid, ... of the real scene
         return getattr(self.inner, name)
 
-    def draw(self, *args, **kwargs) -> np.ndarray:  # noqa: ANN002, ANN003
+    def draw(self, *args, **kwargs) -> np.ndarray:
         self.calls += 1
         time.sleep(self.delay_s)
         return self.inner.draw(*args, **kwargs)
@@ -126,10 +126,10 @@ class UntilCancelledRenderer:
         self.stopped = 0
         self.began = threading.Event()
 
-    def __getattr__(self, name: str):  # noqa: ANN204 - view, setting_grid, ... of the real scene
+    def __getattr__(self, name: str):  # view, setting_grid, ... of the real scene
         return getattr(self.inner, name)
 
-    def draw(self, view, own=None, cancel=None) -> np.ndarray:  # noqa: ANN001
+    def draw(self, view, own=None, cancel=None) -> np.ndarray:
         if view.width * view.height >= self.min_pixels:
             self.started += 1
             self.began.set()

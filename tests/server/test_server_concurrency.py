@@ -11,7 +11,7 @@ from fastapi.testclient import TestClient
 from server_helpers import AUTH, ORBIT, image_size, listing, scene_ids
 
 
-def test_renders_during_upload_and_delete(client: TestClient, ckpt_dir: Path, templates) -> None:  # noqa: ANN001
+def test_renders_during_upload_and_delete(client: TestClient, ckpt_dir: Path, templates) -> None:
     shutil.copy(templates["tiny"], ckpt_dir / "victim.safetensors")
     registry = client.app.state.server.registry
     registry.load_all(warmup=False)  # pick up the extra file
@@ -23,7 +23,7 @@ def test_renders_during_upload_and_delete(client: TestClient, ckpt_dir: Path, te
     lock = threading.Lock()
     started = threading.Event()
 
-    def check(response, scene: str, fmt: str, width: int) -> None:  # noqa: ANN001
+    def check(response, scene: str, fmt: str, width: int) -> None:
         stable = scene in ("tiny", "two")  # neither uploaded nor deleted: every render must succeed
         with lock:
             counts["stable_asked"] += stable
@@ -72,7 +72,7 @@ def test_renders_during_upload_and_delete(client: TestClient, ckpt_dir: Path, te
                         },
                     )
                 check(response, scene, fmt, width)
-            except Exception as exc:  # noqa: BLE001 - any exception is a failure to report
+            except Exception as exc:  # any exception is a failure to report
                 problems.append(f"{scene}: {type(exc).__name__}: {exc}")
             i += 1
 

@@ -40,7 +40,7 @@ FULL_RENDERS_DONE = 'visnerf_render_seconds_count{{quality="full"}} {}.0'
 # --- pixel budgets -------------------------------------------------------------------------------
 
 
-def test_frames_over_the_pixel_budget_are_refused_naming_the_limit_and_the_size(shared) -> None:  # noqa: ANN001
+def test_frames_over_the_pixel_budget_are_refused_naming_the_limit_and_the_size(shared) -> None:
     client, _ = shared
     full = client.post("/api/scenes/tiny/render", json={**SMALL, "width": 2000, "height": 1100})
     assert full.status_code == 422
@@ -95,7 +95,7 @@ def test_previews_overtake_queued_full_frames_and_the_capacity_is_shared() -> No
     queue = RenderQueue(workers=1, queue_size=5, metrics=Metrics())
     order: list[str] = []
 
-    def slow_job(name: str):  # noqa: ANN202
+    def slow_job(name: str):
         def run() -> str:
             order.append(name)
             time.sleep(0.02)
@@ -123,7 +123,7 @@ def test_previews_overtake_queued_full_frames_and_the_capacity_is_shared() -> No
     assert queue.waiting == queue.running == 0
 
 
-def cooperative_job(cancel: threading.Event, seconds: float = 10.0, log: list[str] | None = None):  # noqa: ANN201
+def cooperative_job(cancel: threading.Event, seconds: float = 10.0, log: list[str] | None = None):
     """A fake render that checks ``cancel`` every 5 ms, as the renderer does between chunks; it
     appends how it ended ("stopped" or "finished") to ``log``."""
     log = [] if log is None else log
@@ -173,7 +173,7 @@ def test_a_render_whose_caller_leaves_is_stopped() -> None:
         try:
             asyncio.run(leave_early())
             outcome.append(None)
-        except BaseException as exc:  # noqa: BLE001 - handed to the test's thread
+        except BaseException as exc:  # handed to the test's thread
             outcome.append(exc)
 
     runner = threading.Thread(target=run_loop)
@@ -334,7 +334,7 @@ def test_occupancy_grid_builds_run_in_the_render_queue(client: TestClient) -> No
     built_on: list[str] = []
     build = renderer.setting_occupancy.build
 
-    def recording_build(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+    def recording_build(*args, **kwargs):
         built_on.append(threading.current_thread().name)
         return build(*args, **kwargs)
 
@@ -459,7 +459,7 @@ def test_a_refused_large_frame_answers_503_with_the_estimated_wait(
 ) -> None:
     from visnerf_server.frames import FrameRenderer
 
-    async def refuse(self, job, client=None):  # noqa: ANN001, ANN202
+    async def refuse(self, job, client=None):
         raise WouldOutwaitError(7.2, 30.0)
 
     monkeypatch.setattr(FrameRenderer, "render_async", refuse)
@@ -484,7 +484,7 @@ def test_a_preview_worker_answers_previews_while_full_frames_hold_the_others() -
     release, blocker = _hold_the_worker(queue)
     ran_on: dict[str, str] = {}
 
-    def job(name: str):  # noqa: ANN202
+    def job(name: str):
         def run() -> str:
             ran_on[name] = threading.current_thread().name
             return name

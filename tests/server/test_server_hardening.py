@@ -38,7 +38,7 @@ def message(seq: int) -> str:
     )
 
 
-def next_frame_header(ws) -> dict:  # noqa: ANN001
+def next_frame_header(ws) -> dict:
     """Read past error messages to the next frame; returns its header (the image is read too)."""
     while True:
         header = ws.receive_json()
@@ -197,7 +197,7 @@ def test_a_value_error_from_a_bug_is_a_500(client: TestClient, monkeypatch: pyte
     assert "a bug" not in response.text
 
 
-def test_client_input_errors_are_still_422(shared) -> None:  # noqa: ANN001
+def test_client_input_errors_are_still_422(shared) -> None:
     client, _ = shared
     outside = client.get("/api/scenes/tiny/render", params={**ORBIT, "width": 8, "height": 8, "a": 3})
     assert outside.status_code == 422 and "outside its range" in outside.json()["detail"]
@@ -205,7 +205,7 @@ def test_client_input_errors_are_still_422(shared) -> None:  # noqa: ANN001
     assert unknown.status_code == 422 and "unknown parameter" in unknown.json()["detail"]
 
 
-def _asgi_put(app, path: str, receive) -> list[dict]:  # noqa: ANN001
+def _asgi_put(app, path: str, receive) -> list[dict]:
     """Drive the app with one PUT whose body comes from ``receive``; returns what it sent."""
     sent: list[dict] = []
 
@@ -224,7 +224,7 @@ def _asgi_put(app, path: str, receive) -> list[dict]:  # noqa: ANN001
 
 
 def test_an_abandoned_upload_is_one_log_line_with_499(
-    client: TestClient, ckpt_dir: Path, templates, caplog: pytest.LogCaptureFixture  # noqa: ANN001
+    client: TestClient, ckpt_dir: Path, templates, caplog: pytest.LogCaptureFixture
 ) -> None:
     data = templates["tiny"].read_bytes()
     messages = iter([
@@ -294,14 +294,14 @@ def test_docs_are_off_by_default_and_never_from_a_cdn(ckpt_dir: Path, tmp_path: 
 class GatedRenderer:
     """Wraps a real scene; every frame drawn waits for ``gate``, then is grey."""
 
-    def __init__(self, inner, gate: threading.Event) -> None:  # noqa: ANN001
+    def __init__(self, inner, gate: threading.Event) -> None:
         self.inner = inner
         self.gate = gate
 
-    def __getattr__(self, name: str):  # noqa: ANN204
+    def __getattr__(self, name: str):
         return getattr(self.inner, name)
 
-    def draw(self, view, *args, **kwargs) -> np.ndarray:  # noqa: ANN001, ANN002, ANN003
+    def draw(self, view, *args, **kwargs) -> np.ndarray:
         self.gate.wait(20)
         return np.full((view.height, view.width, 3), 128, np.uint8)
 

@@ -241,14 +241,14 @@ def test_interactive_renders_keep_priority(movies: TestClient) -> None:
     in_queue: list[int] = []  # movie frames already in the queue when one more was submitted
     outstanding = [0]
 
-    def spy(fn, lane=Lane.FULL, cancel=None, **frame):  # noqa: ANN001, ANN003, ANN202 - large, cost, limit_s
+    def spy(fn, lane=Lane.FULL, cancel=None, **frame):  # large, cost, limit_s
         lanes.append(lane)
         if lane != Lane.BACKGROUND:
             return real_submit(fn, lane, cancel, **frame)
         in_queue.append(outstanding[0])
         outstanding[0] += 1
 
-        def counted():  # noqa: ANN202
+        def counted():
             try:
                 return fn()
             finally:
@@ -363,7 +363,7 @@ def test_a_full_movie_frame_of_512_by_512_or_more_is_large(size: int, quality: s
     asked: list[bool] = []
     real_submit = queue.submit
 
-    def spy(fn, lane=Lane.FULL, cancel=None, **frame):  # noqa: ANN001, ANN003, ANN202
+    def spy(fn, lane=Lane.FULL, cancel=None, **frame):
         asked.append(frame.get("large", False))
         return real_submit(fn, lane, cancel, **frame)
 

@@ -21,7 +21,7 @@ CAMERA = {"azimuth": 30.0, "elevation": 20.0, "distance": 2.5, "view_height": 1.
 
 
 @pytest.fixture
-def ortho(tmp_path):  # noqa: ANN201
+def ortho(tmp_path):
     folder = tmp_path / "checkpoints"
     folder.mkdir()
     path = make_tiny_checkpoint(folder / "flat.safetensors", camera=CAMERA)
@@ -29,7 +29,7 @@ def ortho(tmp_path):  # noqa: ANN201
         yield client, load_scene(path)
 
 
-def _png(response) -> np.ndarray:  # noqa: ANN001
+def _png(response) -> np.ndarray:
     assert response.status_code == 200, response.text
     return np.asarray(Image.open(io.BytesIO(response.content)).convert("RGB"))
 

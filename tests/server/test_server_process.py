@@ -22,7 +22,7 @@ def server(ckpt_dir: Path, tmp_path: Path) -> Iterator[tuple[subprocess.Popen, s
         yield live.process, live.url, live.log_path
 
 
-def test_serve_http_websocket_submit_and_sigterm(server, templates, tmp_path: Path) -> None:  # noqa: ANN001
+def test_serve_http_websocket_submit_and_sigterm(server, templates, tmp_path: Path) -> None:
     proc, url, log_path = server
     health = httpx.get(f"{url}/api/health").json()
     assert health == {"status": "ok", "version": "0.1.0", "scenes": 2, "ready": True}
@@ -90,7 +90,7 @@ def test_serve_http_websocket_submit_and_sigterm(server, templates, tmp_path: Pa
     assert not list((tmp_path / "checkpoints").glob(".upload-*"))
 
 
-def test_train_submit_uploads_the_trained_checkpoint_to_a_running_server(server, synthetic_scene, tmp_path: Path) -> None:  # noqa: ANN001
+def test_train_submit_uploads_the_trained_checkpoint_to_a_running_server(server, synthetic_scene, tmp_path: Path) -> None:
     _, url, _ = server
     data = synthetic_scene("tangle_static", 16)
     env = {**os.environ, "VISNERF_TOKEN": TOKEN}

@@ -187,7 +187,7 @@ def test_bad_render_requests_are_422_naming_the_problem(
         '{"camera": {"c2w": [[NaN,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}}',
     ],
 )
-def test_non_finite_numbers_are_422(shared, raw: str) -> None:  # noqa: ANN001
+def test_non_finite_numbers_are_422(shared, raw: str) -> None:
     client, _ = shared
     response = client.post(
         "/api/scenes/tiny/render", content=raw, headers={"content-type": "application/json"}
@@ -215,21 +215,21 @@ def test_non_finite_numbers_are_422(shared, raw: str) -> None:  # noqa: ANN001
         ({"c2w": ",".join(["0"] * 16), "azimuth": "3"}, "either c2w or azimuth"),
     ],
 )
-def test_bad_get_queries_are_422(shared, query: dict[str, str], expected: str) -> None:  # noqa: ANN001
+def test_bad_get_queries_are_422(shared, query: dict[str, str], expected: str) -> None:
     client, _ = shared
     response = client.get("/api/scenes/tiny/render", params={"width": 8, "height": 8, **query})
     assert response.status_code == 422, response.text
     assert expected in str(response.json()["detail"])
 
 
-def test_repeated_query_parameter_is_422(shared) -> None:  # noqa: ANN001
+def test_repeated_query_parameter_is_422(shared) -> None:
     client, _ = shared
     response = client.get("/api/scenes/tiny/render?a=0.1&a=0.2&width=8&height=8")
     assert response.status_code == 422
     assert "given 2 times" in str(response.json()["detail"])
 
 
-def test_unknown_scene_is_404(shared) -> None:  # noqa: ANN001
+def test_unknown_scene_is_404(shared) -> None:
     client, _ = shared
     for response in (
         client.post("/api/scenes/nope/render", json=SMALL),
@@ -239,7 +239,7 @@ def test_unknown_scene_is_404(shared) -> None:  # noqa: ANN001
         assert response.json() == {"detail": "unknown scene 'nope'"}
 
 
-def test_server_limit_on_image_size_is_a_setting(ckpt_dir, tmp_path) -> None:  # noqa: ANN001
+def test_server_limit_on_image_size_is_a_setting(ckpt_dir, tmp_path) -> None:
     settings = make_settings(ckpt_dir, tmp_path / "state", max_image_size=32)
     with TestClient(create_app(settings)) as client:
         assert client.post("/api/scenes/tiny/render", json={**SMALL, "width": 32}).status_code == 200
@@ -378,7 +378,7 @@ def test_range_ends_read_back_from_float32_are_accepted_and_clamped() -> None:
         scene.resolve_params({"p": 0.1199})
 
 
-def test_large_frames_give_their_memory_back_after_encoding(client: TestClient, monkeypatch) -> None:  # noqa: ANN001
+def test_large_frames_give_their_memory_back_after_encoding(client: TestClient, monkeypatch) -> None:
     """The trim comes after the frame is encoded (the scene's own trim ran before the 8-bit copy
     and the encoder's buffers), for large frames only, and also when the frame fails."""
     from visnerf import inference
@@ -387,7 +387,7 @@ def test_large_frames_give_their_memory_back_after_encoding(client: TestClient, 
     events: list[str] = []
     encode = frames.encode_image
 
-    def encoded(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+    def encoded(*args, **kwargs):
         events.append("encode")
         return encode(*args, **kwargs)
 

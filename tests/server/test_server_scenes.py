@@ -120,7 +120,7 @@ def test_scene_detail(client: TestClient) -> None:
         ("/api/scenes/" + "a" * 65, 422),
     ],
 )
-def test_unknown_or_invalid_scene_id(shared, path: str, status: int) -> None:  # noqa: ANN001
+def test_unknown_or_invalid_scene_id(shared, path: str, status: int) -> None:
     client, _ = shared
     response = client.get(path)
     assert response.status_code == status

@@ -33,7 +33,7 @@ def message(seq: int, **overrides: object) -> str:
     return json.dumps(body)
 
 
-def receive_frame(ws) -> tuple[dict, bytes]:  # noqa: ANN001
+def receive_frame(ws) -> tuple[dict, bytes]:
     header = ws.receive_json()
     assert header["type"] == "frame", header
     return header, ws.receive_bytes()
@@ -105,7 +105,7 @@ def test_invalid_message_gets_error_and_connection_stays_open(
     shared,
     text: str,
     seq: int | None,
-    detail: str,  # noqa: ANN001
+    detail: str,
 ) -> None:
     client, _ = shared
     with client.websocket_connect("/api/scenes/tiny/stream") as ws:
@@ -168,7 +168,7 @@ def test_a_large_frame_refused_for_its_wait_is_a_503_with_that_wait(client: Test
     answered at once with the estimated wait (no retries until the deadline); the session stays open."""
     calls: list[int] = []
 
-    async def refuse(self, job, client=None):  # noqa: ANN001, ANN202
+    async def refuse(self, job, client=None):
         calls.append(job.width)
         raise WouldOutwaitError(12.3456, 30.0)
 

@@ -46,7 +46,7 @@ DEFECTS: list[tuple[str, Callable[[dict], None], str]] = [
 @pytest.mark.parametrize(("name", "edit", "detail"), DEFECTS, ids=[d[0] for d in DEFECTS])
 @pytest.mark.parametrize("scene_id", ["fresh", "tiny"])
 def test_metadata_defects_are_refused_and_change_nothing(
-    shared, templates, tmp_path: Path, name: str, edit: Callable[[dict], None], detail: str, scene_id: str  # noqa: ANN001
+    shared, templates, tmp_path: Path, name: str, edit: Callable[[dict], None], detail: str, scene_id: str
 ) -> None:
     client, ckpt_dir = shared
     before_files = {p.name: p.read_bytes() for p in ckpt_dir.iterdir()}
@@ -60,11 +60,11 @@ def test_metadata_defects_are_refused_and_change_nothing(
 
 
 def test_the_answer_is_built_before_the_scene_is_committed(
-    client: TestClient, ckpt_dir: Path, templates, monkeypatch: pytest.MonkeyPatch  # noqa: ANN001
+    client: TestClient, ckpt_dir: Path, templates, monkeypatch: pytest.MonkeyPatch
 ) -> None:
     """Whatever fails while the answer is made fails before the swap: the scene is not there."""
 
-    def broken(scene):  # noqa: ANN001, ANN202
+    def broken(scene):
         raise RuntimeError("could not describe the scene")
 
     monkeypatch.setattr(scenes_router, "scene_detail", broken)
@@ -90,7 +90,7 @@ def slow_validation(monkeypatch: pytest.MonkeyPatch) -> SlowValidation:
     real = uploads.load_and_check
     seen = SlowValidation()
 
-    def slow(path, device, frames):  # noqa: ANN001, ANN202
+    def slow(path, device, frames):
         with seen.lock:
             seen.running += 1
             seen.most_at_once = max(seen.most_at_once, seen.running)
@@ -106,10 +106,10 @@ def slow_validation(monkeypatch: pytest.MonkeyPatch) -> SlowValidation:
     return seen
 
 
-def test_concurrent_uploads_of_one_id_never_both_create(client: TestClient, templates, slow_validation: SlowValidation) -> None:  # noqa: ANN001
+def test_concurrent_uploads_of_one_id_never_both_create(client: TestClient, templates, slow_validation: SlowValidation) -> None:
     data = templates["still"].read_bytes()
 
-    def put(scene_id: str):  # noqa: ANN202
+    def put(scene_id: str):
         return client.put(f"/api/scenes/{scene_id}", content=data, headers=AUTH)
 
     for scene_id in ("race-a", "race-b"):
@@ -124,7 +124,7 @@ def test_concurrent_uploads_of_one_id_never_both_create(client: TestClient, temp
 
 
 def test_a_delete_waits_for_the_upload_of_its_id(
-    client: TestClient, ckpt_dir: Path, templates, slow_validation: SlowValidation  # noqa: ANN001
+    client: TestClient, ckpt_dir: Path, templates, slow_validation: SlowValidation
 ) -> None:
     with ThreadPoolExecutor(1) as pool:
         upload = pool.submit(client.put, "/api/scenes/fresh", content=templates["still"].read_bytes(), headers=AUTH)

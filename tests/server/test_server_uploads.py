@@ -27,7 +27,7 @@ from visnerf_server.app import create_app
 SMALL = {"camera": ORBIT, "width": 16, "height": 16}
 
 
-def test_upload_new_scene_is_live_without_restart(client: TestClient, ckpt_dir: Path, templates) -> None:  # noqa: ANN001
+def test_upload_new_scene_is_live_without_restart(client: TestClient, ckpt_dir: Path, templates) -> None:
     response = client.put("/api/scenes/fresh", content=templates["still"].read_bytes(), headers=AUTH)
     assert response.status_code == 201, response.text
     assert response.headers["location"] == "/api/scenes/fresh"
@@ -41,7 +41,7 @@ def test_upload_new_scene_is_live_without_restart(client: TestClient, ckpt_dir: 
     assert image_size(render.content) == ("PNG", 16, 16)
 
 
-def test_replace_scene_is_200_and_drops_stale_frames(client: TestClient, ckpt_dir: Path, templates) -> None:  # noqa: ANN001
+def test_replace_scene_is_200_and_drops_stale_frames(client: TestClient, ckpt_dir: Path, templates) -> None:
     before = client.post("/api/scenes/tiny/render", json=SMALL)
     version = client.get("/api/scenes/tiny").json()["version"]
     response = client.put("/api/scenes/tiny", content=templates["other"].read_bytes(), headers=AUTH)
@@ -78,7 +78,7 @@ def test_delete_scene(client: TestClient, ckpt_dir: Path) -> None:
         ({"Authorization": "Bearer t\u00e9st".encode("latin-1")}, 403, "wrong token"),
     ],
 )
-def test_token_is_required(shared, templates, headers: dict, status: int, detail: str) -> None:  # noqa: ANN001
+def test_token_is_required(shared, templates, headers: dict, status: int, detail: str) -> None:
     client, ckpt_dir = shared
     before = listing(ckpt_dir)
     put = client.put("/api/scenes/fresh", content=templates["tiny"].read_bytes(), headers=headers)
@@ -126,7 +126,7 @@ def _bad_file(kind: str, templates: dict[str, Path], tmp_path: Path) -> Path:
 @pytest.mark.parametrize("scene_id", ["fresh", "tiny"])
 def test_invalid_checkpoints_are_refused_and_leave_nothing(
     shared, templates, tmp_path: Path, kind: str, detail: str, scene_id: str
-) -> None:  # noqa: ANN001
+) -> None:
     client, ckpt_dir = shared
     before_files = {p.name: p.read_bytes() for p in ckpt_dir.iterdir()}
     before_scenes = client.get("/api/scenes").json()
@@ -153,7 +153,7 @@ def test_invalid_checkpoints_are_refused_and_leave_nothing(
         "/api/scenes/%00",
     ],
 )
-def test_path_traversal_and_bad_ids_are_refused(shared, templates, path: str) -> None:  # noqa: ANN001
+def test_path_traversal_and_bad_ids_are_refused(shared, templates, path: str) -> None:
     client, ckpt_dir = shared
     parent = listing(ckpt_dir.parent)
     before = listing(ckpt_dir)
@@ -167,7 +167,7 @@ def test_path_traversal_and_bad_ids_are_refused(shared, templates, path: str) ->
     assert scene_ids(client) == ["tiny", "two"]
 
 
-def test_oversize_upload_is_413(ckpt_dir: Path, tmp_path: Path, templates) -> None:  # noqa: ANN001
+def test_oversize_upload_is_413(ckpt_dir: Path, tmp_path: Path, templates) -> None:
     settings = make_settings(ckpt_dir, tmp_path / "state", max_upload_bytes=4096)
     data = templates["tiny"].read_bytes()
     assert len(data) > 4096

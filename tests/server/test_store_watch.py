@@ -53,7 +53,7 @@ def apps(ckpt_dir: Path, tmp_path: Path) -> Iterator[list[TestClient]]:
         ]
 
 
-def test_a_new_file_is_served_once_it_has_settled(apps: list[TestClient], ckpt_dir: Path, templates) -> None:  # noqa: ANN001
+def test_a_new_file_is_served_once_it_has_settled(apps: list[TestClient], ckpt_dir: Path, templates) -> None:
     client = apps[0]
     watcher = watcher_of(client)
     watcher.poll()  # the start-up scenes: nothing to load
@@ -68,7 +68,7 @@ def test_a_new_file_is_served_once_it_has_settled(apps: list[TestClient], ckpt_d
     assert client.get("/api/ready").json() == {"ready": True, "scenes": 3, "failed": {}}
 
 
-def test_a_file_written_in_place_is_never_half_installed(apps: list[TestClient], ckpt_dir: Path, templates) -> None:  # noqa: ANN001
+def test_a_file_written_in_place_is_never_half_installed(apps: list[TestClient], ckpt_dir: Path, templates) -> None:
     client = apps[0]
     watcher = watcher_of(client)
     data = templates["other"].read_bytes()
@@ -90,7 +90,7 @@ def test_a_file_written_in_place_is_never_half_installed(apps: list[TestClient],
     assert client.get("/api/ready").json()["failed"] == {}
 
 
-def test_upload_temporaries_and_other_names_are_ignored(apps: list[TestClient], ckpt_dir: Path, templates) -> None:  # noqa: ANN001
+def test_upload_temporaries_and_other_names_are_ignored(apps: list[TestClient], ckpt_dir: Path, templates) -> None:
     client = apps[0]
     watcher = watcher_of(client)
     (ckpt_dir / ".upload-abc123.tmp").write_bytes(templates["other"].read_bytes()[:100])
@@ -102,7 +102,7 @@ def test_upload_temporaries_and_other_names_are_ignored(apps: list[TestClient], 
     assert client.get("/api/ready").json()["failed"] == {}
 
 
-def test_replaced_and_removed_files(apps: list[TestClient], ckpt_dir: Path, templates) -> None:  # noqa: ANN001
+def test_replaced_and_removed_files(apps: list[TestClient], ckpt_dir: Path, templates) -> None:
     client = apps[0]
     server = server_of(client)
     watcher = watcher_of(client)
@@ -155,7 +155,7 @@ def test_an_unreadable_folder_is_not_an_empty_store(apps: list[TestClient], ckpt
 
 def test_uploads_and_deletes_reach_the_other_replica(
     apps: list[TestClient], ckpt_dir: Path, tmp_path: Path, templates
-) -> None:  # noqa: ANN001
+) -> None:
     first, second = apps
     watchers = [watcher_of(first), watcher_of(second)]
     uploaded = first.put("/api/scenes/shared", content=templates["other"].read_bytes(), headers=AUTH)
@@ -175,7 +175,7 @@ def test_uploads_and_deletes_reach_the_other_replica(
         assert version(late, "shared") == uploaded.json()["version"]
 
 
-def test_concurrent_uploads_of_one_id_on_two_replicas(apps: list[TestClient], ckpt_dir: Path, templates) -> None:  # noqa: ANN001
+def test_concurrent_uploads_of_one_id_on_two_replicas(apps: list[TestClient], ckpt_dir: Path, templates) -> None:
     bodies = [templates["other"].read_bytes(), templates["still"].read_bytes()]
     answers: list[int] = []
     barrier = threading.Barrier(2)
@@ -201,7 +201,7 @@ def test_concurrent_uploads_of_one_id_on_two_replicas(apps: list[TestClient], ck
     assert version(apps[0], "race") == version(apps[1], "race") == winner
 
 
-def wait_until(condition, timeout_s: float = 10.0) -> None:  # noqa: ANN001
+def wait_until(condition, timeout_s: float = 10.0) -> None:
     deadline = time.monotonic() + timeout_s
     while not condition():
         assert time.monotonic() < deadline
@@ -212,7 +212,7 @@ def watcher_threads() -> set[threading.Thread]:
     return {t for t in threading.enumerate() if t.name == "visnerf-store-watcher"}
 
 
-def test_the_watcher_thread_follows_the_folder(ckpt_dir: Path, tmp_path: Path, templates) -> None:  # noqa: ANN001
+def test_the_watcher_thread_follows_the_folder(ckpt_dir: Path, tmp_path: Path, templates) -> None:
     settings = make_settings(ckpt_dir, tmp_path / "state", store_poll_s=0.05)
     before = watcher_threads()
     with TestClient(create_app(settings)) as client:
@@ -226,7 +226,7 @@ def test_the_watcher_thread_follows_the_folder(ckpt_dir: Path, tmp_path: Path, t
     assert not any(t.is_alive() for t in started)  # joined at shutdown
 
 
-def test_store_poll_zero_turns_the_watcher_off(ckpt_dir: Path, tmp_path: Path, templates) -> None:  # noqa: ANN001
+def test_store_poll_zero_turns_the_watcher_off(ckpt_dir: Path, tmp_path: Path, templates) -> None:
     before = watcher_threads()
     with TestClient(create_app(make_settings(ckpt_dir, tmp_path / "state", store_poll_s=0.0))) as client:
         assert watcher_threads() == before

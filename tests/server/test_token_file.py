@@ -12,7 +12,7 @@ from visnerf_server.settings import Settings
 
 
 @pytest.fixture
-def clean_env(monkeypatch, tmp_path):  # noqa: ANN201
+def clean_env(monkeypatch, tmp_path):
     for name in ("VISNERF_TOKEN", "VISNERF_TOKEN_FILE"):
         monkeypatch.delenv(name, raising=False)
     monkeypatch.setenv("VISNERF_STATE_DIR", str(tmp_path / "state"))

@@ -15,7 +15,7 @@ from visnerf import compiled
 
 
 @no_type_check  # compiled by numba
-def _intersect(rays_o, rays_d, lower, upper, near, t_near, t_far, hit):  # noqa: ANN001, ANN202
+def _intersect(rays_o, rays_d, lower, upper, near, t_near, t_far, hit):
     """``intersect_aabb`` ray by ray: NaN propagates through the minima and maxima as in torch's
     ``minimum``, ``maximum``, ``amax``, ``amin`` and ``clamp_min``."""
     ft = rays_o.dtype.type

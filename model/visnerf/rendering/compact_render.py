@@ -25,7 +25,7 @@ from visnerf.representation.training_field import TrainingField
 
 
 @no_type_check  # compiled by numba
-def _segment(offsets, active, reached, seg, out):  # noqa: ANN001, ANN202
+def _segment(offsets, active, reached, seg, out):
     """The samples ``reached[a] .. reached[a] + seg - 1`` of each active ray ``active[a]`` (within
     its own), into ``out``; returns their count."""
     m = 0
@@ -39,7 +39,7 @@ def _segment(offsets, active, reached, seg, out):  # noqa: ANN001, ANN202
 
 
 @no_type_check
-def _advance(offsets, active, reached, seg, sigma, step, depth, depth_stop, seen, sigma_out, n_active):  # noqa: ANN001, ANN202
+def _advance(offsets, active, reached, seg, sigma, step, depth, depth_stop, seen, sigma_out, n_active):
     """Composite a segment (``sigma`` in ``_segment``'s order): each sample seen where the optical
     depth before it is below ``depth_stop``, its density kept; the rays left to march moved to the
     front of ``active`` (``reached`` and ``depth`` with them); returns their count."""

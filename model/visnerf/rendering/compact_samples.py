@@ -60,9 +60,9 @@ class CompactSamples:
                               None if sigma is None else sigma.index_select(0, index))
 
 
-def _place_source(ft: type):  # noqa: ANN202 - the loop numba compiles for float type ``ft``
+def _place_source(ft: type):  # the loop numba compiles for float type ``ft``
     @no_type_check  # compiled by numba
-    def _place(origins, directions, t_near, t_far, start, stop, hit, jitter, step, use_occupancy, occupied, lower,  # noqa: ANN001, ANN202
+    def _place(origins, directions, t_near, t_far, start, stop, hit, jitter, step, use_occupancy, occupied, lower,
                 extent, res, out_points, out_ray, offsets, first, last, m0):
         """Samples ``start[r] .. stop[r]`` of each ray ``first <= r < last`` before ``t_far`` (in an
         occupied cell with ``use_occupancy``) into ``out_points`` / ``out_ray`` from row ``m0`` on;

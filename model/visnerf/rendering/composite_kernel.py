@@ -26,7 +26,7 @@ from visnerf import compiled
 
 
 @no_type_check  # compiled by numba
-def _weights(offsets, sigma, step, out):  # noqa: ANN001, ANN202
+def _weights(offsets, sigma, step, out):
     """``out[i] = w_i`` of every sample."""
     for r in range(offsets.shape[0] - 1):
         before = 0.0
@@ -37,7 +37,7 @@ def _weights(offsets, sigma, step, out):  # noqa: ANN001, ANN202
 
 
 @no_type_check
-def _forward(offsets, sigma, step, shade, colour, gain, background, out_rgb, out_depth):  # noqa: ANN001, ANN202
+def _forward(offsets, sigma, step, shade, colour, gain, background, out_rgb, out_depth):
     """``out_rgb[r] = C_r`` and ``out_depth[r] = -log T_r``."""
     j = 0
     k = shade.shape[0]
@@ -61,7 +61,7 @@ def _forward(offsets, sigma, step, shade, colour, gain, background, out_rgb, out
 
 
 @no_type_check
-def _backward(offsets, sigma, step, shade, colour, gain, background, grad_rgb, grad_sigma, grad_colour):  # noqa: ANN001, ANN202
+def _backward(offsets, sigma, step, shade, colour, gain, background, grad_rgb, grad_sigma, grad_colour):
     """``grad_sigma[i] = dL/dsigma_i`` of every sample and ``grad_colour[j] = dL/dc`` of every
     shaded one, from ``grad_rgb[r] = dL/dC_r``."""
     k = shade.shape[0]
@@ -123,7 +123,7 @@ class _Composite(torch.autograd.Function):
     """``C_r`` of the module docstring, differentiable in the traced densities and the colours."""
 
     @staticmethod
-    def forward(ctx, traced_sigma, colour, sigma, traced, traced_gain, offsets, step, shade, gain, background):  # noqa: ANN001, ANN205
+    def forward(ctx, traced_sigma, colour, sigma, traced, traced_gain, offsets, step, shade, gain, background):
         n = offsets.shape[0] - 1
         rgb = torch.empty(n, 3, dtype=colour.dtype)
         depth = torch.empty(n, dtype=torch.float64)
@@ -135,7 +135,7 @@ class _Composite(torch.autograd.Function):
         return rgb, depth
 
     @staticmethod
-    def backward(ctx, grad_rgb, _grad_depth):  # noqa: ANN001, ANN205
+    def backward(ctx, grad_rgb, _grad_depth):
         offsets, sigma, shade, colour, gain, background, traced, traced_gain = ctx.saved_tensors
         grad_sigma = torch.zeros_like(sigma)
         grad_colour = torch.zeros_like(colour)

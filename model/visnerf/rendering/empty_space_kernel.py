@@ -37,7 +37,7 @@ def available(device: torch.device) -> bool:
 
 
 @no_type_check  # compiled by numba
-def _flat_cell(cells, last_cell, strides):  # noqa: ANN001, ANN202
+def _flat_cell(cells, last_cell, strides):
     """Flat index of the cell holding continuous cell coordinates ``cells`` (a 3-tuple), clamped
     to the grid: ``EmptySpace.cell_index`` in the compiled loops (the walk and ``march_kernel``).
     Floored and clamped in float32, as there (``math.floor`` gives an integer, and the mixed
@@ -55,7 +55,7 @@ ray leaves the grid (or its path is not finite) before any."""
 
 
 @no_type_check
-def _probe(o, d, tn, step, inv_step, inv_speed, u, sign, near, distance, lower, cpu, last_cell, strides):  # noqa: ANN001, ANN202
+def _probe(o, d, tn, step, inv_step, inv_speed, u, sign, near, distance, lower, cpu, last_cell, strides):
     """One probe of a walk at lattice index ``sign * u`` (``u`` grows): ``(FOUND, u)`` where its
     cell is within ``near`` cells of content, else ``(WALKING, next u)`` past the cells that are not,
     or ``(LEFT, u)``. ``inv_speed[a]``: cells crossed per unit of ``t`` along axis ``a``, inverted
@@ -87,7 +87,7 @@ def _probe(o, d, tn, step, inv_step, inv_speed, u, sign, near, distance, lower, 
 
 
 @no_type_check
-def _windows(rays_o, rays_d, t_near, step64, first, last, near, distance, lower, cpu, last_cell, strides,  # noqa: ANN001, ANN202
+def _windows(rays_o, rays_d, t_near, step64, first, last, near, distance, lower, cpu, last_cell, strides,
              out_first, out_last):
     """Each ray's window ``[first, last]`` narrowed to its samples near content (``first > last``:
     none) into ``out_first``, ``out_last``. The walk up from ``first`` and the walk down from

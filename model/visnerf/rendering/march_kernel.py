@@ -36,7 +36,7 @@ def available(device: torch.device) -> bool:
 
 
 @no_type_check  # compiled by numba
-def _place(origins, directions, t_near, t_far, first, last, s0, seg, step64, use_occupancy, occupied, lower, cpu,  # noqa: ANN001, ANN202
+def _place(origins, directions, t_near, t_far, first, last, s0, seg, step64, use_occupancy, occupied, lower, cpu,
            last_cell, strides, out_points, out_flat):
     """Valid samples ``s0 .. s0 + seg - 1`` of each ray's window into ``out_points`` / ``out_flat``;
     returns their count."""
@@ -66,7 +66,7 @@ def _place(origins, directions, t_near, t_far, first, last, s0, seg, step64, use
 
 
 @no_type_check
-def _composite(flat, sigma, seg, step64, tau, threshold64, out_weights, out_shade):  # noqa: ANN001, ANN202
+def _composite(flat, sigma, seg, step64, tau, threshold64, out_weights, out_shade):
     """Weights of samples ``flat`` (ray-major) with densities ``sigma``; adds each ray's optical
     depth to ``tau``; writes the indices of the samples heavier than ``threshold`` to
     ``out_shade`` and returns their count."""
@@ -93,7 +93,7 @@ def _composite(flat, sigma, seg, step64, tau, threshold64, out_weights, out_shad
 
 
 @no_type_check
-def _accumulate(rgbw, ray_idx, weights, shade, colors):  # noqa: ANN001, ANN202
+def _accumulate(rgbw, ray_idx, weights, shade, colors):
     """``rgbw[ray_idx[k]] += (weights[shade[k]] * colors[k], weights[shade[k]])`` for each ``k`` in
     order."""
     for k in range(shade.shape[0]):

@@ -70,7 +70,7 @@ class GridBuild:
     def run(self) -> None:
         try:
             space = self.cache.build(self.params, self.step)
-        except Exception:  # noqa: BLE001 - the union grid is always a correct fallback
+        except Exception:  # the union grid is always a correct fallback
             log.exception("building the occupancy grid of parameters %s failed", self.key)
             space = None
         self.cache._finish(self, space)

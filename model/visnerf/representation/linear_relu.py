@@ -23,7 +23,7 @@ PROBE_TOLERANCE = {torch.float32: 1e-5, torch.bfloat16: 2e-2}
 """Relative and absolute tolerance of the probe's comparison, per dtype."""
 
 
-def _fused_op():  # noqa: ANN202 - a torch op overload packet
+def _fused_op():  # a torch op overload packet
     return torch.ops.mkldnn._linear_pointwise
 
 

@@ -27,7 +27,7 @@ def available(device: torch.device) -> bool:
 
 
 @no_type_check  # compiled by numba: no runtime type checks (tests run jaxtyping's import hook)
-def _kernel(bits, weight, bias, out):  # noqa: ANN001, ANN202
+def _kernel(bits, weight, bias, out):
     """``out[s, k] = sum_j float32(bits[s, j]) * weight[k, j] + bias[k]`` with ``bits`` the
     bfloat16 activations as uint16."""
     m, h = bits.shape

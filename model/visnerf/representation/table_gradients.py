@@ -33,7 +33,7 @@ of them (docs/decisions.md#step.scatter_rows)."""
 
 
 @no_type_check  # compiled by numba
-def _scatter_taps(grad, marks, rows, weights, corners, values):  # noqa: ANN001, ANN202
+def _scatter_taps(grad, marks, rows, weights, corners, values):
     """Add one backward's taps (``PendingTaps``) into ``grad`` sample by sample and mark their
     rows: each row's sum runs over its taps in sample order, as the sorted gather sums them."""
     c = grad.shape[1]

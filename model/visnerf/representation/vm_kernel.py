@@ -38,12 +38,12 @@ def available(device: torch.device) -> bool:
 
 
 @functools.cache
-def axis_loop(ft: type):  # noqa: ANN202 - an inlined numba helper
+def axis_loop(ft: type):  # an inlined numba helper
     """The lower node (unsigned) and fraction of grid coordinate ``x`` on an axis of ``n`` nodes,
     in ``ft`` (``vm_taps``' interpolation)."""
 
     @no_type_check  # compiled by numba: no runtime type checks (tests run jaxtyping's import hook)
-    def _axis(x, n):  # noqa: ANN001, ANN202
+    def _axis(x, n):
         one = ft(1.0)
         if not x >= -one:  # NaN reads the border too: no index outside the tables
             x = -one
@@ -58,12 +58,12 @@ def axis_loop(ft: type):  # noqa: ANN202 - an inlined numba helper
 
 
 @functools.cache
-def interpolation_loop(ft: type):  # noqa: ANN202 - an inlined numba helper
+def interpolation_loop(ft: type):  # an inlined numba helper
     """Each axis's lower node and fraction of sample ``s`` in ``ft`` (``axis_loop``)."""
     axis = axis_loop(ft)
 
     @no_type_check
-    def _interpolation(coords, s, res, lower, frac):  # noqa: ANN001, ANN202
+    def _interpolation(coords, s, res, lower, frac):
         for a in range(3):
             lo, fr = axis(coords[s, a], res[a])
             lower[a] = lo
@@ -73,13 +73,13 @@ def interpolation_loop(ft: type):  # noqa: ANN202 - an inlined numba helper
 
 
 @functools.cache
-def encoding_loop(ft: type):  # noqa: ANN202 - an inlined numba helper
+def encoding_loop(ft: type):  # an inlined numba helper
     """``encode_position``'s columns of sample ``s`` into ``out[r, col:]``: the coordinates, then
     ``6 n_freqs`` sines and cosines, level 0 from libm and each later level by the double-angle
     formulas (one rounding a level instead of a sine and a cosine call)."""
 
     @no_type_check
-    def _encode(coords, s, n_freqs, out, r, col):  # noqa: ANN001, ANN202
+    def _encode(coords, s, n_freqs, out, r, col):
         for a in range(3):
             out[r, col + a] = coords[s, a]
         for a in range(3):
@@ -94,7 +94,7 @@ def encoding_loop(ft: type):  # noqa: ANN202 - an inlined numba helper
 
 
 @no_type_check
-def _store_row(row, row_bits, s, width, to_bf16, out, out_bits):  # noqa: ANN001, ANN202
+def _store_row(row, row_bits, s, width, to_bf16, out, out_bits):
     """Row ``s`` of the output from the scratch row: copied (float32) or rounded to the nearest
     even bfloat16 (its bits; NaN stays NaN, where rounding could carry it to 0); unsigned indices
     as ``mode_loop``'s."""
@@ -115,7 +115,7 @@ store_row = compiled.jit(_store_row, inline=True)
 
 
 @functools.cache
-def mode_loop(c: int, ft: type):  # noqa: ANN202 - an inlined numba helper
+def mode_loop(c: int, ft: type):  # an inlined numba helper
     """One mode's ``c`` features of a sample into ``row[col:col + c]``: the bilinear plane value
     at flat row ``r00`` (``w`` rows to the next line of the plane) times the linear line value at
     flat row ``l0``, ``plane`` and ``line`` flattened. Every index is unsigned: numba wraps a
@@ -123,7 +123,7 @@ def mode_loop(c: int, ft: type):  # noqa: ANN202 - an inlined numba helper
     channel loop (docs/decisions.md#frames.compiled_rows)."""
 
     @no_type_check
-    def _mode(plane, line, r00, w, l0, fa, fb, fl, row, col):  # noqa: ANN001, ANN202
+    def _mode(plane, line, r00, w, l0, fa, fb, fl, row, col):
         one = ft(1.0)
         cu = np.uint64(c)
         w00, w10 = (one - fa) * (one - fb), fa * (one - fb)
@@ -140,7 +140,7 @@ def mode_loop(c: int, ft: type):  # noqa: ANN202 - an inlined numba helper
     return compiled.jit(_mode, inline=True)
 
 
-def _kernel_source(c: int):  # noqa: ANN202 - the loop numba compiles for ``c`` channels
+def _kernel_source(c: int):  # the loop numba compiles for ``c`` channels
     """The loop for tables of ``c`` channels, compiled once per channel count (``_compiled``): a
     mode's channel loop of known length over flattened tables with unsigned indices (``mode_loop``)
     and no view made per sample, which numba counts references to; docs/decisions.md#frames.compiled_rows."""
@@ -149,7 +149,7 @@ def _kernel_source(c: int):  # noqa: ANN202 - the loop numba compiles for ``c`` 
     mode = mode_loop(c, np.float32)
 
     @no_type_check
-    def _kernel(coords, plane, line, res, plane_off, line_off, n_freqs, out, out_bits, to_bf16):  # noqa: ANN001, ANN202
+    def _kernel(coords, plane, line, res, plane_off, line_off, n_freqs, out, out_bits, to_bf16):
         """Rows ``out[s]`` (float32) or ``out_bits[s]`` (bfloat16 bits, round to nearest even) of the
         samples ``coords[s]``: ``3c`` VM features, then, where ``n_freqs >= 0``, the coordinates and
         their ``6 n_freqs`` sines and cosines (``encode_position``'s column order)."""
@@ -185,7 +185,7 @@ if MODES != _MODES_WRITTEN_OUT:  # pragma: no cover - the pass writes the modes 
 
 
 @no_type_check
-def _plane_axes(i):  # noqa: ANN001, ANN202
+def _plane_axes(i):
     """(plane width axis, plane height axis, line axis) of mode ``i`` (``vm_taps.MODES``)."""
     if i == 0:
         return MODES[0][0][0], MODES[0][0][1], MODES[0][1]
@@ -198,7 +198,7 @@ plane_axes = compiled.jit(_plane_axes, inline=True)
 
 
 @functools.cache
-def _compiled(n_components: int):  # noqa: ANN202 - a numba dispatcher
+def _compiled(n_components: int):  # a numba dispatcher
     """The pass for tables of ``n_components`` channels, compiled once per count and process
     (numba's disk cache keeps one entry per count)."""
     return compiled.jit(_kernel_source(n_components))

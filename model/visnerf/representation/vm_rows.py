@@ -97,27 +97,27 @@ def _backward(rows: "GridRows", q: Tensor, ray: Tensor, taps: Taps, grad_out: Te
 
 class _Rows(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, q, plane_table, line_table, rows: "GridRows", coords, ray, tail, n_freqs, save):  # noqa: ANN001, ANN205
+    def forward(ctx, q, plane_table, line_table, rows: "GridRows", coords, ray, tail, n_freqs, save):
         out, taps = _forward(rows, q, coords, ray, tail, n_freqs, save)
         ctx.save_for_backward(q, ray)
         ctx.rows, ctx.taps = rows, taps
         return out
 
     @staticmethod
-    def backward(ctx, grad_out):  # noqa: ANN001, ANN205
+    def backward(ctx, grad_out):
         q, ray = ctx.saved_tensors
         return _backward(ctx.rows, q, ray, ctx.taps, grad_out), None, None, None, None, None, None, None, None
 
 
 class _Selected(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, q, plane_table, line_table, taken: "TakenRows", index):  # noqa: ANN001, ANN205
+    def forward(ctx, q, plane_table, line_table, taken: "TakenRows", index):
         ctx.save_for_backward(q, index)
         ctx.taken = taken
         return taken.rows.index_select(0, index)
 
     @staticmethod
-    def backward(ctx, grad_out):  # noqa: ANN001, ANN205
+    def backward(ctx, grad_out):
         q, index = ctx.saved_tensors
         taken: TakenRows = ctx.taken
         grad_q = _backward(taken.grid_rows, q, taken.ray.index_select(0, index), taken.taps.select(index), grad_out)
@@ -163,7 +163,7 @@ class GridRows:
         self.n_components = grid.n_components
         self.float_type = FLOAT_TYPES[planes.dtype]
 
-    def loops(self, n_q: int):  # noqa: ANN201 - two numba dispatchers (forward, row gradients)
+    def loops(self, n_q: int):  # two numba dispatchers (forward, row gradients)
         return loops(self.n_components, n_q, self.float_type)
 
     def width(self, n_q: int, n_freqs: int, n_tail: int) -> int:

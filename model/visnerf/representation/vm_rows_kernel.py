@@ -34,13 +34,13 @@ from visnerf.representation.vm_kernel import encoding_loop, interpolation_loop, 
 
 
 @functools.cache
-def _rest_loop(c: int, n_q: int, ft: type):  # noqa: ANN202 - an inlined numba helper
+def _rest_loop(c: int, n_q: int, ft: type):  # an inlined numba helper
     """The columns of a row after its features: ``q``, then the encoding or the ray's tail."""
     nf = 3 * c
     encode = encoding_loop(ft)
 
     @no_type_check
-    def _write_rest(coords, s, q, r, tail, n_freqs, out):  # noqa: ANN001, ANN202
+    def _write_rest(coords, s, q, r, tail, n_freqs, out):
         for j in range(n_q):
             out[s, nf + j] = q[r, j]
         col = nf + n_q
@@ -60,12 +60,12 @@ memory before the next's begin."""
 
 
 @functools.cache
-def _prefetch_loop(ft: type):  # noqa: ANN202 - an inlined numba helper
+def _prefetch_loop(ft: type):  # an inlined numba helper
     """Ask for the plane and line rows that sample ``s`` reads (``compiled.prefetch_row``)."""
     interpolation = interpolation_loop(ft)
 
     @no_type_check
-    def _prefetch_sample(coords, s, res, plane, line, plane_off, line_off, lower, frac):  # noqa: ANN001, ANN202
+    def _prefetch_sample(coords, s, res, plane, line, plane_off, line_off, lower, frac):
         interpolation(coords, s, res, lower, frac)
         for i in range(3):
             pa, pb, la = plane_axes(i)
@@ -80,7 +80,7 @@ def _prefetch_loop(ft: type):  # noqa: ANN202 - an inlined numba helper
     return compiled.jit(_prefetch_sample, inline=True)
 
 
-def _forward_source(c: int, n_q: int, ft: type):  # noqa: ANN202 - the loop numba compiles
+def _forward_source(c: int, n_q: int, ft: type):  # the loop numba compiles
     """``forward`` for tables of ``c`` channels and ``n_q`` parameter features in ``ft``."""
     interpolation = interpolation_loop(ft)
     prefetch_sample = _prefetch_loop(ft)
@@ -88,7 +88,7 @@ def _forward_source(c: int, n_q: int, ft: type):  # noqa: ANN202 - the loop numb
     ahead = PREFETCH_SAMPLES
 
     @no_type_check
-    def _forward(coords, ray, q, tail, plane, line, res, plane_off, line_off, n_freqs, out,  # noqa: ANN001, ANN202
+    def _forward(coords, ray, q, tail, plane, line, res, plane_off, line_off, n_freqs, out,
                  save, plane_rows, plane_weights, line_rows, line_weights, plane_values, first, stop):
         """``out[s] = [F(coords[s]) * q_rep[ray[s]], q[ray[s]], encoding(coords[s]) or tail[ray[s]]]``
         for samples ``first <= s < stop``; with ``save``, each mode's first plane row and four
@@ -145,12 +145,12 @@ def _forward_source(c: int, n_q: int, ft: type):  # noqa: ANN202 - the loop numb
     return _forward
 
 
-def _row_gradients_source(c: int, n_q: int, ft: type):  # noqa: ANN202 - the loop numba compiles
+def _row_gradients_source(c: int, n_q: int, ft: type):  # the loop numba compiles
     """``row_gradients`` for tables of ``c`` channels and ``n_q`` parameter features in ``ft``."""
     nf = 3 * c
 
     @no_type_check
-    def _row_gradients(ray, q, grad_out, line, line_rows, line_weights, plane_values,  # noqa: ANN001, ANN202
+    def _row_gradients(ray, q, grad_out, line, line_rows, line_weights, plane_values,
                        grad_plane_value, grad_line_value, grad_q, first, stop):
         """For samples ``first <= s < stop``: the gradient of each mode's plane value
         (``g * q_rep * v``) and line value (``g * q_rep * p``), ``[3, m, c]`` each, and the rows'
@@ -181,7 +181,7 @@ def _row_gradients_source(c: int, n_q: int, ft: type):  # noqa: ANN202 - the loo
 
 
 @no_type_check  # compiled by numba, inlined into the loops that sum a row's taps
-def _sum_taps(acc, c, a, b, taps, tap_weights, values):  # noqa: ANN001, ANN202
+def _sum_taps(acc, c, a, b, taps, tap_weights, values):
     """``acc[:c] = sum_t tap_weights[t] * values[taps[t]]`` over taps ``a <= t < b`` (a table row's,
     in sample order): the one sum of a row's taps, so that a gradient gathered into the table and
     the sparse Adam's update from the same taps add them alike."""
@@ -204,7 +204,7 @@ reads would otherwise wait on memory one row after another."""
 
 
 @no_type_check  # compiled by numba, inlined into the loops over touched rows
-def _prefetch_touched(starts, taps, values, row, stop):  # noqa: ANN001, ANN202
+def _prefetch_touched(starts, taps, values, row, stop):
     """The first row from ``row`` on (before ``stop``) that taps reach, with its taps' rows of
     ``values`` asked for (``compiled.prefetch_row``); ``stop`` where there is none."""
     while row < stop and starts[row] == starts[row + 1]:
@@ -218,11 +218,11 @@ def _prefetch_touched(starts, taps, values, row, stop):  # noqa: ANN001, ANN202
 prefetch_touched = compiled.jit(_prefetch_touched, inline=True)
 
 
-def _gather_source(c: int, ft: type):  # noqa: ANN202 - the loop numba compiles
+def _gather_source(c: int, ft: type):  # the loop numba compiles
     rows_ahead = PREFETCH_ROWS
 
     @no_type_check
-    def _gather_gradients(grad_table, marks, starts, taps, tap_weights, grad_values, first, stop):  # noqa: ANN001, ANN202
+    def _gather_gradients(grad_table, marks, starts, taps, tap_weights, grad_values, first, stop):
         """``grad_table[row] += sum_t tap_weights[t] * grad_values[taps[t]]`` over the taps of each
         row ``first <= row < stop`` (``taps[starts[row]:starts[row + 1]]``, flat ``mode * m + s``
         indices into ``grad_values`` viewed ``[3 m, c]``), which are marked."""
@@ -244,13 +244,13 @@ def _gather_source(c: int, ft: type):  # noqa: ANN202 - the loop numba compiles
 
 
 @functools.cache
-def gather_loop(c: int, float_type: type):  # noqa: ANN201 - a numba dispatcher
+def gather_loop(c: int, float_type: type):  # a numba dispatcher
     """``_gather_gradients`` for tables of ``c`` channels in ``float_type``."""
     return compiled.jit(_gather_source(c, float_type))
 
 
 @no_type_check  # compiled by numba
-def _tap_counts(rows, corner_offsets, counts, first, stop):  # noqa: ANN001, ANN202
+def _tap_counts(rows, corner_offsets, counts, first, stop):
     """``counts[row + 1]``: the taps of samples ``first <= s < stop`` that read table row ``row``
     (tap ``(s, i, k)`` reads row ``rows[s, i] + corner_offsets[i, k]``); ``counts`` is zeroed here."""
     counts[:] = 0
@@ -261,7 +261,7 @@ def _tap_counts(rows, corner_offsets, counts, first, stop):  # noqa: ANN001, ANN
 
 
 @no_type_check
-def _tap_starts(counts, starts):  # noqa: ANN001, ANN202
+def _tap_starts(counts, starts):
     """Each row's first tap over all parts (``starts``, ``n_rows + 1``), and in place of the counts
     where each part's taps of that row begin (``counts[p, row]``): after the parts before it."""
     total = 0
@@ -275,7 +275,7 @@ def _tap_starts(counts, starts):  # noqa: ANN001, ANN202
 
 
 @no_type_check
-def _tap_place(rows, weights, corner_offsets, cursor, taps, tap_weights, first, stop):  # noqa: ANN001, ANN202
+def _tap_place(rows, weights, corner_offsets, cursor, taps, tap_weights, first, stop):
     """The taps of samples ``first <= s < stop`` into ``taps`` (the flat index ``i * m + s``) and
     ``tap_weights`` at their row's ``cursor``, in sample order."""
     m = rows.shape[0]
@@ -321,7 +321,7 @@ def tap_index(rows: np.ndarray, weights: np.ndarray, corner_offsets: np.ndarray,
 
 
 @functools.cache
-def loops(c: int, n_q: int, float_type: type):  # noqa: ANN201 - two numba dispatchers
+def loops(c: int, n_q: int, float_type: type):  # two numba dispatchers
     """(forward, row_gradients) for ``c`` channels, ``n_q`` parameter features,
     ``float_type`` (``np.float32`` or ``np.float64``), compiled once per process (and cached on
     disk by numba)."""

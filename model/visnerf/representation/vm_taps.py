@@ -160,13 +160,13 @@ class _WeightedRowSum(torch.autograd.Function):
     deterministic and independent of the thread count (tested)."""
 
     @staticmethod
-    def forward(ctx, table: Tensor, rows: Tensor, weights: Tensor) -> Tensor:  # noqa: ANN001
+    def forward(ctx, table: Tensor, rows: Tensor, weights: Tensor) -> Tensor:
         ctx.save_for_backward(rows, weights)
         ctx.table_shape, ctx.table_dtype = table.shape, table.dtype
         return F.embedding_bag(rows, table, per_sample_weights=weights, mode="sum")
 
     @staticmethod
-    def backward(ctx, grad: Tensor) -> tuple[Tensor | None, None, None]:  # noqa: ANN001
+    def backward(ctx, grad: Tensor) -> tuple[Tensor | None, None, None]:
         rows, weights = ctx.saved_tensors
         taps_t = transposed_taps(rows, weights.to(ctx.table_dtype), ctx.table_shape[0])
         grad = grad.to(ctx.table_dtype).contiguous()

@@ -32,7 +32,7 @@ adds less than ``exp(-14) = 8e-7`` of its height there (the twin's values differ
 
 
 @no_type_check  # compiled by numba: no runtime type checks (tests run jaxtyping's import hook)
-def _warp(x, y, z, wave, phase, disp):  # noqa: ANN001, ANN202 - numba
+def _warp(x, y, z, wave, phase, disp):  # numba
     """The point moved by the field's turbulent displacement (``ShellsField.waves``)."""
     wx, wy, wz = x, y, z
     for k in range(phase.shape[0]):
@@ -47,7 +47,7 @@ _warp_inline = jit(_warp, inline=True)
 
 
 @no_type_check  # compiled by numba: no runtime type checks (tests run jaxtyping's import hook)
-def _value(x, y, z, centres, inv_r2, height, wave, phase, disp, blobs, n_near):  # noqa: ANN001, ANN202 - numba
+def _value(x, y, z, centres, inv_r2, height, wave, phase, disp, blobs, n_near):  # numba
     wx, wy, wz = _warp_inline(x, y, z, wave, phase, disp)
     total = 0.0
     for j in range(n_near):
@@ -62,7 +62,7 @@ _value_inline = jit(_value, inline=True)
 
 
 @no_type_check  # compiled by numba: no runtime type checks (tests run jaxtyping's import hook)
-def _facing(px, py, pz, dx, dy, dz, centres, inv_r2, height, wave, phase, disp, blobs, n_near):  # noqa: ANN001, ANN202
+def _facing(px, py, pz, dx, dy, dz, centres, inv_r2, height, wave, phase, disp, blobs, n_near):
     """|cos| of the field's gradient (in closed form: the warp's Jacobian carries the blobs' gradient
     back to the point) with the ray; 1 where the gradient vanishes."""
     wx, wy, wz = _warp_inline(px, py, pz, wave, phase, disp)
@@ -97,7 +97,7 @@ _facing_inline = jit(_facing, inline=True)
 
 
 @no_type_check  # compiled by numba: no runtime type checks (tests run jaxtyping's import hook)
-def _march(o, d, t_near, count, delta, centres, inv_r2, height, wave, phase, disp, cell_count, cell_blobs,  # noqa: ANN001, ANN202
+def _march(o, d, t_near, count, delta, centres, inv_r2, height, wave, phase, disp, cell_count, cell_blobs,
            knots, rgba, shading, reference_step, max_opacity, lit, stop_depth, rgb, opacity, depth):
     n_knots = knots.shape[0]
     cells = cell_count.shape[0]
@@ -158,7 +158,7 @@ CELLS = 64
 
 
 @no_type_check  # compiled by numba: no runtime type checks (tests run jaxtyping's import hook)
-def _cell_tables(centres, inv_r2, height, wave, phase, disp, lipschitz, needed, count, blobs):  # noqa: ANN001, ANN202
+def _cell_tables(centres, inv_r2, height, wave, phase, disp, lipschitz, needed, count, blobs):
     cells = count.shape[0]
     size = 1.0 / cells
     slack = lipschitz * 0.5 * math.sqrt(3.0) * size  # how far a warped point can lie from the cell moved by its centre's warp

@@ -23,7 +23,7 @@ from visnerf.representation.vm_taps import MODES
 
 
 @no_type_check  # compiled by numba
-def _l1(table, grad, marks, starts, coefficients, totals, first, stop):  # noqa: ANN001, ANN202
+def _l1(table, grad, marks, starts, coefficients, totals, first, stop):
     """``grad += c_part * sign(table)`` at marked rows ``first <= row < stop`` (row ``i`` is in part
     ``p`` where ``starts[p] <= i < starts[p + 1]``); ``totals[row] = c_part * sum |table[row]|``."""
     for part in range(starts.shape[0] - 1):
@@ -40,7 +40,7 @@ def _l1(table, grad, marks, starts, coefficients, totals, first, stop):  # noqa:
 
 
 @no_type_check
-def _tv_plane(table, grad, marks, start, h, w, scale_y, scale_x, totals, y_first, y_stop):  # noqa: ANN001, ANN202
+def _tv_plane(table, grad, marks, start, h, w, scale_y, scale_x, totals, y_first, y_stop):
     """The gradient of ``scale_y * sum (v[y+1, x] - v[y, x])^2 + scale_x * sum (v[y, x+1] - v[y, x])^2``
     of one plane (rows ``start + y * w + x``) added at its marked rows of lines
     ``y_first <= y < y_stop``; ``totals[y]``: the terms of line ``y``'s differences whose lower row

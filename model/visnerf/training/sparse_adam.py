@@ -39,11 +39,11 @@ _NO_PARTS = np.zeros(2, np.int64)
 
 
 @functools.cache
-def _update_loop(ft: type):  # noqa: ANN202 - an inlined numba helper
+def _update_loop(ft: type):  # an inlined numba helper
     """One row's Adam update in float type ``ft``."""
 
     @no_type_check  # compiled by numba
-    def _update(param, g, exp_avg, exp_avg_sq, row, steps, lr, b1, b2, b2c, e, inv_bias1, bias2_sqrts):  # noqa: ANN001, ANN202
+    def _update(param, g, exp_avg, exp_avg_sq, row, steps, lr, b1, b2, b2c, e, inv_bias1, bias2_sqrts):
         """Adam on ``param[row]`` with gradient row ``g``."""
         t = int(steps[row]) + 1
         steps[row] = t
@@ -61,11 +61,11 @@ def _update_loop(ft: type):  # noqa: ANN202 - an inlined numba helper
 
 
 @functools.cache
-def _row_l1_loop(ft: type):  # noqa: ANN202 - an inlined numba helper
+def _row_l1_loop(ft: type):  # an inlined numba helper
     """The L1 prior at one row in float type ``ft``."""
 
     @no_type_check
-    def _row_l1(param, row, g, l1, part_starts, part):  # noqa: ANN001, ANN202
+    def _row_l1(param, row, g, l1, part_starts, part):
         """Add ``l1[mode] * sign(param[row])`` into ``g`` (``part``: the mode of an earlier row, rows
         in increasing order); returns the row's mode and the prior there, ``l1[mode] * sum |value|``."""
         while row >= part_starts[part + 1]:
@@ -82,7 +82,7 @@ def _row_l1_loop(ft: type):  # noqa: ANN202 - an inlined numba helper
 
 
 @no_type_check  # compiled by numba, inlined into both updates' prefetches
-def _prefetch_state(param, exp_avg, exp_avg_sq, row):  # noqa: ANN001, ANN202
+def _prefetch_state(param, exp_avg, exp_avg_sq, row):
     """Ask for row ``row``'s value and moments, which its update reads and writes."""
     compiled.prefetch_row(param, row)
     compiled.prefetch_row(exp_avg, row)
@@ -93,7 +93,7 @@ prefetch_state = compiled.jit(_prefetch_state, inline=True)
 
 
 @no_type_check  # compiled by numba, inlined into the update at marked rows
-def _prefetch_marked(param, grad, exp_avg, exp_avg_sq, marks, row, stop):  # noqa: ANN001, ANN202
+def _prefetch_marked(param, grad, exp_avg, exp_avg_sq, marks, row, stop):
     """Ask for the first marked row from ``row`` on: its gradient, value and moments
     (``vm_rows_kernel.PREFETCH_ROWS``); returns the row after it."""
     while row < stop and marks[row] == 0:
@@ -107,13 +107,13 @@ def _prefetch_marked(param, grad, exp_avg, exp_avg_sq, marks, row, stop):  # noq
 prefetch_marked = compiled.jit(_prefetch_marked, inline=True)
 
 
-def _marked_source(ft: type):  # noqa: ANN202 - the loop numba compiles for float type ``ft``
+def _marked_source(ft: type):  # the loop numba compiles for float type ``ft``
     update = _update_loop(ft)
     row_l1 = _row_l1_loop(ft)
     rows_ahead = PREFETCH_ROWS
 
     @no_type_check
-    def _adam_marked(param, grad, exp_avg, exp_avg_sq, steps, marks, use_marks, part_starts, l1, use_l1,  # noqa: ANN001, ANN202
+    def _adam_marked(param, grad, exp_avg, exp_avg_sq, steps, marks, use_marks, part_starts, l1, use_l1,
                      lr, beta1, beta2, eps, inv_bias1, bias2_sqrts, first, stop):
         """Adam at the rows ``first <= row < stop`` whose mark is set (every row without
         ``use_marks``), from ``grad`` plus, with ``use_l1``, ``l1[mode] * sign(value)``; their
@@ -147,7 +147,7 @@ def _marked_source(ft: type):  # noqa: ANN202 - the loop numba compiles for floa
 
 
 @no_type_check  # compiled by numba, inlined into the update from taps
-def _prefetch_update(param, exp_avg, exp_avg_sq, starts, taps, values, row, stop):  # noqa: ANN001, ANN202
+def _prefetch_update(param, exp_avg, exp_avg_sq, starts, taps, values, row, stop):
     """Ask for the first touched row from ``row`` on: its taps' gradients, value and moments
     (``vm_rows_kernel.PREFETCH_ROWS``); returns the row after it."""
     row = prefetch_touched(starts, taps, values, row, stop)
@@ -159,13 +159,13 @@ def _prefetch_update(param, exp_avg, exp_avg_sq, starts, taps, values, row, stop
 prefetch_update = compiled.jit(_prefetch_update, inline=True)
 
 
-def _taps_source(ft: type):  # noqa: ANN202 - the loop numba compiles for float type ``ft``
+def _taps_source(ft: type):  # the loop numba compiles for float type ``ft``
     update = _update_loop(ft)
     row_l1 = _row_l1_loop(ft)
     rows_ahead = PREFETCH_ROWS
 
     @no_type_check
-    def _adam_taps(param, exp_avg, exp_avg_sq, steps, starts, taps, tap_weights, values, part_starts,  # noqa: ANN001, ANN202
+    def _adam_taps(param, exp_avg, exp_avg_sq, steps, starts, taps, tap_weights, values, part_starts,
                    l1, use_l1, lr, beta1, beta2, eps, inv_bias1, bias2_sqrts, first, stop):
         """Adam at the rows ``first <= row < stop`` that pending taps reach (``TapIndex``), their
         gradient the sum of their taps' plus, with ``use_l1``, ``l1[mode] * sign(value)``;

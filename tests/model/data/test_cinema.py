@@ -155,7 +155,7 @@ def _copy_db(src: Path, dst: Path) -> Path:
     return dst
 
 
-def _rewrite_table(db: Path, edit) -> None:  # noqa: ANN001
+def _rewrite_table(db: Path, edit) -> None:
     rows = list(csv.reader((db / "data.csv").read_text().splitlines()))
     edit(rows)
     with (db / "data.csv").open("w", newline="") as f:

@@ -114,7 +114,7 @@ def test_an_axis_the_dataset_lacks_is_named(axis: int) -> None:
         (((0, math.inf),), "the value must be a finite number, got inf"),
     ],
 )
-def test_bad_axis_values_are_refused_by_the_config(axis_values, message: str) -> None:  # noqa: ANN001
+def test_bad_axis_values_are_refused_by_the_config(axis_values, message: str) -> None:
     """(Values of the wrong type, a float axis or a string value, are refused by the type check the
     tests run under before the config sees them; the config's own check refuses them without it.)"""
     with pytest.raises(ValueError, match=message):

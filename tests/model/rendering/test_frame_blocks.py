@@ -22,7 +22,7 @@ def _scene() -> tuple[torch.nn.Module, torch.Tensor, Intrinsics]:
 
 
 @pytest.mark.parametrize("threaded", [True, False])
-def test_a_frame_in_blocks_of_rows_is_the_frame_in_one_block(two_threads, monkeypatch, threaded: bool) -> None:  # noqa: ANN001
+def test_a_frame_in_blocks_of_rows_is_the_frame_in_one_block(two_threads, monkeypatch, threaded: bool) -> None:
     field, c2w, intr = _scene()
     settings = RenderSettings(chunk_rays=64)
     torch.set_num_threads(2 if threaded else 1)
@@ -41,16 +41,16 @@ def test_a_frame_in_blocks_of_rows_is_the_frame_in_one_block(two_threads, monkey
     torch.testing.assert_close(rows, whole, rtol=0.0, atol=1e-6)
 
 
-def test_each_block_is_marched_before_the_next_blocks_rays_are_made(monkeypatch) -> None:  # noqa: ANN001
+def test_each_block_is_marched_before_the_next_blocks_rays_are_made(monkeypatch) -> None:
     field, c2w, intr = _scene()
     events: list[tuple[str, int]] = []
     make, walk = renderer.image_rays, renderer.ray_windows
 
-    def made(c2w, intrinsics, rows):  # noqa: ANN001, ANN202
+    def made(c2w, intrinsics, rows):
         events.append(("rays", rows[1] - rows[0]))
         return make(c2w, intrinsics, rows)
 
-    def walked(field, rays_o, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN202
+    def walked(field, rays_o, *args, **kwargs):
         events.append(("walk", rays_o.shape[0]))
         return walk(field, rays_o, *args, **kwargs)
 

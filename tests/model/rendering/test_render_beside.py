@@ -11,7 +11,7 @@ from visnerf.inference import load_scene
 from visnerf.testing import make_tiny_checkpoint
 
 
-def test_a_preview_and_a_full_frame_finish_while_a_full_frame_of_their_scene_is_held(tmp_path) -> None:  # noqa: ANN001
+def test_a_preview_and_a_full_frame_finish_while_a_full_frame_of_their_scene_is_held(tmp_path) -> None:
     scene = load_scene(make_tiny_checkpoint(tmp_path / "s.safetensors"))
     c2w = orbit_c2w(20.0, 30.0, 2.2)
     inside, release = threading.Event(), threading.Event()

@@ -41,7 +41,7 @@ class CancelAfter:
 
 
 @pytest.mark.parametrize("threaded", [True, False])
-def test_a_cancelled_render_stops_after_the_chunk_it_was_in(two_threads, monkeypatch, threaded: bool) -> None:  # noqa: ANN001
+def test_a_cancelled_render_stops_after_the_chunk_it_was_in(two_threads, monkeypatch, threaded: bool) -> None:
     field, _ = make_tiny_field([("a", [0.0, 1.0])], seed=2, resolution=12)
     field.eval()
     intr = Intrinsics.from_fov(64, 64, math.radians(40.0))
@@ -52,7 +52,7 @@ def test_a_cancelled_render_stops_after_the_chunk_it_was_in(two_threads, monkeyp
     marched = {"chunks": 0}
     march = renderer.march_rays
 
-    def counted_march(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+    def counted_march(*args, **kwargs):
         marched["chunks"] += 1
         return march(*args, **kwargs)
 
@@ -74,7 +74,7 @@ def test_a_cancelled_render_stops_after_the_chunk_it_was_in(two_threads, monkeyp
 
 
 @pytest.mark.parametrize("compiled", [True, False], ids=["compiled", "torch"])
-def test_the_empty_space_walk_stops_between_jumps(compiled: bool, monkeypatch) -> None:  # noqa: ANN001
+def test_the_empty_space_walk_stops_between_jumps(compiled: bool, monkeypatch) -> None:
     """The sample windows of a large frame's rays take a while to find, before any chunk: the
     torch walk asks the cancel check between its jumps, the compiled walk between its calls of
     ``RAYS_PER_CALL`` rays, and a check that stays False changes nothing."""
@@ -105,7 +105,7 @@ def test_the_empty_space_walk_stops_between_jumps(compiled: bool, monkeypatch) -
     assert cancel.let_through == 1  # stopped at the second jump or call
 
 
-def test_map_chunks_lets_running_chunks_end_and_skips_the_rest(two_threads) -> None:  # noqa: ANN001
+def test_map_chunks_lets_running_chunks_end_and_skips_the_rest(two_threads) -> None:
     ran: list[int] = []
     finished = threading.Event()
 
@@ -133,7 +133,7 @@ def _held(o: object) -> bool:
 
 
 @pytest.mark.parametrize("threaded", [True, False])
-def test_a_cancelled_render_leaves_nothing_for_the_garbage_collector(two_threads, threaded: bool) -> None:  # noqa: ANN001
+def test_a_cancelled_render_leaves_nothing_for_the_garbage_collector(two_threads, threaded: bool) -> None:
     """Once the caller drops the exception, reference counting frees the frame's tensors: no cycle
     through the chunks' futures keeps them (a server's collector runs rarely, and what it frees
     late is not trimmed)."""
@@ -158,7 +158,7 @@ def test_a_cancelled_render_leaves_nothing_for_the_garbage_collector(two_threads
     assert left == []
 
 
-def test_a_scene_render_cancelled_before_it_starts_renders_nothing(tmp_path) -> None:  # noqa: ANN001
+def test_a_scene_render_cancelled_before_it_starts_renders_nothing(tmp_path) -> None:
     scene = load_scene(make_tiny_checkpoint(tmp_path / "s.safetensors"))
     c2w = orbit_c2w(30.0, 20.0, 2.5)
     with pytest.raises(RenderCancelled):
@@ -186,7 +186,7 @@ def test_a_due_build_goes_to_its_caller_and_a_drop_or_a_failure_is_harmless() ->
     space, again = cache.lookup(a, step)
     assert space is not None and again is None and cache.builds == 1
 
-    def fail(params, step):  # noqa: ANN001, ANN202
+    def fail(params, step):
         raise RuntimeError("out of memory")
 
     cache.build = fail  # type: ignore[method-assign]

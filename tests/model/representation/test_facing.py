@@ -111,7 +111,7 @@ def test_every_colour_product_runs_on_padded_rows(facing_field, dtype, monkeypat
     rows: list[int] = []
     linear = torch.nn.functional.linear
 
-    def recording_linear(x, *args):  # noqa: ANN001, ANN002, ANN202
+    def recording_linear(x, *args):
         rows.append(x.shape[0])
         return linear(x, *args)
 

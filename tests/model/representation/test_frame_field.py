@@ -225,7 +225,7 @@ def test_linear_relu_takes_the_plain_path_where_onednn_refuses_the_dtype(dtype, 
     """As on a CPU without bf16 instructions, where oneDNN cannot create the bfloat16 kernel."""
     from visnerf.representation import linear_relu as lr
 
-    def refuse(*args):  # noqa: ANN002, ANN202
+    def refuse(*args):
         raise RuntimeError("could not create a primitive descriptor for the inner product forward propagation primitive")
 
     monkeypatch.setattr(lr, "_fused_ok", {})

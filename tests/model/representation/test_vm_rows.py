@@ -80,7 +80,7 @@ def test_a_table_of_another_type_or_device_is_refused() -> None:
 
 
 @pytest.mark.parametrize("threads", [1, 2])
-def test_the_taps_sorted_by_row_on_any_thread_count_are_a_stable_sort(threads: int, monkeypatch) -> None:  # noqa: ANN001
+def test_the_taps_sorted_by_row_on_any_thread_count_are_a_stable_sort(threads: int, monkeypatch) -> None:
     rng = np.random.default_rng(4)
     m, n_rows = 3001, 97
     corners = np.array([[0, 1, 9, 10], [0, 1, 7, 8], [0, 1, 5, 6]], np.int64)

@@ -35,7 +35,7 @@ def test_cells_training_stopped_sampling_stay_out_of_the_inference_grid() -> Non
     assert not (grid & ~(density_alone & _ball())).any()
 
 
-def test_refining_evaluates_only_the_trained_cells(monkeypatch) -> None:  # noqa: ANN001
+def test_refining_evaluates_only_the_trained_cells(monkeypatch) -> None:
     """The rebuild evaluates the density in the trained grid's cells only: cells outside it cannot
     join, and a dense cell outside it does not keep its trained neighbour through the dilation."""
     import visnerf.training.occupancy_policy as trainer_module
@@ -43,7 +43,7 @@ def test_refining_evaluates_only_the_trained_cells(monkeypatch) -> None:  # noqa
     seen = []
     real = trainer_module.build_occupancy
 
-    def spy(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+    def spy(*args, **kwargs):
         seen.append(args[5] if len(args) > 5 else kwargs.get("candidates"))
         return real(*args, **kwargs)
 
@@ -81,7 +81,7 @@ def test_refine_milestones_shrink_the_grid_within_itself_after_the_occupancy_mil
     assert trainer.state.refines_done == 2  # each milestone once
 
 
-def test_milestones_count_as_training_time(monkeypatch) -> None:  # noqa: ANN001
+def test_milestones_count_as_training_time(monkeypatch) -> None:
     import time
 
     trainer = _trainer()

@@ -13,14 +13,14 @@ from visnerf.training.trainer import Trainer
 ISOVALUES = [("isovalue", [0.2, 0.4, 0.6])]
 
 
-def _level_field(levels: list[float]):  # noqa: ANN202
+def _level_field(levels: list[float]):
     field, _ = make_tiny_field(ISOVALUES, seed=2, resolution=9, level_set_axis=0)
     with torch.no_grad():
         field.levels.table.copy_(torch.tensor(levels)[:, None])
     return field
 
 
-def _with_g(field, g) -> None:  # noqa: ANN001
+def _with_g(field, g) -> None:
     """Replace the density decoder's output by ``g(coords)`` (grid coordinates)."""
     field.raw_density = lambda coords, spatial, q: g(coords) + 0.0 * spatial.sum(-1)  # keeps the graph
 

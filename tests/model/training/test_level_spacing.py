@@ -16,7 +16,7 @@ from visnerf.training.trainer import Trainer
 RATIO = 4.0
 
 
-def _level_field(levels: list[float], log_sharpness: float = 0.0):  # noqa: ANN202
+def _level_field(levels: list[float], log_sharpness: float = 0.0):
     values = [0.1 * (i + 1) for i in range(len(levels))]
     field, _ = make_tiny_field([("isovalue", values)], seed=2, resolution=8, level_set_axis=0)
     with torch.no_grad():
@@ -25,7 +25,7 @@ def _level_field(levels: list[float], log_sharpness: float = 0.0):  # noqa: ANN2
     return field
 
 
-def _value(field, ratio: float = RATIO) -> float:  # noqa: ANN001
+def _value(field, ratio: float = RATIO) -> float:
     return float(level_spacing(field, ratio).detach())
 
 

@@ -13,7 +13,7 @@ def _small_box() -> torch.Tensor:
     return torch.tensor([[-0.15, -0.15, -0.15], [0.15, 0.15, 0.15]])
 
 
-def _hit_pixels(scene, box: torch.Tensor) -> torch.Tensor:  # noqa: ANN001
+def _hit_pixels(scene, box: torch.Tensor) -> torch.Tensor:
     """[n_frames, h, w] whether each pixel's ray hits ``box``, every pixel's ray made one by one
     frame (the slow reference)."""
     h, w = scene.intrinsics.height, scene.intrinsics.width

@@ -17,7 +17,7 @@ from visnerf.training.regularizers import (
 WEIGHTS = RegularizerWeights(l1_density=3e-4, param_l1=2e-4, tv_density=0.05, tv_appearance=0.01, tv_params=0.02)
 
 
-def _field():  # noqa: ANN202
+def _field():
     field, _ = make_tiny_field([("a", [0.0, 0.5, 1.0]), ("b", [1.0, 2.0])], seed=3, resolution=7)
     field.density_grid.resample((5, 7, 6))  # unequal axes: every difference direction is its own size
     field.appearance_grid.resample((5, 7, 6))
@@ -29,7 +29,7 @@ def _field():  # noqa: ANN202
     return field
 
 
-def _grads(field) -> list[torch.Tensor]:  # noqa: ANN001
+def _grads(field) -> list[torch.Tensor]:
     return [p.grad.clone() if p.grad is not None else torch.zeros_like(p) for p in field.parameters()]
 
 
@@ -85,9 +85,9 @@ def test_a_grid_one_node_wide_along_an_axis_has_no_difference_there() -> None:
 
 
 @pytest.mark.parametrize("axes", [[("a", [0.0, 0.5, 1.0]), ("b", [1.0, 2.0]), ("c", [4.0])], []])
-def test_the_parameter_terms_in_closed_form_equal_autograds(axes) -> None:  # noqa: ANN001
+def test_the_parameter_terms_in_closed_form_equal_autograds(axes) -> None:
     """A single-value axis has no difference; no axis, no term; the gradient adds to what is there."""
-    def field():  # noqa: ANN202
+    def field():
         f, _ = make_tiny_field(axes, seed=4, resolution=5)
         gen = torch.Generator().manual_seed(9)
         with torch.no_grad():

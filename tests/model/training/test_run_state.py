@@ -80,7 +80,7 @@ def test_a_stopped_run_resumed_from_its_state_is_the_uninterrupted_run(scene_spl
     assert abs(psnr_whole - psnr_resumed) < 1e-6
 
 
-def _stopped_after_three_steps(train, val, tmp_path: Path) -> tuple[Trainer, Path]:  # noqa: ANN001
+def _stopped_after_three_steps(train, val, tmp_path: Path) -> tuple[Trainer, Path]:
     """A run stopped after three steps, its run state written to ``tmp_path / "m.resume"``."""
     first = Trainer(train, val, SCHEDULE, torch.device("cpu"))
     stop = StopAt(3)

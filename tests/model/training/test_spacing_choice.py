@@ -18,7 +18,7 @@ def _run(val: SceneData | None, choose: bool, monkeypatch: pytest.MonkeyPatch) -
     measured: list[SceneData] = []
     real = trainer_module.choose_full_spacing
 
-    def spy(field, scene, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN202
+    def spy(field, scene, *args, **kwargs):
         measured.append(scene)
         return real(field, scene, *args, **kwargs)
 

@@ -171,7 +171,7 @@ def test_every_mark_set_gives_the_dense_priors_value() -> None:
 
 
 @pytest.mark.parametrize("prior", [add_l1_at_marks, add_total_variation_at_marks], ids=["l1", "tv"])
-def test_grid_priors_at_marks_are_the_same_on_any_thread_count(prior, monkeypatch) -> None:  # noqa: ANN001
+def test_grid_priors_at_marks_are_the_same_on_any_thread_count(prior, monkeypatch) -> None:
     torch.manual_seed(2)
     grid = VMGrid(4, (9, 10, 11), 0.5)
     results = []
