@@ -13,4 +13,5 @@ if ! command -v nginx >/dev/null && [ ! -x /usr/sbin/nginx ] && [ "$(id -u)" = 0
   (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq nginx >/dev/null) || echo "nginx not installed: the replica tests will be skipped (or fail where VISNERF_TESTS_REQUIRE names nginx)"
 fi
 .venv/bin/ruff check model server tests bench
+.venv/bin/mypy
 .venv/bin/python -m pytest "$@"

@@ -309,7 +309,7 @@ class RenderQueue:
                 raise QueueFullError("server is shutting down") from None
             raise
         finally:
-            future = None  # no cycle through the future (``_work``)
+            del future  # no cycle through the future (``_work``)
 
     async def run_async(
         self,
@@ -340,7 +340,7 @@ class RenderQueue:
                 raise QueueFullError("server is shutting down") from None
             raise
         finally:
-            future = waiter = None  # no cycle through the futures (``_work``)
+            del future, waiter  # no cycle through the futures (``_work``)
 
     def close(self) -> None:
         """Refuse new work, fail the queued jobs with QueueFullError (the server answers 503) and

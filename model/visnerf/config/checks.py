@@ -121,5 +121,5 @@ def check_whole_in(config: object, least: int, most: int, *names: str) -> None:
 def check_number_in(config: object, least: float, most: float, *names: str) -> None:
     for name in names:
         value = getattr(config, name)
-        require(isinstance(value, numbers.Real) and math.isfinite(value) and least <= value <= most,
+        require(isinstance(value, numbers.Real) and math.isfinite(value) and least <= float(value) <= most,
                  f"{name} must be a finite number in [{least:g}, {most:g}], got {value!r}")

@@ -133,7 +133,7 @@ class FieldConfig:
         return len(self.param_lengths)
 
     def with_resolution(self, resolution: tuple[int, int, int]) -> "FieldConfig":
-        return dataclasses.replace(self, resolution=tuple(int(r) for r in resolution))
+        return dataclasses.replace(self, resolution=(int(resolution[0]), int(resolution[1]), int(resolution[2])))
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)

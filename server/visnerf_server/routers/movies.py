@@ -28,7 +28,7 @@ router = APIRouter(tags=["movies"])
 
 JOB_ID_PATTERN = r"^[A-Za-z0-9_-]{1,64}$"
 JobIdPath = Annotated[str, Path(pattern=JOB_ID_PATTERN, description="The id `POST .../movies` answered")]
-NOT_FOUND = {404: {"model": ErrorDetail, "description": "Unknown job"}}
+NOT_FOUND: dict[int | str, dict[str, Any]] = {404: {"model": ErrorDetail, "description": "Unknown job"}}
 CANCEL_WAIT_S = 5.0
 """How long ``DELETE`` waits for a running job's frame to stop (it stops within a chunk of rays)."""
 CHUNK_BYTES = 1 << 20

@@ -1,6 +1,6 @@
 """Scene listing, details, uploads and deletion."""
 
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import APIRouter, HTTPException, Path, Request, Response
 from fastapi.responses import JSONResponse
@@ -26,7 +26,7 @@ SceneIdPath = Annotated[
 ]
 LOADING_RETRY_S = 1
 """Seconds a client is asked to wait for a scene that is still loading at start-up."""
-ERRORS = {code: {"model": ErrorDetail} for code in (401, 403, 404, 413, 422, 503)}
+ERRORS: dict[int | str, dict[str, Any]] = {code: {"model": ErrorDetail} for code in (401, 403, 404, 413, 422, 503)}
 
 
 def find_scene(registry: SceneRegistry, scene_id: str) -> Scene:
