@@ -1,6 +1,11 @@
 #!/usr/bin/env bash
-# Set up .venv (CPU PyTorch from the local wheel store, the project and its test extras) and run the tests.
+# Set up .venv (CPU PyTorch from the local wheel store, the project and its test extras) and run the tests:
+#   bash scripts/test.sh          lint, types and the tests that take seconds (not marked slow)
+#   bash scripts/test.sh --slow   the end-to-end runs: training commands, server processes, the browser
+# Further arguments go to pytest.
 set -euo pipefail
+marker="not slow"
+if [ "${1:-}" = "--slow" ]; then marker="slow"; shift; fi
 cd "$(dirname "$0")/.."
 if [ ! -x .venv/bin/python ]; then python3 -m venv .venv; fi
 .venv/bin/python -m pip install -q --upgrade pip >/dev/null 2>&1 || true
@@ -14,4 +19,4 @@ if ! command -v nginx >/dev/null && [ ! -x /usr/sbin/nginx ] && [ "$(id -u)" = 0
 fi
 .venv/bin/ruff check model server tests bench
 .venv/bin/mypy
-.venv/bin/python -m pytest "$@"
+.venv/bin/python -m pytest -m "$marker" "$@"

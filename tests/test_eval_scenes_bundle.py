@@ -13,6 +13,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
 import eval_scenes  # noqa: E402
 
 
+@pytest.mark.slow
 def test_a_bundling_run_trains_the_bundled_scene_on_every_view(tmp_path: Path) -> None:
     bundle, results = tmp_path / "checkpoints", tmp_path / "results"
     code = eval_scenes.main(["--scenes", "tangle_iso", "--minutes-per-scene", "0.1", "--res", "16", "--test-views", "2",

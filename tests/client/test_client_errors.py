@@ -6,7 +6,7 @@ import re
 import pytest
 from client_helpers import ARTIFACTS, wait_for_full_frame
 
-pytestmark = pytest.mark.browser
+pytestmark = [pytest.mark.browser, pytest.mark.slow]
 
 STREAM = re.compile(r".*/api/scenes/[^/]+/stream$")
 

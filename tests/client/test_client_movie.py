@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from client_helpers import camera_readout, canvas_pixels, wait_for_full_frame
 
-pytestmark = pytest.mark.browser
+pytestmark = [pytest.mark.browser, pytest.mark.slow]
 
 PARAM = '.param[data-set="A"][data-param="{}"] input[type=number]'
 

@@ -12,7 +12,7 @@ from conftest import start_server
 
 from visnerf.testing import make_tiny_checkpoint
 
-pytestmark = pytest.mark.browser
+pytestmark = [pytest.mark.browser, pytest.mark.slow]
 KEY_ZOOM = 1.1
 """The zoom of one + key (client/js/interaction.js)."""
 CAMERA = {"azimuth": 30.0, "elevation": 20.0, "distance": 2.5, "view_height": 1.4}

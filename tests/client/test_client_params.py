@@ -3,7 +3,7 @@
 import pytest
 from client_helpers import assert_changed, canvas_pixels, get_json, wait_for_full_frame
 
-pytestmark = pytest.mark.browser
+pytestmark = [pytest.mark.browser, pytest.mark.slow]
 
 ROW = '.param[data-set="A"][data-param="{}"]'
 

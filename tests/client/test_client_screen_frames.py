@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from client_helpers import canvas_pixels, decode_png, get_bytes, wait_for_full_frame
 
-pytestmark = pytest.mark.browser
+pytestmark = [pytest.mark.browser, pytest.mark.slow]
 
 
 def stages(page) -> list[tuple[str, int, int]]:

@@ -15,7 +15,7 @@ from client_helpers import (
     wait_for_full_frame,
 )
 
-pytestmark = pytest.mark.browser
+pytestmark = [pytest.mark.browser, pytest.mark.slow]
 
 
 def test_page_loads_and_shows_a_frame(page, base_url):

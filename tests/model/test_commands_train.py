@@ -24,6 +24,7 @@ def plume(tmp_path_factory):
     return data
 
 
+@pytest.mark.slow
 def test_step_ratio_is_stored_and_kept_on_resume(plume, tmp_path) -> None:
     first = tmp_path / "m.safetensors"
     run = _visnerf("train", str(plume), "--out", str(first), "--iterations", "6", "--resolution", "16",
@@ -39,6 +40,7 @@ def test_step_ratio_is_stored_and_kept_on_resume(plume, tmp_path) -> None:
     assert meta.render.step_ratio == 1.25 and meta.provenance.iterations == 9
 
 
+@pytest.mark.slow
 def test_factor_storage_and_sampled_density_gradients(plume, tmp_path) -> None:
     first = tmp_path / "q.safetensors"
     run = _visnerf("train", str(plume), "--out", str(first), "--iterations", "5", "--resolution", "16",
@@ -64,6 +66,7 @@ def test_factor_storage_and_sampled_density_gradients(plume, tmp_path) -> None:
     assert meta.field.factor_storage == "float16" and tensors["density_grid.planes.0"].dtype == torch.float16
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("option", "value", "message"), [
     ("--step-ratio", "0", "step_ratio must be a finite number above 0"),
     ("--step-ratio", "nan", "expected a finite number"),
@@ -101,6 +104,7 @@ def test_bad_training_options_are_refused(plume, tmp_path, option, value, messag
     assert not out.exists()
 
 
+@pytest.mark.slow
 def test_an_isovalue_sweep_trains_with_a_level_axis_unless_the_user_says(tmp_path) -> None:
     data = tmp_path / "iso"
     made = _visnerf("make-scene", "tangle_iso", "--out", str(data), "--res", "16", "--views", "12",

@@ -51,6 +51,7 @@ def train(data, out, *options):
                            "--iterations", "3", "--quiet", *options], capture_output=True, text=True)
 
 
+@pytest.mark.slow
 def test_given_options_round_trip_through_the_checkpoint(tangle, tmp_path) -> None:
     out = tmp_path / "m.safetensors"
     run = train(tangle, out, "--hidden-width", "32", "--sh-degree", "1", "--density-scale", "40",
@@ -81,6 +82,7 @@ def test_given_options_round_trip_through_the_checkpoint(tangle, tmp_path) -> No
                                  occupancy_refine_dilation=RECIPE.surface.refine_dilation)
 
 
+@pytest.mark.slow
 def test_options_not_given_keep_the_recipe(tangle, tmp_path) -> None:
     out = tmp_path / "d.safetensors"
     assert train(tangle, out).returncode == 0
@@ -95,6 +97,7 @@ def test_options_not_given_keep_the_recipe(tangle, tmp_path) -> None:
     assert recipe.silhouette_ray_fraction == 0.0  # tangle_static has no level field
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("options", "message"), [
     (["--hidden-width", "wide"], "expected a whole number"),
     (["--init-scale", "nan"], "expected a finite number"),
@@ -109,6 +112,7 @@ def test_bad_generated_options_are_refused_naming_the_field(tangle, tmp_path, op
     assert not out.exists()
 
 
+@pytest.mark.slow
 def test_a_resumed_run_refuses_to_change_its_field(tangle, tmp_path) -> None:
     first = tmp_path / "a.safetensors"
     assert train(tangle, first).returncode == 0
@@ -131,6 +135,7 @@ def test_every_frames_field_is_an_option_of_render_and_animate(command: str) -> 
         assert option_of(FramesConfig, f.name) in options, f.name
 
 
+@pytest.mark.slow
 def test_render_takes_its_chunks_from_the_options_and_refuses_bad_ones(tmp_path) -> None:
     """Chunks and segments change how a frame is cut into work, not the frame (a ray's samples
     are the same whatever its segments; early termination is judged at segment ends, so a level

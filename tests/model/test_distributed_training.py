@@ -31,6 +31,7 @@ def torchrun(tmp: Path, *args: str, timeout: float = 120.0) -> subprocess.Comple
                           env={**os.environ, "TMPDIR": str(tmp)})
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("step", ["torch", "fused"])
 def test_two_ranks_with_half_the_batch_each_step_as_one_process_with_the_whole_batch(tmp_path, step: str) -> None:
     run = torchrun(tmp_path, str(STEPS_SCRIPT), str(tmp_path), step)
@@ -58,6 +59,7 @@ def test_two_ranks_with_half_the_batch_each_step_as_one_process_with_the_whole_b
     assert solo["density_grid.plane_table"].shape != init["density_grid.plane_table"].shape  # upsampled
 
 
+@pytest.mark.slow
 def test_torchrun_train_writes_one_checkpoint_from_rank_0(tmp_path) -> None:
     data = tmp_path / "plume"
     made = subprocess.run([sys.executable, "-m", "visnerf", "make-scene", "plume_time", "--out", str(data),

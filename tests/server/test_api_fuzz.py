@@ -157,12 +157,14 @@ def scene_ids(server: LiveServer) -> list[str]:
 # --- the tests ---------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 def test_every_operation_of_the_schema_is_fuzzed(target: FuzzTarget) -> None:
     listed = {(method.upper(), path) for path, item in target.openapi["paths"].items() for method in item}
     assert listed == set(OPERATIONS)
     assert sorted(target.scenes) == sorted(p.stem for p in BUNDLED.glob("*.safetensors"))
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("method", "path"), OPERATIONS, ids=[f"{m} {p}" for m, p in OPERATIONS])
 def test_no_generated_request_gets_a_server_error(target: FuzzTarget, method: str, path: str) -> None:
     server = target.server

@@ -94,6 +94,7 @@ def cluster(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Cluster]:
         yield Cluster(replicas, url, store, work, stack)
 
 
+@pytest.mark.slow
 def test_uploads_and_deletes_through_nginx_reach_every_replica(cluster: Cluster, templates: dict[str, Path]) -> None:
     replicas, url, store = cluster.replicas, cluster.url, cluster.store
     with httpx.Client(base_url=url, timeout=30) as proxy:
@@ -140,6 +141,7 @@ def test_the_stream_works_through_nginx(cluster: Cluster) -> None:
     assert refused.value.response.status_code == 403
 
 
+@pytest.mark.slow
 def test_renders_keep_answering_while_a_replica_restarts(cluster: Cluster) -> None:
     """Last in the module: it replaces the first replica."""
     replicas, url = cluster.replicas, cluster.url

@@ -348,6 +348,7 @@ def test_occupancy_grid_builds_run_in_the_render_queue(client: TestClient) -> No
     assert renderer.setting_occupancy.builds == 1
 
 
+@pytest.mark.slow
 def test_a_client_that_leaves_and_a_sigterm_stop_large_renders(ckpt_dir: Path, tmp_path: Path) -> None:
     env = {"VISNERF_MAX_FULL_PIXELS": str(BIG_PIXELS), "VISNERF_RATE_LIMIT_PIXELS_PER_S": "0"}
     big = {"camera": ORBIT, "width": BIG, "height": BIG, "format": "jpeg"}

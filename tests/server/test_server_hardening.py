@@ -157,6 +157,7 @@ def test_messages_over_the_rate_get_429_and_the_session_stays_open(ckpt_dir: Pat
         assert metric(client, 'visnerf_stream_refused_total{reason="rate"}') == 3.0
 
 
+@pytest.mark.slow
 def test_limits_against_a_real_server(ckpt_dir: Path, tmp_path: Path) -> None:
     """``visnerf serve`` hands ``ws_max_message_bytes`` (64 KiB) to the protocol: a bigger message
     closes the connection (1009) before the app sees it; origins are checked at the handshake."""

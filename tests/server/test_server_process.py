@@ -22,6 +22,7 @@ def server(ckpt_dir: Path, tmp_path: Path) -> Iterator[tuple[subprocess.Popen, s
         yield live.process, live.url, live.log_path
 
 
+@pytest.mark.slow
 def test_serve_http_websocket_submit_and_sigterm(server, templates, tmp_path: Path) -> None:
     proc, url, log_path = server
     health = httpx.get(f"{url}/api/health").json()
@@ -90,6 +91,7 @@ def test_serve_http_websocket_submit_and_sigterm(server, templates, tmp_path: Pa
     assert not list((tmp_path / "checkpoints").glob(".upload-*"))
 
 
+@pytest.mark.slow
 def test_train_submit_uploads_the_trained_checkpoint_to_a_running_server(server, synthetic_scene, tmp_path: Path) -> None:
     _, url, _ = server
     data = synthetic_scene("tangle_static", 16)

@@ -1,60 +1,20 @@
 """The training recipe chosen from the data: what ``visnerf train`` uses when no flag says otherwise.
 
-The library's ``TrainConfig`` defaults hold what suits every scene (the step, the rates, the
-priors, the schedule as fractions of the run). What depends on the dataset is chosen here from
-the images and cameras alone, each choice with the reason ``visnerf info`` shows:
+``TrainConfig``'s defaults hold what suits every scene; what depends on the dataset is chosen here
+from the images and cameras alone, each choice with the reason ``visnerf info`` shows:
 
-- the final grid: voxels ``RECIPE.voxel_per_pixel`` of the pixel footprint at the content (the world
-  size one pixel spans there, from the focal length and the cameras' distance), over the box the
-  space carving leaves, rounded to a multiple of 8 and kept within ``RECIPE.resolution_range``;
-- under a time budget, a final grid no larger than the budget can fill: at each upsampling the
-  trainer cuts it to at most the rays the run will see over ``RECIPE.rays_per_voxel`` voxels
-  (``training.grid_budget``), from the rays a second it measured; a 512x512 series would otherwise
-  see less than one ray a voxel in 20 minutes;
-- the parameter factors' rank (``FieldConfig.n_param_components``): 4, or a
-  ``RECIPE.values_per_param_component``-th of the longest axis's training values where that is
-  more (a 30-timestep series: 16);
-- the carving's ``min_seen_fraction``: where every training image shows its content whole (no
-  foreground pixel on the image border), every cell of the content is in every view's image, and a
-  cell that a quarter of its setting's views do not have in frame is camera-box corner, not
-  content (``RECIPE.carve_framed_fraction``); where content is cut by the border, 0 keeps what few views
-  see;
-- surface-style density for opaque scenes: where no foreground pixel is faint (within a quarter
-  of the image's full contrast of the background, as translucent volume renderings are around
-  their content), the content is an opaque surface, which needs an optical depth of about 10
-  within a voxel or two. The density is then scaled by one over the final voxel size
-  (``FieldConfig.density_scale``), the fog it starts from kept as it is;
-- dropping occluded samples (``TrainConfig.stop_eps``) only for opaque scenes: a translucent
-  scene's rays seldom turn opaque, and the density pass that finds occluded samples costs steps;
-- colouring light samples at random (``TrainConfig.colour_weight_floor``) only for opaque scenes:
-  they start as a fog of light samples and end as surfaces of heavy ones; a translucent scene's
-  colour stays spread over light samples, where the draws would add noise to every step;
-- rays drawn from the images' silhouettes (``TrainConfig.silhouette_ray_fraction``) only for
-  opaque scenes with a level axis (below): their pixels are the surface's or the background's,
-  never between, and their error lies at the silhouettes; a translucent scene's silhouettes fade,
-  and a surface without a level field learns its shading from the pixels inside them;
-- facing cosines (``FieldConfig.facing_vectors``) only for opaque scenes: a surface shaded by a
-  light at the camera (isosurface renderers' headlight) changes colour with the cosine between its
-  normal and the view, too sharply for spherical harmonics of degree 3; the field learns
-  ``RECIPE.surface.facing_vectors`` unit vectors per point and its colour decoder reads their cosines with the
-  view. A volume rendering without lighting looks the same from every side and gets none, and a
-  lit translucent series seen by 20 views a timestep fit its views with them and lost between;
-- spherical harmonics of the view of a lower degree (``FieldConfig.sh_degree``,
-  ``RECIPE.sparse_view_sh_degree``) for translucent content seen by fewer than
-  ``RECIPE.sparse_views`` images a setting: more view terms than its few views pin down fit each
-  view's colours and miss the views between them;
-- total variation on the density and appearance factors (``TrainConfig.tv_weight_density``,
-  ``tv_weight_appearance``) for opaque scenes: the surface and its colours between the views, and
-  between training isovalues, stay smooth; and for translucent scenes with parameter axes seen by
-  fewer than ``RECIPE.sparse_views`` images a setting, whose few views leave speckle between them
-  and between settings; a translucent scene of one setting gets none (its thin shells fog);
-- a level-set axis (``FieldConfig.level_set_axis``) for opaque scenes whose settings' visual hulls
-  are nested along an axis (``data.nesting``): an isovalue sweep. Its surfaces are then the level
-  sets of one learnt field, and a value between two training values gives the surface between
-  theirs instead of a blend of both (``param_axes.LevelAxis``). A translucent scene's hulls nest
-  too when a transfer function fades its content in and out, so they do not count; a timestep
-  series of opaque surfaces does not nest;
-- the parameter factors: none for K = 0 (the field has no parameter axes then).
+- the final grid: ``RECIPE.voxel_per_pixel`` voxels a pixel at the content, over the carved box,
+  and under a time budget no more than the run's rays over ``RECIPE.rays_per_voxel``
+  (``training.grid_budget``);
+- the parameter factors' rank: 4, or a ``RECIPE.values_per_param_component``-th of the longest
+  axis's values where that is more; none for K = 0;
+- the carving's ``min_seen_fraction``: ``RECIPE.carve_framed_fraction`` where every image frames
+  its content whole, else 0;
+- for opaque content (no faint foreground pixel): surface density scaled by one over the voxel,
+  occluded samples dropped, light samples coloured at random, facing cosines, total variation,
+  and, where the settings' hulls nest along an axis, a level-set axis with rays on its silhouettes;
+- for translucent content seen by fewer than ``RECIPE.sparse_views`` images a setting: view terms
+  of ``RECIPE.sparse_view_sh_degree``, and total variation only where it has parameter axes.
 
 The rule and figure behind each choice are under its ``recipe.*`` id in docs/decisions.md
 (docs/decisions.md#recipe.sparse_view_tv, say).

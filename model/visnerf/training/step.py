@@ -15,7 +15,7 @@ from visnerf.config import TrainConfig
 from visnerf.rendering.colour_sampling import ColourSampling
 from visnerf.rendering.density_gradients import DensityGradientSampling
 from visnerf.rendering.empty_space import EmptySpace
-from visnerf.rendering.renderer import empty_space_of, ray_windows
+from visnerf.rendering.ray_windows import empty_space_of, ray_windows
 from visnerf.rendering.training_render import drop_occluded, place_samples, shade_rays
 from visnerf.representation.field import VisNerfField
 from visnerf.runtime import bf16_native

@@ -61,6 +61,7 @@ def render_key(scene: SceneRenderer, key: dict, size: int) -> np.ndarray:
     return scene.render(c2w, float(cam["fov"]), size, size, {k: float(v) for k, v in key["params"].items()})
 
 
+@pytest.mark.slow
 def test_an_mp4_from_the_command_line_matches_renders_of_its_keyframes(inputs: Path, tmp_path: Path) -> None:
     out = tmp_path / "movie.mp4"
     done = subprocess.run(
@@ -121,6 +122,7 @@ def test_ctrl_c_keeps_a_playable_movie_of_the_frames_done(inputs: Path, tmp_path
     assert sorted(p.name for p in tmp_path.iterdir()) == ["m.mp4"]
 
 
+@pytest.mark.slow
 def test_a_real_ctrl_c_on_the_command_line(inputs: Path, tmp_path: Path) -> None:
     """SIGINT once the progress bar shows a few frames: exit 130, a movie of the frames it names."""
     out = tmp_path / "m.mp4"

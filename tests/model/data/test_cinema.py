@@ -246,6 +246,7 @@ def test_options_override_the_sidecar_and_name_the_convention(databases, tmp_pat
     assert ortho.intrinsics.orthographic and ortho.intrinsics.view_height == pytest.approx(1.2)
 
 
+@pytest.mark.slow
 def test_train_refuses_a_bad_database_before_writing_anything(databases, tmp_path) -> None:
     db = _copy_db(databases["paraview"] / "train.cdb", tmp_path / "bad.cdb")
     _rewrite_table(db, lambda r: _set(r, 2, "isovalue", "x"))
@@ -256,6 +257,7 @@ def test_train_refuses_a_bad_database_before_writing_anything(databases, tmp_pat
     assert list(tmp_path.iterdir()) == [db]
 
 
+@pytest.mark.slow
 def test_cinema_options_reach_the_reader(databases, tmp_path) -> None:
     db = _copy_db(databases["paraview"] / "train.cdb", tmp_path / "opt.cdb")
     (db / "visnerf_camera.json").unlink()

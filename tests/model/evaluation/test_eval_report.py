@@ -41,6 +41,7 @@ def report(tiny_eval, tmp_path_factory):
     return out, json.loads((out / "summary.json").read_text())
 
 
+@pytest.mark.slow
 def test_report_has_every_section_with_finite_numbers(report):
     out, s = report
     for path, value in _numbers(s):

@@ -148,6 +148,7 @@ def _calibrate(*args: str) -> subprocess.CompletedProcess:
     return subprocess.run([sys.executable, "-m", "visnerf.cli", "calibrate", *args], capture_output=True, text=True)
 
 
+@pytest.mark.slow
 def test_calibrate_writes_the_spacing_and_nothing_else(plume, tmp_path) -> None:
     axes = load_dataset(plume).param_axes
     ckpt = make_tiny_checkpoint(tmp_path / "tiny.safetensors", [(a.name, list(a.values)) for a in axes])
@@ -165,6 +166,7 @@ def test_calibrate_writes_the_spacing_and_nothing_else(plume, tmp_path) -> None:
     assert after.keys() == before.keys() and all(torch.equal(after[k], before[k]) for k in before)
 
 
+@pytest.mark.slow
 def test_calibrate_without_held_out_frames_chooses_on_the_training_frames(plume, tmp_path) -> None:
     """No transforms_val.json and no --holdout-*: the training frames serve, as in training, and the
     checkpoint's note says so."""
@@ -180,6 +182,7 @@ def test_calibrate_without_held_out_frames_chooses_on_the_training_frames(plume,
     assert meta.provenance.full_spacing in run.stdout
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize(("extra", "message"), [
     (("--holdout-views", "999"), "matches no frame"),
     (("--holdout-views", "1", "--tolerance", "-1"), "tolerance_db"),
@@ -193,6 +196,7 @@ def test_calibrate_errors_change_nothing(plume, tmp_path, extra, message) -> Non
     assert ckpt.read_bytes() == blob
 
 
+@pytest.mark.slow
 def test_calibrate_names_a_folder_without_frames_and_changes_nothing(plume, tmp_path) -> None:
     axes = load_dataset(plume).param_axes
     ckpt = make_tiny_checkpoint(tmp_path / "tiny.safetensors", [(a.name, list(a.values)) for a in axes])
@@ -203,6 +207,7 @@ def test_calibrate_names_a_folder_without_frames_and_changes_nothing(plume, tmp_
     assert ckpt.read_bytes() == blob
 
 
+@pytest.mark.slow
 def test_calibrate_rejects_frames_of_other_parameters(plume, tmp_path) -> None:
     ckpt = make_tiny_checkpoint(tmp_path / "tiny.safetensors", [("isovalue", [0.0, 1.0])])
     blob = ckpt.read_bytes()

@@ -723,6 +723,7 @@ def _background_scene(n_views: int = 4, size: int = 12) -> SceneData:
     )
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("content", ["fresh_fog", "empty", "opaque"])
 def test_training_step_on_all_background_targets(content: str) -> None:
     """``Trainer.train_step`` (stratified samples, ``drop_occluded``, sampled density gradients,

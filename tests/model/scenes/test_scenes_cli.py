@@ -98,6 +98,7 @@ def test_scenes_lists_every_scene_with_its_parameters(capsys) -> None:
     assert counts["plume_time"] == 1 and counts["vortex_tf1"] == 2 and counts["vortex_tf2"] == 1
 
 
+@pytest.mark.slow
 def test_worker_processes_write_the_same_images(tmp_path: Path) -> None:
     """Two render processes give byte-identical images to one (each image is rendered alone)."""
     options = DatasetOptions(resolution=10, n_views=12, n_test_views=2)

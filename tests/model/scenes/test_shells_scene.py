@@ -123,6 +123,7 @@ def test_straight_rgba_composites_back_to_the_rendered_colour() -> None:
     assert torch.allclose(out[:, 3:] * out[:, :3] + (1.0 - out[:, 3:]), rgb)
 
 
+@pytest.mark.slow
 def test_make_scene_writes_rgba_images_that_load_as_the_rendered_frames(tmp_path: Path) -> None:
     spec = get_scene("shells_static")
     assert (spec.resolution, spec.n_views, spec.rgba) == (800, 20, True)

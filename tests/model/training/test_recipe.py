@@ -25,6 +25,7 @@ def choices_of(recipe) -> dict[str, object]:
     return {c.name: c.value for c in recipe.choices}
 
 
+@pytest.mark.slow
 def test_opaque_surfaces_get_a_surface_density_and_volumes_do_not(surface_scene, volume_scene):
     surface = choose_recipe(surface_scene, TrainConfig(), FieldConfig())
     volume = choose_recipe(volume_scene, TrainConfig(), FieldConfig())
@@ -128,6 +129,7 @@ def test_settings_the_user_gave_are_kept(surface_scene):
     assert all(c.reason == "set by the user" for c in recipe.choices if c.name != "parameter_axes")
 
 
+@pytest.mark.slow
 @pytest.mark.skipif(not (NYX / "transforms_train.json").exists(), reason="../shared/data/nyx is not here")
 def test_nyx_gets_the_tuned_recipe():
     from visnerf.data.datasets import load_dataset
@@ -139,6 +141,7 @@ def test_nyx_gets_the_tuned_recipe():
     assert recipe.carved is not None
 
 
+@pytest.mark.slow
 def test_an_isovalue_sweep_gets_a_level_axis_and_other_scenes_do_not(iso_sweep_scene, volume_scene, surface_scene):
     iso = choose_recipe(iso_sweep_scene, TrainConfig(), FieldConfig())
     assert iso.field.level_set_axis == 0

@@ -52,6 +52,7 @@ def scene_split(synthetic_scene):
     return data, train, val
 
 
+@pytest.mark.slow
 def test_a_stopped_run_resumed_from_its_state_is_the_uninterrupted_run(scene_split, tmp_path) -> None:
     _, train, val = scene_split
     cpu = torch.device("cpu")
@@ -144,6 +145,7 @@ def _psnr_of(checkpoint: Path) -> float:
     return float(meta.provenance.val_psnr)
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "Ctrl-C"])
 def test_visnerf_train_stopped_by_a_signal_saves_and_resumes(scene_split, tmp_path, signum) -> None:
     data = scene_split[0]
@@ -187,6 +189,7 @@ def test_visnerf_train_stopped_by_a_signal_saves_and_resumes(scene_split, tmp_pa
     assert abs(_psnr_of(out) - _psnr_of(whole)) < 0.1
 
 
+@pytest.mark.slow
 def test_a_job_killed_outright_goes_on_from_its_last_periodic_state(scene_split, tmp_path) -> None:
     data = scene_split[0]
     out = tmp_path / "m.safetensors"
@@ -211,6 +214,7 @@ def test_a_job_killed_outright_goes_on_from_its_last_periodic_state(scene_split,
     assert read_checkpoint(out)[0].provenance.iterations == 240 and not state.exists()
 
 
+@pytest.mark.slow
 def test_resume_without_a_state_names_what_is_missing(scene_split, tmp_path) -> None:
     data = scene_split[0]
     run = subprocess.run(_train_command(data, tmp_path / "m.safetensors", "--resume"), capture_output=True, text=True)
@@ -228,6 +232,7 @@ while True:
 """
 
 
+@pytest.mark.slow
 def test_sigkill_during_writes_never_leaves_a_file_that_fails_to_load(tmp_path) -> None:
     path = tmp_path / "k.resume"
     seen = []

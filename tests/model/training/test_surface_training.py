@@ -4,7 +4,10 @@ import json
 import subprocess
 import sys
 
+import pytest
 
+
+@pytest.mark.slow
 def test_opaque_scene_trains_with_the_products_defaults(surface_data, tmp_path):
     data = surface_data
     ckpt = tmp_path / "tangle.safetensors"

@@ -1,6 +1,7 @@
 """A tiny synthetic scene trained end to end; the PSNR is measured on views it never saw."""
 
 import numpy as np
+import pytest
 import torch
 
 from visnerf.evaluation.spacing import CANDIDATES
@@ -8,6 +9,7 @@ from visnerf.inference import load_scene
 from visnerf.training.trainer import Trainer
 
 
+@pytest.mark.slow
 def test_tiny_scene_trains_and_generalises_to_unseen_views(tmp_path, tiny_plume_run):
     train, val = tiny_plume_run.train, tiny_plume_run.val
     trainer = Trainer(train, val, tiny_plume_run.cfg, torch.device("cpu"))
