@@ -106,7 +106,8 @@ TRIM_AFTER_PIXELS = 512 * 512
 (``runtime.release_free_memory``). A large frame allocates hundreds of megabytes in many blocks, on
 the calling thread and the chunk threads, each served from a glibc arena of its own; freed, they
 stayed resident and a server's memory grew frame after frame (docs/decisions.md#runtime.trim,
-bench/results/server_load.md). Trimming takes milliseconds; smaller frames reuse the same blocks frame after frame."""
+bench/results/server_load.md). Trimming takes milliseconds; smaller frames reuse the same blocks
+frame after frame."""
 
 
 class SceneRenderer:

@@ -93,8 +93,9 @@ class FieldConfig:
     factor_storage: FactorStorage = "int8"
     """How the checkpoint file stores the VM planes and lines: ``float32``, ``float16`` or ``int8``
     (planes as int8 codes with a float32 scale per row, ``factor_codec``, lines as float16: about
-    a quarter of the float32 bytes, frames indistinguishable from float16's: docs/decisions.md#field.factor_storage). The field computes in float32 either way. Checkpoints that do not
-    say hold float32."""
+    a quarter of the float32 bytes, frames indistinguishable from float16's:
+    docs/decisions.md#field.factor_storage). The field computes in float32 either way. Checkpoints
+    that do not say hold float32."""
 
     def __post_init__(self) -> None:
         check_types(type(self), self.__dict__)

@@ -1,7 +1,9 @@
 """Ray / axis-aligned box intersection (slab method), exact for axis-parallel rays.
 
-On the CPU one compiled loop over the rays (``aabb_kernel.intersect_loop``) replaces the torch version's two dozen
-small operations (four calls a training step; docs/decisions.md#step.compiled_loops); it does the same float arithmetic in the rays' own type, so the two agree bit for bit (tested).
+On the CPU one compiled loop over the rays (``aabb_kernel.intersect_loop``) replaces the torch
+version's two dozen small operations (four calls a training step;
+docs/decisions.md#step.compiled_loops); it does the same float arithmetic in the rays' own type,
+so the two agree bit for bit (tested).
 """
 
 import torch

@@ -1,7 +1,8 @@
 """Densities for training whose backward pass skips most near-empty samples, without bias.
 
 Most samples a training step evaluates lie in occupied cells yet hold almost nothing (the occupancy
-grid is the union over all parameter settings, dilated by a cell; docs/decisions.md#step.sampled_density_gradients). Their gradient is small as well: the density is
+grid is the union over all parameter settings, dilated by a cell;
+docs/decisions.md#step.sampled_density_gradients). Their gradient is small as well: the density is
 ``softplus(raw)``, whose slope ``1 - exp(-sigma)`` is about ``sigma`` near zero, and the loss sees
 a sample through ``sigma * delta``. Back-propagating them still costs as much per sample as any
 other, and the density backward was the largest part of a step.

@@ -203,7 +203,8 @@ class LevelAxis(nn.Module):
     Training sees the levels only at their knots; the interpolant places every surface between
     them. The levels of a trained sweep are a smooth function of the isovalue, which the natural
     spline (twice continuously differentiable) follows more closely than the monotone cubic of
-    the parameter tables, whose slopes are held back at each knot (docs/decisions.md#param.interpolant). Each piece is kept between its two knot values.
+    the parameter tables, whose slopes are held back at each knot (docs/decisions.md#param.interpolant).
+    Each piece is kept between its two knot values.
 
     ``sharpness`` multiplies ``g(x) - level(v)``. A surface is opaque where that difference has
     risen by some ten units, so with a fixed scale the field must rise steeply at the training

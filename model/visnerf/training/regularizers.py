@@ -205,8 +205,8 @@ def level_spacing(field: VisNerfField, max_ratio: float) -> Tensor:
     isovalue's level ran from about -1 to -113 in a 20-minute run (its band 190 times its
     neighbour's), every cell of the occupancy grid came to lie inside that surface (the grid's
     edge became the surface), and the values between it and the next training value rendered the
-    grid as a blob (docs/decisions.md#train.level_spacing_weight). 0 with fewer than three levels (no neighbouring bands) and for a
-    field without a level axis."""
+    grid as a blob (docs/decisions.md#train.level_spacing_weight). 0 with fewer than three levels
+    (no neighbouring bands) and for a field without a level axis."""
     if not max_ratio > 1.0:
         raise ValueError(f"max_ratio must be > 1, got {max_ratio!r}")
     levels = field.levels
