@@ -12,7 +12,8 @@ from visnerf.arg_types import add_device_option
 from visnerf.checkpoint import CheckpointError, read_checkpoint
 from visnerf.cinema_options import add_cinema_options, cinema_camera
 from visnerf.config import FramesConfig
-from visnerf.config_options import add_config_options, frames_config
+from visnerf.config.bake import BakeConfig
+from visnerf.config_options import add_config_options, config_from_args, frames_config
 from visnerf.data.cameras import orbit_c2w
 from visnerf.holdout_options import add_holdout_options, holdout_config
 from visnerf.runtime import pick_device
@@ -41,20 +42,75 @@ def _render(args: argparse.Namespace) -> int:
         except ValueError:
             print(f"error: --param {item!r} must be NAME=NUMBER", file=sys.stderr)
             return 2
+    if args.bake and params:
+        print("error: a bake holds one setting: give --param to `visnerf bake`, not with --bake", file=sys.stderr)
+        return 2
     try:
         scene = load_scene(args.checkpoint, pick_device(args.device), frames_config(args))
         cam = scene.info.camera
         distance = args.distance if args.distance is not None else cam.get("distance", 2.0)
         fov, view_height = choose_lens(cam, args.fov, args.view_height)
+        c2w = orbit_c2w(args.azimuth, args.elevation, distance)
         t0 = time.perf_counter()
-        image = scene.render(orbit_c2w(args.azimuth, args.elevation, distance), fov, width, height, params,
-                             args.quality, view_height=view_height)
+        if args.bake:
+            image = _render_bake(args.bake, c2w, fov, view_height, width, height)
+        else:
+            image = scene.render(c2w, fov, width, height, params, args.quality, view_height=view_height)
         ms = 1000 * (time.perf_counter() - t0)
     except (CheckpointError, ValueError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     Image.fromarray(image).save(args.output)
     print(f"wrote {args.output} ({width}x{height}, {ms:.0f} ms)")
+    return 0
+
+
+def _render_bake(path: str, c2w: object, fov: float | None, view_height: float | None, width: int, height: int) -> object:
+    import math
+
+    import torch
+
+    from visnerf.bake.bake_file import read_bake
+    from visnerf.bake.bake_render import DenseBake, render_bake
+    from visnerf.data.cameras import Intrinsics
+
+    intrinsics = (Intrinsics.from_fov(width, height, math.radians(fov)) if fov is not None
+                  else Intrinsics.from_view_height(width, height, float(view_height)))  # type: ignore[arg-type]
+    return render_bake(DenseBake.of(read_bake(path)), torch.as_tensor(c2w, dtype=torch.float32), intrinsics)
+
+
+def _bake(args: argparse.Namespace) -> int:
+    from visnerf.bake.bake_file import BakeError, bake_bytes
+    from visnerf.bake.baking import content_hash
+    from visnerf.bake.scene_bake import bake_scene
+    from visnerf.config.bake import BakeConfig
+    from visnerf.inference import load_scene
+
+    params = {}
+    for item in args.param:
+        name, _, value = item.partition("=")
+        try:
+            params[name] = float(value)
+        except ValueError:
+            print(f"error: --param {item!r} must be NAME=NUMBER", file=sys.stderr)
+            return 2
+    try:
+        scene = load_scene(args.checkpoint, pick_device("cpu"))
+        t0 = time.perf_counter()
+        bake = bake_scene(scene, params, config_from_args(BakeConfig, args), content_hash(Path(args.checkpoint).read_bytes()))
+        seconds = time.perf_counter() - t0
+        data = bake_bytes(bake)
+    except (CheckpointError, BakeError, ValueError, OSError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    out = Path(args.output)
+    tmp = out.with_name(out.name + ".part")
+    tmp.write_bytes(data)
+    tmp.replace(out)
+    h = bake.header
+    print(f"wrote {out} ({len(data) / 1e6:.2f} MB, {len(bake.bricks)} bricks of {h.brick}^3, grid {'x'.join(map(str, h.grid))}, "
+          f"{h.shading} shading, {seconds:.2f} s)")
+    print(f"colour: {h.source.get('sh_degree', '')}")
     return 0
 
 
@@ -141,9 +197,18 @@ def register(sub: argparse._SubParsersAction) -> None:
     r.add_argument("--size", default="256x256", metavar="WxH")
     r.add_argument("--quality", choices=("full", "preview"), default="full")
     add_device_option(r)
+    r.add_argument("--bake", metavar="FILE", default=None,
+                   help="draw from a bake (`visnerf bake`) instead of the model: the browser's reference renderer")
     r.add_argument("-o", "--output", required=True)
     add_config_options(r, (FramesConfig,))
     r.set_defaults(func=_render)
+
+    b = sub.add_parser("bake", help="bake one parameter setting into a file the browser draws")
+    b.add_argument("checkpoint")
+    b.add_argument("--param", action="append", default=[], metavar="NAME=VALUE")
+    b.add_argument("-o", "--output", required=True)
+    add_config_options(b, (BakeConfig,))
+    b.set_defaults(func=_bake)
 
     c = sub.add_parser("calibrate", help="choose a checkpoint's full-quality sample spacing on held-out frames "
                                          "(on training frames when none are held out)")

@@ -110,7 +110,8 @@ def _parser_for(annotation: Any) -> tuple[Any, str]:
 TITLES = {"TrainConfig": ("training (TrainConfig)", "the recipe's values unless given"),
           "FieldConfig": ("field (FieldConfig)", "the recipe's values unless given"),
           "RenderConfig": ("renderer (RenderConfig)", "the recipe's values unless given"),
-          "FramesConfig": ("frames on this machine (FramesConfig)", "the defaults unless given")}
+          "FramesConfig": ("frames on this machine (FramesConfig)", "the defaults unless given"),
+          "BakeConfig": ("bake (BakeConfig)", "the defaults unless given")}
 """Each configuration's option group: its title and where a value not given comes from."""
 
 
@@ -145,6 +146,12 @@ def given_options(args: argparse.Namespace, cls: type) -> dict[str, Any]:
     """The generated options of ``cls`` given on the command line, by field name."""
     return {f.name: getattr(args, _dest(cls, f.name)) for f in dataclasses.fields(cls)
             if getattr(args, _dest(cls, f.name), None) is not None}
+
+
+def config_from_args(cls: type, args: argparse.Namespace) -> Any:
+    """``cls`` built from its generated options (``add_config_options(parser, (cls,))``) and its
+    defaults; ValueError names a field whose value its checks refuse."""
+    return cls(**given_options(args, cls))
 
 
 def frames_config(args: argparse.Namespace) -> FramesConfig:

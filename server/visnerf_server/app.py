@@ -21,6 +21,7 @@ from uvicorn.middleware.proxy_headers import ProxyHeadersMiddleware
 from visnerf.runtime import default_threads
 from visnerf_server.api_docs import add_offline_docs
 from visnerf_server.auth import resolve_token
+from visnerf_server.bakes import BakeStore
 from visnerf_server.dependencies import ServerState
 from visnerf_server.frame_cache import FrameCache
 from visnerf_server.metrics import Metrics
@@ -30,7 +31,7 @@ from visnerf_server.movies import MovieJobs
 from visnerf_server.rate_limit import limiter_from_settings
 from visnerf_server.registry import SceneRegistry
 from visnerf_server.render_queue import RenderQueue
-from visnerf_server.routers import health, movies, render, scenes, stream
+from visnerf_server.routers import bakes, health, movies, render, scenes, stream
 from visnerf_server.schemas import json_safe
 from visnerf_server.settings import Settings, get_settings
 from visnerf_server.store_watch import JOIN_TIMEOUT_S, start_store_watcher
@@ -74,7 +75,8 @@ def _lifespan(settings: Settings, metrics: Metrics):
         metrics.watch_cache(cache)
         jobs = MovieJobs(MovieLimits.from_settings(settings), queue, registry, metrics, settings.movie_dir)
         server = ServerState(
-            settings, metrics, registry, queue, cache, token, limiter=limiter_from_settings(settings), movies=jobs
+            settings, metrics, registry, queue, cache, token, limiter=limiter_from_settings(settings), movies=jobs,
+            bakes=BakeStore(queue, metrics, settings.bake_cache_bytes),
         )
         app.state.server = server
         stop = threading.Event()
@@ -142,6 +144,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     app.include_router(health.router)
     app.include_router(scenes.router)
     app.include_router(render.router)
+    app.include_router(bakes.router)
     app.include_router(stream.router)
     app.include_router(movies.router)
     app.include_router(health.metrics_router)

@@ -8,6 +8,7 @@ from fastapi import Depends, Header, HTTPException, status
 from starlette.requests import HTTPConnection
 
 from visnerf_server.auth import check_bearer
+from visnerf_server.bakes import BakeStore
 from visnerf_server.frame_cache import FrameCache
 from visnerf_server.frames import FrameRenderer
 from visnerf_server.keyed_locks import KeyedLocks
@@ -40,6 +41,8 @@ class ServerState:
     """Serialise the uploads and deletions of one scene id."""
     movies: MovieJobs | None = None
     """Movie jobs (None only in a state built without them)."""
+    bakes: BakeStore | None = None
+    """Bakes built (None only in a state built without them)."""
 
 
 async def get_server(connection: HTTPConnection) -> ServerState:
@@ -77,6 +80,13 @@ async def get_movie_jobs(server: ServerDep) -> MovieJobs:
     return server.movies
 
 
+async def get_bakes(server: ServerDep) -> BakeStore:
+    if server.bakes is None:
+        raise HTTPException(status.HTTP_503_SERVICE_UNAVAILABLE, "bakes are not available", {"Retry-After": "1"})
+    return server.bakes
+
+
+BakesDep = Annotated[BakeStore, Depends(get_bakes)]
 RegistryDep = Annotated[SceneRegistry, Depends(get_registry)]
 RenderQueueDep = Annotated[RenderQueue, Depends(get_render_queue)]
 FrameCacheDep = Annotated[FrameCache, Depends(get_frame_cache)]

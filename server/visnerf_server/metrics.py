@@ -72,6 +72,13 @@ class Metrics:
         )
         self.movie_frames = Counter("visnerf_movie_frames", "Frames rendered for movie jobs", registry=r)
         self.movie_jobs_active = Gauge("visnerf_movie_jobs_active", "Movie jobs queued or running", registry=r)
+        self.bakes_built = Counter("visnerf_bakes_built", "Bakes of a parameter setting built", registry=r)
+        self.bake_seconds = Histogram(
+            "visnerf_bake_seconds", "Seconds a bake took to build", buckets=(0.25, 0.5, 1, 2, 4, 8, 16, 32, 64),
+            registry=r,
+        )
+        self.bake_hits = Counter("visnerf_bake_hits", "Bakes answered from the server's store", registry=r)
+        self.bake_cache_bytes = Gauge("visnerf_bake_cache_bytes", "Bytes of the bakes the server keeps", registry=r)
 
     def watch_cache(self, cache: FrameCache) -> None:
         """Report ``cache``'s entries and bytes at each scrape."""

@@ -158,6 +158,8 @@ class StoreWatcher:
 
     def _changed(self, scene_id: str) -> None:
         self.server.cache.drop_scene(scene_id)
+        if self.server.bakes is not None:
+            self.server.bakes.drop_scene(scene_id)
         self.server.metrics.scenes.set(len(self.server.registry))
 
     def _set_error(self, scene_id: str, error: str | None) -> None:

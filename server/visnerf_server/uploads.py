@@ -121,6 +121,8 @@ async def _receive_alone(request: Request, server: ServerState, scene_id: str, a
         await run_in_threadpool(_commit, registry, tmp_path, scene)
         tmp_path = None
         server.cache.drop_scene(scene_id)
+        if server.bakes is not None:
+            server.bakes.drop_scene(scene_id)
         server.metrics.scenes.set(len(registry))
         logger.info("scene %r %s (%d bytes)", scene_id, "added" if created else "replaced", size)
         return response
@@ -156,6 +158,8 @@ def delete_scene(server: ServerState, scene_id: str) -> None:
         path.unlink(missing_ok=True)
         registry.remove(scene_id)
     server.cache.drop_scene(scene_id)
+    if server.bakes is not None:
+        server.bakes.drop_scene(scene_id)
     server.metrics.scenes.set(len(registry))
     logger.info("scene %r deleted", scene_id)
 

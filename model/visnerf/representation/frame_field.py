@@ -272,13 +272,70 @@ class FrameField:
 
     def _level_cosines(self, points: Float[Tensor, "m 3"], directions: Float[Tensor, "m 3"]) -> Float[Tensor, "m p"]:
         """``level_cosines`` of the level field at ``points``, as ``VisNerfField.level_normal_cosines``."""
-        assert self._level_step is not None
+        return level_cosines(self.level_probes(points), directions, self.field.cfg.level_cosine_powers)
+
+    def level_probes(self, points: Float[Tensor, "m 3"]) -> Float[Tensor, "m 4"]:
+        """The level field (times its sharpness) at the ``TETRAHEDRON`` probes of each point, the
+        input of ``level_cosines``; a field without a level axis has none (ValueError)."""
+        if self._level_step is None:
+            raise ValueError("the field has no level axis: its colour reads no normal")
         probes = self.lookup(probe_points(points, self._level_step))  # N_PROBES rows a point
         raw = torch.empty(len(probes), dtype=points.dtype, device=points.device)
         for start in range(0, len(probes), self.sub_chunk):
             sl = slice(start, start + self.sub_chunk)
             raw[sl] = self._raw_density(probes.coords[sl], probes.select(sl).taps)
-        return level_cosines(raw.view(-1, N_PROBES), directions, self.field.cfg.level_cosine_powers)
+        return raw.view(-1, N_PROBES)
+
+    @property
+    def level_step(self) -> float | None:
+        """World distance of the normal's probes from a point; None without a level axis."""
+        return self._level_step
+
+    @property
+    def density_activation(self) -> tuple[float, float]:
+        """(shift, scale): the density is ``softplus(raw_density + shift) * scale``."""
+        return self._density_shift, self.field.cfg.density_scale
+
+    def raw_density(self, points: Float[Tensor, "m 3"]) -> Float[Tensor, " m"]:
+        """The density before its activation (``density_activation``): a level axis's sharpened
+        ``g``, float32."""
+        samples = self.lookup(points)
+        out = torch.empty(len(samples), dtype=torch.float32, device=points.device)
+        for start in range(0, len(samples), self.sub_chunk):
+            sl = slice(start, start + self.sub_chunk)
+            out[sl] = self._raw_density(samples.coords[sl], samples.select(sl).taps).float()
+        return out
+
+    def view_logits(self, points: Float[Tensor, "m 3"], directions: Float[Tensor, "m v 3"],
+                    probes: Float[Tensor, "m 4"] | None = None) -> Float[Tensor, "m v 3"]:
+        """The colour decoder's output before its sigmoid at each point seen along each of its
+        ``v`` unit directions: the appearance features, the learnt vectors and the level field's
+        normal are looked up once a point, the first layer's spatial part is applied once a
+        point. ``probes``: ``level_probes(points)`` where the caller has them. Equals ``color``
+        through a logit (float rounding; tested)."""
+        m, v = directions.shape[:2]
+        samples = self.lookup(points)
+        n_spatial = 3 * self.field.cfg.n_appearance_components
+        feats = torch.empty(m, n_spatial, dtype=self.dtype, device=points.device)
+        if self.appearance_kernel is not None:
+            self.appearance_kernel.write_rows(samples.coords, feats)
+        else:
+            assert self.appearance_tables is not None and samples.taps is not None
+            self.appearance_tables.features_into(samples.taps, feats)
+        weight, bias = self.color_layer.weight, self.color_layer.bias  # [h, i], [h]
+        base = F.linear(feats, weight[:, :n_spatial], bias).float()  # [m, h]
+        flat_dirs = directions.reshape(m * v, 3).float()
+        parts = [encode_sh(flat_dirs, self.field.cfg.sh_degree)]
+        if self._facing is not None:
+            vectors = F.linear(feats, self._facing).float()  # [m, 3f]
+            parts.append(facing_cosines(vectors.repeat_interleave(v, dim=0), flat_dirs))
+        if self._level_step is not None:
+            probes = self.level_probes(points) if probes is None else probes
+            parts.append(level_cosines(probes.repeat_interleave(v, dim=0), flat_dirs, self.field.cfg.level_cosine_powers))
+        rest = torch.cat(parts, dim=1).to(self.dtype)  # [m v, r]
+        hidden = F.linear(rest, weight[:, n_spatial:]).float().view(m, v, -1) + base[:, None, :]
+        out_w, out_b = self._color_out
+        return F.linear(torch.relu(hidden), out_w.float(), out_b.float())  # [m, v, 3]
 
     def _color(self, samples: SampleTaps, ray_terms: Float[Tensor, "m e"]) -> Float[Tensor, "m 3"]:
         m = len(samples)
