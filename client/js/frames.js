@@ -177,8 +177,8 @@ export class FrameChannel {
       this.onError(new ApiError("The server sent an image the browser could not decode"), null);
       return;
     }
-    if (this.closed || frame.seq <= this.lastShownSeq) {
-      bitmap.close(); // a newer frame was decoded and drawn meanwhile
+    if (this.closed || frame.seq <= this.lastShownSeq || (this.view.blocked && this.view.blocked())) {
+      bitmap.close(); // a newer frame was decoded and drawn meanwhile, or the browser draws the view
       return;
     }
     const entry = this.pending.get(frame.seq);

@@ -5,6 +5,7 @@ import { DiffView } from "./compare.js";
 import { buildParamControls, formatValue } from "./controls.js";
 import { FrameChannel, PreviewSizer, RenderScheduler } from "./frames.js";
 import { attachCameraInput } from "./interaction.js";
+import { LocalView, settingKey } from "./local_view.js";
 import { setupMoviePanel } from "./movie.js";
 import { setupMovieJob } from "./movie_job.js";
 import { defaultResolution, fillExportSize, fillResolutions, fillScenePicker, setupExport, showSceneInfo } from "./panels.js";
@@ -30,6 +31,63 @@ const diff = new DiffView({
   badge: $("#badge-diff"),
 });
 const sizer = new PreviewSizer();
+let localSeq = 0;
+const local = new LocalView({
+  view: views.A,
+  onStatus: (text, level) => {
+    $("#local-status").textContent = text || localStatusText();
+    if (text && level === "warning") alerts.set("local", text, "warning");
+    else alerts.clear("local");
+  },
+  onReady: (key) => {
+    if (key !== localKeyA()) return;
+    schedulers.A?.stop(); // nothing the server draws for A is wanted now
+    drawLocalA();
+  },
+  onDrawn: (frame) => {
+    localSeq += 1;
+    const record = stats.record({
+      channel: "A", seq: localSeq, quality: "local", width: frame.width, height: frame.height, renderMs: frame.drawMs,
+      latencyMs: frame.inputTime == null ? null : performance.now() - frame.inputTime, stage: "local",
+    });
+    statusBar.show(record, stats.fps);
+    alerts.clear("render");
+    alerts.clear("busy");
+    if (state.compare) diff.schedule(views.A, views.B);
+  },
+});
+views.A.blocked = () => localActiveA();
+
+function localStatusText() {
+  if (!local.supported) return local.reason;
+  if (local.forceServer) return "Every frame is drawn by the server.";
+  return localActiveA() ? "Camera moves are drawn in this browser from the setting's bake." : "";
+}
+
+function localKeyA() {
+  return settingKey(state.sceneId, state.params);
+}
+
+function localActiveA() {
+  return state.scene !== null && state.scene !== undefined && local.active(localKeyA());
+}
+
+/** What view A shows when drawn here: camera, lens, setting and size. */
+function localStateKey(box) {
+  return JSON.stringify([state.camera, state.lens(), state.params, box.width, box.height]);
+}
+
+function drawLocalA(inputTime = null) {
+  const box = viewBox("A");
+  const width = Math.max(16, box.width);
+  const height = Math.max(16, box.height);
+  const req = { camera: { ...state.camera }, ...state.lens(), width, height, params: { ...state.params }, quality: "local" };
+  local.requestDraw({
+    key: localKeyA(), camera: { ...state.camera }, lens: state.lens(), width, height, inputTime,
+    meta: { seq: localSeq + 1, key: null, req, stateKey: localStateKey({ width, height }) },
+  });
+  $("#local-status").textContent = localStatusText();
+}
 const channels = { A: null, B: null };
 const schedulers = { A: null, B: null };
 const controls = { A: null, B: null };
@@ -126,8 +184,10 @@ async function openScene(sceneId, query = null) {
   statusBar.clear();
   showCamera();
   applyCompareLayout();
+  local.reset();
   openChannel("A");
   if (state.compare) openChannel("B");
+  local.want(scene, state.params, localKeyA(), { now: true });
   writeUrlSoon();
 }
 
@@ -210,6 +270,7 @@ function setOffline(on) {
 
 function onFrameShown(set, frame, req) {
   setOffline(false);
+  if (set === "A") local.noteServerFrame();
   alerts.clear("render");
   alerts.clear("busy");
   if (!channels[set] || !channels[set].stream.isOpen) {
@@ -354,6 +415,10 @@ function kick(sets, interactive, inputTime) {
   const t = Number.isFinite(inputTime) ? inputTime : performance.now();
   stats.noteInput(t);
   for (const set of sets) {
+    if (set === "A" && localActiveA()) {
+      drawLocalA(t); // drawn here at the next animation frame: no server request
+      continue;
+    }
     const scheduler = schedulers[set];
     if (!scheduler) continue;
     if (interactive) scheduler.input(t);
@@ -404,6 +469,7 @@ state.addEventListener("change", (event) => {
     case "params":
       controls.A?.update(state.params);
       kick(["A"], interactive, inputTime);
+      local.want(state.scene, state.params, localKeyA());
       break;
     case "paramsB":
       controls.B?.update(state.paramsB);
@@ -444,8 +510,17 @@ $("#projection").addEventListener("change", (event) => state.setProjection(event
 
 $("#resolution").addEventListener("change", (event) => state.chooseResolution(event.target.value));
 new ResizeObserver(() => {
-  for (const set of activeSets()) schedulers[set]?.resized();
+  if (localActiveA()) drawLocalA();
+  for (const set of activeSets()) if (set !== "A" || !localActiveA()) schedulers[set]?.resized();
 }).observe($("#canvas-a"));
+
+$("#server-frames").addEventListener("change", (event) => {
+  local.setForceServer(event.target.checked);
+  $("#local-status").textContent = localStatusText();
+  if (event.target.checked) schedulers.A?.settle({ force: true });
+  else if (localActiveA()) drawLocalA();
+  else local.want(state.scene, state.params, localKeyA(), { now: true });
+});
 
 $("#compare-toggle").addEventListener("change", (event) => state.setCompare(event.target.checked));
 
@@ -523,5 +598,11 @@ window.addEventListener("blur", () => setHeld(false));
 window.__visnerfState = state;
 /** For tests and benchmarks: every active view shows the full frame of its newest request. */
 window.__visnerfSettled = () =>
-  activeSets().every((set) => schedulers[set] !== null && schedulers[set].settled);
+  activeSets().every((set) => {
+    if (set === "A" && localActiveA()) {
+      const box = viewBox("A");
+      return local.drawnKey === localStateKey({ width: Math.max(16, box.width), height: Math.max(16, box.height) });
+    }
+    return schedulers[set] !== null && schedulers[set].settled;
+  });
 boot();

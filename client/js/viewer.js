@@ -22,24 +22,31 @@ export class FrameView {
 
   /** Put a decoded frame on screen. The canvas takes the frame's own size; CSS scales it to fit. */
   draw(bitmap, meta) {
-    if (this.canvas.width !== bitmap.width || this.canvas.height !== bitmap.height) {
-      this.canvas.width = bitmap.width;
-      this.canvas.height = bitmap.height;
-    }
-    this.ctx.drawImage(bitmap, 0, 0);
+    this.drawSource(bitmap, meta);
     bitmap.close();
+  }
+
+  /** Put any image source on screen (a decoded frame, the local renderer's WebGL canvas). */
+  drawSource(source, meta) {
+    if (this.canvas.width !== source.width || this.canvas.height !== source.height) {
+      this.canvas.width = source.width;
+      this.canvas.height = source.height;
+    }
+    this.ctx.drawImage(source, 0, 0);
     this.shown = { ...meta, width: this.canvas.width, height: this.canvas.height };
     this.canvas.dataset.seq = String(meta.seq);
     this.canvas.dataset.quality = meta.quality;
     this.canvas.classList.remove("empty");
     if (this.badge) {
-      this.badge.textContent = meta.quality === "full" ? "full" : "preview";
+      const titles = {
+        full: `Full quality from the server, lossless PNG, ${this.canvas.width}×${this.canvas.height}`,
+        preview: `Low-resolution preview from the server (JPEG, ${this.canvas.width}×${this.canvas.height}) while ` +
+          "you move; the full-quality frame follows when you stop",
+        local: `Drawn in this browser from the setting's bake, ${this.canvas.width}×${this.canvas.height}`,
+      };
+      this.badge.textContent = meta.quality;
       this.badge.dataset.quality = meta.quality;
-      this.badge.title =
-        meta.quality === "full"
-          ? `Full quality, lossless PNG, ${this.canvas.width}×${this.canvas.height}`
-          : `Low-resolution preview (JPEG, ${this.canvas.width}×${this.canvas.height}) while you move; ` +
-            "the full-quality frame follows when you stop";
+      this.badge.title = titles[meta.quality] || "";
     }
   }
 
@@ -131,10 +138,11 @@ export class StatusBar {
 
   show(frame, fps) {
     this.size.textContent = `${frame.width}×${frame.height}`;
-    this.render.textContent = Number.isFinite(frame.renderMs) ? `${Math.round(frame.renderMs)} ms render` : "– ms render";
+    const where = frame.quality === "local" ? "draw" : "render";
+    this.render.textContent = Number.isFinite(frame.renderMs) ? `${Math.round(frame.renderMs)} ms ${where}` : `– ms ${where}`;
     this.latency.textContent = Number.isFinite(frame.latencyMs) ? `${Math.round(frame.latencyMs)} ms to screen` : "";
     this.fps.textContent = fps === null ? "" : `${fps.toFixed(1)} fps`;
-    this.quality.textContent = frame.quality === "full" ? "full" : "preview";
+    this.quality.textContent = frame.quality;
     this.quality.dataset.quality = frame.quality;
   }
 
