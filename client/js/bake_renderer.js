@@ -59,7 +59,7 @@ uniform vec3 uRight, uUp, uBack, uEye;
 uniform vec3 uLo, uHi;
 uniform vec3 uGrid;        // vertices per axis
 uniform vec3 uCoarseDims;  // blocks per axis
-uniform float uStep, uShift, uScale, uEps, uNormalStep;
+uniform float uStep, uScale, uEps, uNormalStep;
 uniform vec3 uBackground;
 out vec4 outColour;
 
@@ -114,7 +114,7 @@ void main() {
       k += 1;
       if (texelFetch(uCells, ivec3(cell), 0).r < 0.5) continue;
       vec3 tc = (g + 0.5) / uGrid;
-      float sigma = softplus(texture(uRaw, tc).r + uShift) * uScale;
+      float sigma = softplus(texture(uRaw, tc).r) * uScale;
       float tau = sigma * uStep;
       float w = exp(-depth) * (1.0 - exp(-tau));
       depth += tau;
@@ -219,7 +219,6 @@ export class BakeRenderer {
     gl.uniform3fv(u("uGrid"), h.grid);
     gl.uniform3fv(u("uCoarseDims"), dense.coarseDims);
     gl.uniform1f(u("uStep"), h.step);
-    gl.uniform1f(u("uShift"), h.density_shift);
     gl.uniform1f(u("uScale"), h.density_scale);
     gl.uniform1f(u("uEps"), h.early_stop_eps);
     gl.uniform1f(u("uNormalStep"), h.normal_step ?? 0);

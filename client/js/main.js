@@ -514,8 +514,23 @@ new ResizeObserver(() => {
   for (const set of activeSets()) if (set !== "A" || !localActiveA()) schedulers[set]?.resized();
 }).observe($("#canvas-a"));
 
+/** The user's choice of server frames only, kept across visits. */
+const SERVER_FRAMES_KEY = "visnerf.serverFrames";
+try {
+  $("#server-frames").checked = localStorage.getItem(SERVER_FRAMES_KEY) === "1";
+} catch {
+  // storage refused (private mode): the default, local frames where possible
+}
+local.setForceServer($("#server-frames").checked);
+$("#local-status").textContent = localStatusText();
+
 $("#server-frames").addEventListener("change", (event) => {
   local.setForceServer(event.target.checked);
+  try {
+    localStorage.setItem(SERVER_FRAMES_KEY, event.target.checked ? "1" : "0");
+  } catch {
+    // not kept; the choice still holds on this page
+  }
   $("#local-status").textContent = localStatusText();
   if (event.target.checked) schedulers.A?.settle({ force: true });
   else if (localActiveA()) drawLocalA();

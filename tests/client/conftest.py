@@ -125,8 +125,13 @@ def browser() -> Iterator[object]:
 
 @pytest.fixture
 def page(browser, request: pytest.FixtureRequest) -> Iterator[object]:
-    """A fresh page; page errors fail the test; a screenshot is saved when the test ends."""
+    """A fresh page; page errors fail the test; a screenshot is saved when the test ends. The
+    page keeps to server frames (the user's "Server frames only" choice, kept in localStorage),
+    as the tests of the server path expect; a test marked ``local_frames`` gets the page as a
+    user first sees it, drawing camera moves from bakes."""
     context = browser.new_context(viewport=VIEWPORT, accept_downloads=True)
+    if request.node.get_closest_marker("local_frames") is None:
+        context.add_init_script("try { localStorage.setItem('visnerf.serverFrames', '1'); } catch (e) {}")
     pg = context.new_page()
     errors: list[str] = []
     pg.on("pageerror", lambda exc: errors.append(str(exc)))

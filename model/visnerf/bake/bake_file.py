@@ -21,7 +21,8 @@ VERSION = 1
 Shading = Literal["sh", "level"]
 MAX_HEADER_BYTES = 1 << 20
 DENSITY_FILL = -100.0
-"""Raw density of a vertex no occupied cell uses: its activation is 0 in float32."""
+"""Raw density of a vertex no occupied cell uses: its activation is 0 in float32 (the raw density
+is the softplus's whole argument, the model's shift and level included)."""
 _DTYPES: dict[str, np.dtype] = {"F16": np.dtype("<f2"), "F32": np.dtype("<f4"), "U8": np.dtype("u1"), "I16": np.dtype("<i2")}
 _NAMES = {v: k for k, v in _DTYPES.items()}
 
@@ -52,9 +53,8 @@ class BakeHeader:
     """Vertices along x, y, z; vertex ``i`` of an axis lies at ``aabb[0] + i * (aabb[1] - aabb[0]) / (n - 1)``."""
     brick: int
     aabb: tuple[tuple[float, float, float], tuple[float, float, float]]
-    density_shift: float
     density_scale: float
-    """Density (per world unit) = ``softplus(raw + density_shift) * density_scale``, raw interpolated trilinearly."""
+    """Density (per world unit) = ``softplus(raw) * density_scale``, raw interpolated trilinearly."""
     step: float
     """Sample spacing along a ray, world units."""
     normal_step: float | None
@@ -113,7 +113,6 @@ class BakeHeader:
                 grid=tuple(_whole(n, "grid") for n in doc["grid"]),  # type: ignore[arg-type]
                 brick=_whole(doc["brick"], "brick"),
                 aabb=tuple(tuple(_number(v, "aabb") for v in corner) for corner in doc["aabb"]),  # type: ignore[arg-type]
-                density_shift=_number(doc["density_shift"], "density_shift"),
                 density_scale=_number(doc["density_scale"], "density_scale"),
                 step=_number(doc["step"], "step"),
                 normal_step=None if doc["normal_step"] is None else _number(doc["normal_step"], "normal_step"),
@@ -170,7 +169,7 @@ class Bake:
     """One baked setting. Arrays (``n`` stored bricks, ``B`` = ``header.brick``, ``C`` = ``header.channels``):
 
     - ``bricks`` int16 [n, 3]: brick coordinates along x, y, z, each brick once;
-    - ``raw`` float16 [n, B, B, B] (z, y, x): the density before its activation, ``DENSITY_FILL``
+    - ``raw`` float16 [n, B, B, B] (z, y, x): the argument of the density's softplus, ``DENSITY_FILL``
       where no occupied cell reads it;
     - ``codes`` uint8 [n, B, B, B, C]: colour coefficients, ``low + code * scale``;
     - ``low``, ``scale`` float32 [n, C]: each brick's channels' offsets and steps;

@@ -3,7 +3,7 @@
 
 Samples lie ``step`` apart from where a ray enters the box, the first half a step in; a sample in
 an unoccupied cell has no density. The raw density and the colour coefficients are interpolated
-trilinearly between vertices; the density is ``softplus(raw + shift) * scale``, the colour the
+trilinearly between vertices; the density is ``softplus(raw) * scale``, the colour the
 sigmoid of the coefficients' sum over the basis at the ray's direction (for ``level`` shading at
 the normal of the raw density's four probes). Front to back, transmittance in log space.
 """
@@ -94,7 +94,7 @@ def _render_rays(dense: DenseBake, o: Float[Tensor, "n 3"], d: Float[Tensor, "n 
         flat, unit = flat[keep], unit[keep]
         sigma = torch.zeros(valid.numel())
         raw = dense.sample(dense.raw, unit)[:, 0]
-        sigma[flat] = F.softplus(raw + h.density_shift) * h.density_scale
+        sigma[flat] = F.softplus(raw) * h.density_scale
         weights = weights_from_optical_depth(sigma.view(valid.shape) * h.step)  # [a, s]
         w = weights.view(-1)[flat]
         shade = w > SHADE_WEIGHT

@@ -2,7 +2,7 @@
 occupied cells, its colour fitted per vertex as a function of the view (docs/decisions.md#bake.shading).
 
 What is baked is what comes before each nonlinearity, so that interpolation between vertices
-draws what the model draws: the density before its softplus (a sharpened level field, for an
+draws what the model draws: the softplus's argument (a sharpened level field, for an
 isosurface, is interpolated and then sharpened, not the other way round), and the colour
 decoder's logits before their sigmoid, least-squares fitted per vertex over view directions on
 the basis the header names (``bake_file.BakeHeader.shading``). The field answers through
@@ -175,8 +175,9 @@ def bake_setting(source: BakeSource, target: BakeTarget, cfg: BakeConfig | None 
     raw = torch.full((nz, ny, nx), DENSITY_FILL, dtype=torch.float32)
     index = cand_vertices.nonzero()  # [m, 3] as z, y, x
     points = _points(axes, index)
-    raw[cand_vertices] = source.raw_density(points) if len(points) else raw[cand_vertices]
-    alpha = -torch.expm1(-F.softplus(raw + shift) * scale * target.step)
+    if len(points):  # the softplus's whole argument: a level far from 0 must not meet the fill
+        raw[cand_vertices] = source.raw_density(points) + shift
+    alpha = -torch.expm1(-F.softplus(raw) * scale * target.step)
     visible = (_cell_max(alpha) > target.occupancy_threshold) & candidates
     occupied = _dilate(visible) & candidates
     needed = _cell_vertices(occupied)
@@ -189,7 +190,7 @@ def bake_setting(source: BakeSource, target: BakeTarget, cfg: BakeConfig | None 
         stored = _dilate(needed, reach)
         more = stored & ~cand_vertices
         if more.any():
-            raw[more] = source.raw_density(_points(axes, more.nonzero()))
+            raw[more] = source.raw_density(_points(axes, more.nonzero())) + shift
     raw[~stored] = DENSITY_FILL
     raw.clamp_(DENSITY_FILL, RAW_LIMIT)  # float16 holds it
     shading: Shading = "sh" if source.level_step is None else "level"
@@ -201,7 +202,7 @@ def bake_setting(source: BakeSource, target: BakeTarget, cfg: BakeConfig | None 
     coefficients[coloured] = _fit_colours(source, colour_points, shading, sh_degree, powers, cfg)[0]
     header = BakeHeader(
         shading=shading, sh_degree=sh_degree, cosine_powers=tuple(powers), grid=grid, brick=cfg.brick,
-        aabb=target.aabb, density_shift=float(shift), density_scale=float(scale), step=target.step,
+        aabb=target.aabb, density_scale=float(scale), step=target.step,
         normal_step=source.level_step, early_stop_eps=target.early_stop_eps, background=target.background,
         kind=target.kind, title=target.title, params=dict(target.params),
         source={**target.source, "grid_scale": f"{cfg.grid_scale:g}", "sh_degree": choice, "seconds": f"{time.perf_counter() - t0:.3f}"},

@@ -23,7 +23,7 @@ def small_bake(shading: str = "sh") -> Bake:
     rng = np.random.default_rng(0)
     header = BakeHeader(
         shading=shading, sh_degree=1, cosine_powers=(4, 16) if shading == "level" else (), grid=(10, 7, 5), brick=4,
-        aabb=((-1.0, -1.0, -0.5), (1.0, 0.5, 0.5)), density_shift=-2.0, density_scale=10.0, step=0.05,
+        aabb=((-1.0, -1.0, -0.5), (1.0, 0.5, 0.5)), density_scale=10.0, step=0.05,
         normal_step=0.02 if shading == "level" else None, early_stop_eps=1e-4, background=(1.0, 1.0, 1.0),
         kind="dvr", title="t", params={"a": 0.25}, source={"checkpoint": "ab"},
     )

@@ -46,14 +46,14 @@ class LinearSource:
     """A field whose logits are exactly a degree-1 harmonic sum with known coefficients, over a
     slab of constant density: the fit must recover them and the frame must match closed forms."""
 
-    def __init__(self, coefficients: torch.Tensor, sigma: float) -> None:
+    def __init__(self, coefficients: torch.Tensor, sigma: float, shift: float = 0.0) -> None:
         self.coefficients = coefficients  # [4, 3]
-        self.shift = 0.0
+        self.shift = shift
         self.sigma = sigma
 
     @property
     def density_activation(self) -> tuple[float, float]:
-        return 0.0, 1.0
+        return self.shift, 1.0
 
     @property
     def level_step(self) -> None:
@@ -62,7 +62,8 @@ class LinearSource:
     def raw_density(self, points: torch.Tensor) -> torch.Tensor:
         # softplus^-1(sigma) inside |z| < 0.25, far below zero outside
         inside = points[:, 2].abs() <= 0.25 + 1e-6  # the faces on vertices
-        return torch.where(inside, torch.tensor(math.log(math.expm1(self.sigma))), torch.tensor(-60.0))
+        value = torch.where(inside, torch.tensor(math.log(math.expm1(self.sigma))), torch.tensor(-60.0))
+        return value - self.shift
 
     def level_probes(self, points: torch.Tensor) -> torch.Tensor:
         raise AssertionError("no level axis")
@@ -92,11 +93,14 @@ def test_the_fit_recovers_a_harmonic_colour_and_picks_its_degree() -> None:
     assert choose_sh_degree(flat, points, "sh", (), BakeConfig())[0] == 0
 
 
-def test_a_frame_of_a_baked_slab_equals_its_closed_form() -> None:
+@pytest.mark.parametrize("shift", [0.0, 150.0, -150.0])
+def test_a_frame_of_a_baked_slab_equals_its_closed_form(shift) -> None:
     """A slab |z| < 0.25 of density 3 seen head on: opacity 1 - exp(-3 * 0.5) over a white
-    background, colour the sigmoid of the harmonic sum at the view direction."""
+    background, colour the sigmoid of the harmonic sum at the view direction. The field's shift
+    (a level's, far from zero) is baked into the raw density: the fill of unstored vertices never
+    meets it."""
     coefficients = torch.tensor([[1.0, -1.0, 0.0], [0.0, 0.0, 0.0], [0.5, 0.2, -0.4], [0.0, 0.0, 0.0]])
-    bake = bake_setting(LinearSource(coefficients, 3.0), _target(), BakeConfig(max_sh_degree=1))
+    bake = bake_setting(LinearSource(coefficients, 3.0, shift), _target(), BakeConfig(max_sh_degree=1))
     c2w = torch.tensor(orbit_c2w(0.0, 0.0, 3.0), dtype=torch.float32)  # on +z looking down -z
     image = render_bake(DenseBake.of(bake), c2w, Intrinsics.from_view_height(8, 8, 0.5))
     d = torch.tensor([[0.0, 0.0, -1.0]])
