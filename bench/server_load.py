@@ -105,6 +105,7 @@ def local_nginx_conf(upstreams: list[str], listen_port: int, work_dir: Path, tem
         raise RuntimeError(f"no `listen 8080;` in {template}")
     temp = "".join(f"    {name}_temp_path {work_dir / name};\n" for name in TEMP_PATHS)
     text = text.replace("http {\n", "http {\n" + temp, 1)
+    text = re.sub(r"proxy_cache_path \S+", f"proxy_cache_path {work_dir / 'bakes'}", text)
     return text.replace("access_log /dev/stdout;", f"access_log {work_dir / 'access.log'};")
 
 

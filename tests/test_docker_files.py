@@ -591,3 +591,17 @@ def test_compose_pins_nginx_and_publishes_on_loopback() -> None:
     assert all(p.rsplit(":", 1)[1] == listen for p in nginx["ports"])
     assert f"./{NGINX_CONF.name}:/etc/nginx/nginx.conf:ro" in nginx["volumes"]
     assert is_excluded("docker/visnerf_token", read_dockerignore())  # the token secret stays out of builds
+
+
+def test_nginx_sends_each_bake_to_one_replica_and_keeps_it() -> None:
+    bake = location("/api/scenes/nyx/bake")
+    assert bake.args[0] == "~"
+    servers = directives(upstream(proxied_to(bake)), "server")
+    rest = {s.args[0] for s in directives(upstream(proxied_to(location("/api/scenes"))), "server")}
+    assert {s.args[0] for s in servers} == rest
+    assert only(upstream(proxied_to(bake)), "hash").args == ["$request_uri", "consistent"]
+    retry = only(bake.block, "proxy_next_upstream").args  # type: ignore[arg-type]
+    assert "http_503" not in retry, "a bake being built is asked for again by the client, on its replica"
+    assert only(bake.block, "proxy_cache").args == ["bakes"]  # type: ignore[arg-type]
+    zones = [d.args for d in directives(nginx_http(), "proxy_cache_path")]
+    assert any("keys_zone=bakes:8m" in args for args in zones)

@@ -177,6 +177,15 @@ def _info(args: argparse.Namespace) -> int:
     n = sum(t.numel() for t in tensors.values())
     doc = json.loads(meta.to_json())
     doc["tensors"] = {"count": len(tensors), "values": n, "file_mb": round(Path(args.checkpoint).stat().st_size / 1e6, 3)}
+    cfg = BakeConfig()
+    grid = [max(2, round((r - 1) * cfg.grid_scale) + 1) for r in meta.field.resolution]
+    doc["bake"] = {
+        "grid": grid, "grid_rule": "the model's own grid (docs/decisions.md#bake.grid)",
+        "colour": f"spherical harmonics of the view of degree up to {cfg.max_sh_degree}, the lowest whose fit is within "
+                  f"{cfg.sh_tolerance:g} level of RMS error of the highest, chosen at each bake"
+                  + (f", and the level field's normal cosine with its powers {list(meta.field.level_cosine_powers)}"
+                     if meta.field.level_set_axis >= 0 else "") + " (docs/decisions.md#bake.shading)",
+    }
     print(json.dumps(doc, indent=2))
     return 0
 

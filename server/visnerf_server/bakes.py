@@ -6,8 +6,8 @@ A request for a bake not built yet starts its build (when none is running) and i
 with Retry-After: no worker waits on a bake, and a preview or a full frame never waits behind
 one (the background lane is served last). The key is the scene's id, its checkpoint's content
 hash and the exact parameter values, so a replaced checkpoint never serves an old bake. A bake is
-kept gzip-compressed (level 1: a bundled scene's 2 to 10 MB become 1 to 4 MB in a tenth of a
-second), the form it goes out in to every browser.
+kept gzip-compressed at level 1, the form it goes out in to every browser
+(docs/decisions.md#bake.wire).
 """
 
 import gzip

@@ -119,7 +119,7 @@ class Settings(BaseSettings):
     """Memory for the LRU cache of encoded frames."""
     bake_cache_bytes: int = Field(default=256 * 1024 * 1024, ge=0)
     """Memory for the bakes built (``GET /api/scenes/{id}/bake``), least recently used dropped
-    first; a bundled scene's bake is 2 to 10 MB."""
+    first (bench/results/bake_fidelity.md has the sizes)."""
     bake_cost_pixels: int = Field(default=512 * 512, ge=1)
     """What a bake's build costs against a client's rate limit, in full-quality pixels: a bake of a
     bundled scene takes about as long as a 512x512 full frame (bench/results/bake_fidelity.md)."""

@@ -37,3 +37,12 @@ def test_bad_input_writes_nothing(tmp_path, capsys) -> None:
     assert main(["render", str(CHECKPOINT), "--bake", str(out), "--param", "opacity_a=0.4",
                  "-o", str(tmp_path / "j.png")]) == 2
     assert not (tmp_path / "j.png").exists()
+
+
+def test_info_states_the_bake_rules(capsys) -> None:
+    import json
+
+    assert main(["info", str(CHECKPOINT)]) == 0
+    doc = json.loads(capsys.readouterr().out)
+    assert doc["bake"]["grid"] == doc["field"]["resolution"]
+    assert "decisions.md#bake.grid" in doc["bake"]["grid_rule"] and "bake.shading" in doc["bake"]["colour"]
