@@ -31,12 +31,18 @@ or 503 waits for its ``Retry-After``.
   addresses reach the servers in X-Forwarded-For (``VISNERF_TRUSTED_PROXIES=127.0.0.1``).
   Results go to bench/results/server_replicas.json and .md.
 
+- ``bakes``: browsers that draw locally (``GET /api/scenes/{id}/bake``): 8 clients at one setting
+  (one bake, then the server's CPU while they orbit) beside the same clients asking for server
+  frames, then each at its own setting (bakes a second, the wait for each). Results go to
+  bench/results/server_bakes.json and .md.
+
 Results go to bench/results/server_load.json and .md (``replicas``: server_replicas), with the CPU named.
 
     python bench/server_load.py --duration 120                     # both modes, bundled checkpoints
     python bench/server_load.py --mode throughput --clients 8 --duration 30
     python bench/server_load.py --tiny --mode heavy --duration 10  # tiny random models
     python bench/server_load.py --mode replicas --replicas 2 --rounds 2 --duration 20
+    python bench/server_load.py --mode bakes --clients 8 --width 256 --height 256 --duration 30
 """
 
 import visnerf  # noqa: F401  (before torch: it sets the OpenMP wait policy that torch reads once)
@@ -616,6 +622,129 @@ def replicas_markdown(path: Path, record: dict[str, Any]) -> None:
     path.write_text("\n".join(lines))
 
 
+# --- bakes --------------------------------------------------------------------------------------
+
+
+def cpu_seconds(pid: int) -> float:
+    """User and system CPU seconds a process has used (/proc/PID/stat)."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def fetch_bake(http: httpx.Client, scene: str, params: dict[str, float], limit_s: float) -> tuple[float, int, int]:
+    """(seconds until the bake came, its status, the 503s answered meanwhile): the browser's
+    loop, asking again after each Retry-After."""
+    start, waits = time.perf_counter(), 0
+    while True:
+        response = http.get(f"/api/scenes/{scene}/bake", params=params)
+        if response.status_code != 503 or time.perf_counter() - start > limit_s:
+            return time.perf_counter() - start, response.status_code, waits
+        waits += 1
+        time.sleep(float(response.headers.get("retry-after", "1")))
+
+
+def bakes_mode(args: argparse.Namespace, checkpoints: Path, work: Path) -> dict[str, Any]:
+    """Eight browsers drawing locally: at one setting (each fetches the one bake, then orbits with
+    no request: the server's CPU seconds over ``--duration`` after it), beside the same clients
+    asking the server for full frames at that setting; then each at its own setting (a new random
+    setting as each bake arrives: bakes a second, the wait from a slider settling to its bake)."""
+    clients = args.clients
+    out: dict[str, Any] = {"config": {"clients": clients, "duration_s": args.duration, "width": args.width,
+                                      "height": args.height}}
+    with running_server(checkpoints, work / "bakes.log") as server:
+        scene = next(s for s in server.scenes if s["id"] == args.bake_scene)
+        defaults = {a["name"]: a["default"] for a in scene["params"]}
+        pid = server.process.pid
+        # today's path: full frames at one setting from random views, the server's CPU meanwhile
+        ask = [FrameAsk(args.width, args.height, "full", "png", address=client_address(i)) for i in range(clients)]
+        fixed = {**scene, "params": [{**a, "min": a["default"], "max": a["default"]} for a in scene["params"]]}
+        one = Server(server.process, server.url, [fixed])
+        run_phase(one, min(args.warm_up, 10.0), {"frames": [
+            lambda t0, until, o, a=a, i=i: frame_client(one, a, args.seed + i, t0, until, o) for i, a in enumerate(ask)]})
+        before = cpu_seconds(pid)
+        phase = run_phase(one, args.duration, {"frames": [
+            lambda t0, until, o, a=a, i=i: frame_client(one, a, args.seed + 50 + i, t0, until, o)
+            for i, a in enumerate(ask)]})
+        frames = latency_summary(phase.samples["frames"], phase.elapsed_s)
+        out["server_frames"] = {"frames_per_s_each": round(frames["ok_per_s"] / clients, 2),
+                                "p95_ms": frames["latency_ms"]["p95"],
+                                "server_cpu_s_per_s": round((cpu_seconds(pid) - before) / phase.elapsed_s, 2)}
+        # the bake of that setting: every client asks at once, one build serves them all
+        firsts: list[tuple[float, int, int]] = []
+        before = cpu_seconds(pid)
+
+        def first_bake(i: int) -> None:
+            with client_from(server.url, client_address(i), 120.0) as http:
+                firsts.append(fetch_bake(http, scene["id"], defaults, 120.0))
+
+        threads = [threading.Thread(target=first_bake, args=(i,)) for i in range(clients)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        build_cpu = cpu_seconds(pid) - before
+        before = cpu_seconds(pid)
+        time.sleep(args.duration)  # the clients orbit, drawing in their browsers: nothing reaches the server
+        out["one_setting"] = {
+            "first_bake_s": {"p50": round(statistics.median(f[0] for f in firsts), 2),
+                             "max": round(max(f[0] for f in firsts), 2)},
+            "statuses": sorted({f[1] for f in firsts}), "build_cpu_s": round(build_cpu, 2),
+            "server_cpu_s_per_s_orbiting": round((cpu_seconds(pid) - before) / args.duration, 3),
+        }
+        # each client at its own setting, a new one as each bake arrives
+        waits: list[float] = []
+        statuses_seen: dict[str, int] = {}
+        t0 = time.perf_counter()
+
+        def own_settings(i: int) -> None:
+            rng = random.Random(args.seed + 200 + i)
+            with client_from(server.url, client_address(i), 120.0) as http:
+                while time.perf_counter() - t0 < args.duration:
+                    params = {a["name"]: round(rng.uniform(a["min"], a["max"]), 4) for a in scene["params"]}
+                    seconds, status, _ = fetch_bake(http, scene["id"], params, 120.0)
+                    statuses_seen[str(status)] = statuses_seen.get(str(status), 0) + 1
+                    if status == 200:
+                        waits.append(seconds * 1e3)
+
+        threads = [threading.Thread(target=own_settings, args=(i,)) for i in range(clients)]
+        for t in threads:
+            t.start()
+        for t in threads:
+            t.join()
+        elapsed = time.perf_counter() - t0
+        ordered = sorted(waits)
+        out["own_settings"] = {"bakes_per_s": round(len(waits) / elapsed, 2), "bakes": len(waits),
+                               "wait_ms": {"p50": round(percentile(ordered, 50), 1), "p95": round(percentile(ordered, 95), 1)},
+                               "statuses": statuses_seen, "elapsed_s": round(elapsed, 1)}
+        out["scene"] = scene["id"]
+    out["server_exit_code"] = server.exit_code
+    return out
+
+
+def bakes_markdown(path: Path, record: dict[str, Any]) -> None:
+    mode = record["bakes"]
+    c = mode["config"]
+    server, one, own = mode["server_frames"], mode["one_setting"], mode["own_settings"]
+    lines = markdown_header("Bakes under load: browsers that draw locally", record)
+    lines += [
+        "", f"{c['clients']} clients, each from its own loopback address, on `{mode['scene']}`; "
+        f"{c['duration_s']} s a phase. Server defaults: {record['server_defaults']}.", "",
+        "| at one setting | frames a second each client sees | server CPU seconds a second |", "| --- | --- | --- |",
+        f"| server frames ({c['width']}x{c['height']} full PNG, random views) | {server['frames_per_s_each']} "
+        f"(p95 {fmt(server['p95_ms'])} ms) | {server['server_cpu_s_per_s']} |",
+        f"| local frames, after one bake (first bake p50 {one['first_bake_s']['p50']} s, last {one['first_bake_s']['max']} s, "
+        f"{one['build_cpu_s']} CPU s to build) | every animation frame, on the client's GPU "
+        f"([local_frames.md](local_frames.md)) | {one['server_cpu_s_per_s_orbiting']} |", "",
+        "| each client at its own setting | bakes a second | wait from a settled slider to its bake, p50 / p95 (ms) |",
+        "| --- | --- | --- |",
+        f"| a new random setting as each bake arrives | {own['bakes_per_s']} ({own['bakes']} bakes) | "
+        f"{fmt(own['wait_ms']['p50'])} / {fmt(own['wait_ms']['p95'])} |", "",
+    ]
+    if record.get("notes"):
+        lines += ["Notes:", ""] + [f"- {n}" for n in record["notes"]] + [""]
+    path.write_text("\n".join(lines))
+
+
 # --- the report --------------------------------------------------------------------------------
 
 
@@ -738,7 +867,8 @@ def server_defaults() -> str:
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--mode", choices=["throughput", "heavy", "both", "replicas"], default="both")
+    parser.add_argument("--mode", choices=["throughput", "heavy", "both", "replicas", "bakes"], default="both")
+    parser.add_argument("--bake-scene", default="vortex_tf1", help="bakes mode: the scene the clients explore")
     parser.add_argument("--duration", type=float, default=30.0, help="seconds of each phase")
     parser.add_argument("--warm-up", type=float, default=30.0,
                         help="seconds before the measured phases, unmeasured: the heavy mode's probes alone (RSS "
@@ -783,6 +913,8 @@ def main(argv: list[str] | None = None) -> int:
             load["between"] = round(load_average(), 2)
         if args.mode in ("heavy", "both"):
             record["heavy"] = heavy_mode(args, checkpoints, work)
+        if args.mode == "bakes":
+            record["bakes"] = bakes_mode(args, checkpoints, work)
         if args.mode == "replicas":
             binary = nginx_binary()
             if binary is None:
@@ -806,6 +938,9 @@ def main(argv: list[str] | None = None) -> int:
         write_results(args.out, "server_replicas", record, replicas_markdown)
         exits = [code for run in record["replicas"]["runs"] for code in run["server_exit_codes"]]
         return 0 if all(code == 0 for code in exits) else 1
+    if args.mode == "bakes":
+        write_results(args.out, "server_bakes", record, bakes_markdown)
+        return 0 if record["bakes"]["server_exit_code"] == 0 else 1
     write_results(args.out, "server_load", record, write_markdown)
     exits = [record[m]["server_exit_code"] for m in ("throughput", "heavy") if m in record]
     return 0 if all(code == 0 for code in exits) else 1
