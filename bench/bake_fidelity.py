@@ -5,8 +5,11 @@ bake, MB a bake file.
 
     .venv/bin/python bench/bake_fidelity.py            # all bundled scenes, 24 views of 181
     .venv/bin/python bench/bake_fidelity.py --views 181 --size 256
+    .venv/bin/python bench/bake_fidelity.py --truth vortex_tf1=data/gt_vortex_tf1   # and ground truth
 
-Writes bench/results/bake_fidelity.{json,md}.
+``--truth SCENE=DIR``: a dataset of that scene (``visnerf make-scene SCENE --out DIR --views 1
+--test-views 24``); its test frames are drawn by the model and by a bake of each frame's setting,
+both scored against the truth. Writes bench/results/bake_fidelity.{json,md}.
 """
 
 import visnerf  # noqa: F401  (before torch: the OpenMP wait policy)
@@ -29,6 +32,7 @@ from visnerf.bake.bake_render import DenseBake, render_bake
 from visnerf.bake.baking import content_hash
 from visnerf.bake.scene_bake import bake_scene
 from visnerf.data.cameras import Intrinsics, orbit_c2w
+from visnerf.data.datasets import load_dataset
 from visnerf.inference import SceneRenderer, load_scene
 from visnerf.scenes.protocol import path_angles, path_params
 
@@ -87,6 +91,30 @@ def measure(scene: SceneRenderer, checkpoint_hash: str, views: list[int], size: 
     }
 
 
+def against_truth(scene: SceneRenderer, folder: Path) -> dict:
+    """Median PSNR against a dataset's test frames of the model's full frames and of frames drawn
+    from a bake of each frame's setting, at the frames' own cameras and size."""
+    frames = load_dataset(folder, "test")
+    names = [a.name for a in scene.info.params]
+    k = frames.intrinsics
+    model_db, bake_db = [], []
+    for i in range(frames.c2w.shape[0]):
+        params = dict(zip(names, frames.params[i].tolist(), strict=True))
+        c2w = frames.c2w[i].double().numpy()
+        lens = (None, k.view_height) if k.orthographic else (k.fov_x_deg, None)
+        truth = frames.images[i].numpy()
+        if truth.dtype != np.uint8:
+            truth = (truth.clip(0, 1) * 255.0 + 0.5).astype(np.uint8)
+        model = scene.render(c2w, lens[0], k.width, k.height, params, "full", view_height=lens[1])
+        bake = bake_scene(scene, params)
+        local = render_bake(DenseBake.of(bake), torch.tensor(c2w, dtype=torch.float32), k)
+        model_db.append(psnr(model, truth[..., :3]))
+        bake_db.append(psnr(local, truth[..., :3]))
+    return {"frames": len(model_db), "model_psnr_median": statistics.median(model_db),
+            "bake_psnr_median": statistics.median(bake_db),
+            "loss_db_median": statistics.median(m - b for m, b in zip(model_db, bake_db, strict=True))}
+
+
 def write_markdown(path: Path, record: dict) -> None:
     lines = markdown_header("Bakes against the models' own frames", record)
     lines += ["", f"{record['views']} views of each scene's 181-view test path at {record['size']}x{record['size']}: "
@@ -99,6 +127,13 @@ def write_markdown(path: Path, record: dict) -> None:
                      f"{r['between_psnr_median']:.2f} / {r['between_psnr_worst']:.2f} | "
                      f"{r['default_psnr_median']:.2f} / {r['default_psnr_worst']:.2f} | "
                      f"{r['bake_seconds_median']:.2f} | {r['bake_mb_median']:.2f} / {r['bake_mb_max']:.2f} |")
+    truth = {n: r["truth"] for n, r in record["scenes"].items() if "truth" in r}
+    if truth:
+        lines += ["", "Against ground truth (the test frames of a dataset of the scene, their own cameras and size):", "",
+                  "| scene | frames | model dB (median) | bake dB (median) | bake below the model, median dB |",
+                  "| --- | --- | --- | --- | --- |"]
+        lines += [f"| {n} | {t['frames']} | {t['model_psnr_median']:.2f} | {t['bake_psnr_median']:.2f} | "
+                  f"{t['loss_db_median']:.2f} |" for n, t in truth.items()]
     lines += ["", "Colour fits chosen:", ""]
     lines += [f"- {name}: {r['colour']}" for name, r in record["scenes"].items()]
     path.write_text("\n".join(lines) + "\n")
@@ -109,6 +144,8 @@ def main() -> int:
     ap.add_argument("--views", type=int, default=24, help="views of the 181-view test path (evenly spread)")
     ap.add_argument("--size", type=int, default=256)
     ap.add_argument("--scenes", nargs="*", default=None, help="bundled checkpoints by name (default: all)")
+    ap.add_argument("--truth", action="append", default=[], metavar="SCENE=DIR",
+                    help="a dataset of a bundled scene whose test frames both are scored against")
     args = ap.parse_args()
     paths = sorted((ROOT / "checkpoints").glob("*.safetensors"))
     if args.scenes:
@@ -116,9 +153,12 @@ def main() -> int:
     record = {**machine_record(), "command": " ".join(["bench/bake_fidelity.py", *sys.argv[1:]]),
               "views": args.views, "size": args.size, "load_average_1min": {"before": load_average()}, "scenes": {}}
     views = evenly_spaced(181, args.views)
+    truths = {name: Path(folder) for name, _, folder in (t.partition("=") for t in args.truth)}
     for path in paths:
         scene = load_scene(path)
         record["scenes"][path.stem] = measure(scene, content_hash(path.read_bytes()), views, args.size)
+        if path.stem in truths:
+            record["scenes"][path.stem]["truth"] = against_truth(scene, truths[path.stem])
         print(path.stem, record["scenes"][path.stem], file=sys.stderr, flush=True)
     record["load_average_1min"]["after"] = load_average()
     write_results(RESULTS, "bake_fidelity", record, write_markdown)

@@ -23,6 +23,19 @@ if TYPE_CHECKING:
     from visnerf.data.scene import SceneData
 
 
+def parse_params(items: list[str]) -> dict[str, float] | None:
+    """``--param NAME=NUMBER`` options by name; None (the error printed) for one that is not."""
+    params = {}
+    for item in items:
+        name, _, value = item.partition("=")
+        try:
+            params[name] = float(value)
+        except ValueError:
+            print(f"error: --param {item!r} must be NAME=NUMBER", file=sys.stderr)
+            return None
+    return params
+
+
 def _render(args: argparse.Namespace) -> int:
     from PIL import Image
 
@@ -34,14 +47,9 @@ def _render(args: argparse.Namespace) -> int:
     except ValueError:
         print(f"error: --size must be WxH, got {args.size!r}", file=sys.stderr)
         return 2
-    params = {}
-    for item in args.param:
-        name, _, value = item.partition("=")
-        try:
-            params[name] = float(value)
-        except ValueError:
-            print(f"error: --param {item!r} must be NAME=NUMBER", file=sys.stderr)
-            return 2
+    params = parse_params(args.param)
+    if params is None:
+        return 2
     if args.bake and params:
         print("error: a bake holds one setting: give --param to `visnerf bake`, not with --bake", file=sys.stderr)
         return 2
@@ -86,14 +94,9 @@ def _bake(args: argparse.Namespace) -> int:
     from visnerf.config.bake import BakeConfig
     from visnerf.inference import load_scene
 
-    params = {}
-    for item in args.param:
-        name, _, value = item.partition("=")
-        try:
-            params[name] = float(value)
-        except ValueError:
-            print(f"error: --param {item!r} must be NAME=NUMBER", file=sys.stderr)
-            return 2
+    params = parse_params(args.param)
+    if params is None:
+        return 2
     try:
         scene = load_scene(args.checkpoint, pick_device("cpu"))
         t0 = time.perf_counter()

@@ -45,6 +45,16 @@ def count_server_frames(page) -> dict:
     return counts
 
 
+def open_counted(page, base_url: str, scene: str) -> dict:
+    """The scene drawn locally, and the server frames and bakes the page asks for from then on."""
+    counts = count_server_frames(page)
+    page.set_viewport_size(SMALL_PAGE)
+    page.goto(base_url + f"/?scene={scene}")
+    wait_local(page)
+    counts.update(http=0, stream=0, bakes=0)
+    return counts
+
+
 @pytest.mark.parametrize("scene", ["vortex_tf1", "tangle_iso"])
 def test_the_local_frame_matches_the_server_frame(page, base_url, scene):
     page.set_viewport_size(SMALL_PAGE)
@@ -63,11 +73,7 @@ def test_the_local_frame_matches_the_server_frame(page, base_url, scene):
 
 
 def test_a_drag_asks_the_server_for_nothing(page, base_url):
-    counts = count_server_frames(page)
-    page.set_viewport_size(SMALL_PAGE)
-    page.goto(base_url + "/?scene=vortex_tf1")
-    wait_local(page)
-    counts.update(http=0, stream=0, bakes=0)
+    counts = open_counted(page, base_url, "vortex_tf1")
     before = page.evaluate("window.__visnerfState.camera.azimuth")
     box = page.locator("#canvas-a").bounding_box()
     x, y = box["x"] + box["width"] / 2, box["y"] + box["height"] / 2
@@ -84,11 +90,7 @@ def test_a_drag_asks_the_server_for_nothing(page, base_url):
 
 
 def test_a_settled_slider_fetches_one_bake(page, base_url):
-    counts = count_server_frames(page)
-    page.set_viewport_size(SMALL_PAGE)
-    page.goto(base_url + "/?scene=tangle_iso")
-    wait_local(page)
-    counts.update(http=0, stream=0, bakes=0)
+    counts = open_counted(page, base_url, "tangle_iso")
     axis = page.evaluate("window.__visnerfState.scene.params[0]")
     for k in range(1, 6):  # a slider dragged through five values, then left
         value = axis["min"] + (axis["max"] - axis["min"]) * (0.3 + 0.05 * k)
