@@ -77,10 +77,14 @@ function localStateKey(box) {
   return JSON.stringify([state.camera, state.lens(), state.params, box.width, box.height]);
 }
 
-function drawLocalA(inputTime = null) {
+/** The size view A is drawn at locally: its box in device pixels, 16 at least. */
+function localSize() {
   const box = viewBox("A");
-  const width = Math.max(16, box.width);
-  const height = Math.max(16, box.height);
+  return { width: Math.max(16, box.width), height: Math.max(16, box.height) };
+}
+
+function drawLocalA(inputTime = null) {
+  const { width, height } = localSize();
   const req = { camera: { ...state.camera }, ...state.lens(), width, height, params: { ...state.params }, quality: "local" };
   local.requestDraw({
     key: localKeyA(), camera: { ...state.camera }, lens: state.lens(), width, height, inputTime,
@@ -614,10 +618,7 @@ window.__visnerfState = state;
 /** For tests and benchmarks: every active view shows the full frame of its newest request. */
 window.__visnerfSettled = () =>
   activeSets().every((set) => {
-    if (set === "A" && localActiveA()) {
-      const box = viewBox("A");
-      return local.drawnKey === localStateKey({ width: Math.max(16, box.width), height: Math.max(16, box.height) });
-    }
+    if (set === "A" && localActiveA()) return local.drawnKey === localStateKey(localSize());
     return schedulers[set] !== null && schedulers[set].settled;
   });
 boot();

@@ -88,10 +88,9 @@ def _render_bake(path: str, c2w: object, fov: float | None, view_height: float |
 
 
 def _bake(args: argparse.Namespace) -> int:
-    from visnerf.bake.bake_file import BakeError, bake_bytes
+    from visnerf.bake.bake_file import BakeError, write_bake
     from visnerf.bake.baking import content_hash
     from visnerf.bake.scene_bake import bake_scene
-    from visnerf.config.bake import BakeConfig
     from visnerf.inference import load_scene
 
     params = parse_params(args.param)
@@ -102,16 +101,12 @@ def _bake(args: argparse.Namespace) -> int:
         t0 = time.perf_counter()
         bake = bake_scene(scene, params, config_from_args(BakeConfig, args), content_hash(Path(args.checkpoint).read_bytes()))
         seconds = time.perf_counter() - t0
-        data = bake_bytes(bake)
+        size = write_bake(bake, args.output)
     except (CheckpointError, BakeError, ValueError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
-    out = Path(args.output)
-    tmp = out.with_name(out.name + ".part")
-    tmp.write_bytes(data)
-    tmp.replace(out)
     h = bake.header
-    print(f"wrote {out} ({len(data) / 1e6:.2f} MB, {len(bake.bricks)} bricks of {h.brick}^3, grid {'x'.join(map(str, h.grid))}, "
+    print(f"wrote {args.output} ({size / 1e6:.2f} MB, {len(bake.bricks)} bricks of {h.brick}^3, grid {'x'.join(map(str, h.grid))}, "
           f"{h.shading} shading, {seconds:.2f} s)")
     print(f"colour: {h.source.get('sh_degree', '')}")
     return 0
@@ -180,10 +175,12 @@ def _info(args: argparse.Namespace) -> int:
     n = sum(t.numel() for t in tensors.values())
     doc = json.loads(meta.to_json())
     doc["tensors"] = {"count": len(tensors), "values": n, "file_mb": round(Path(args.checkpoint).stat().st_size / 1e6, 3)}
+    from visnerf.bake.baking import bake_grid
+
     cfg = BakeConfig()
-    grid = [max(2, round((r - 1) * cfg.grid_scale) + 1) for r in meta.field.resolution]
     doc["bake"] = {
-        "grid": grid, "grid_rule": "the model's own grid (docs/decisions.md#bake.grid)",
+        "grid": list(bake_grid(tuple(meta.field.resolution), cfg)),  # type: ignore[arg-type]
+        "grid_rule": "the model's own grid (docs/decisions.md#bake.grid)",
         "colour": f"spherical harmonics of the view of degree up to {cfg.max_sh_degree}, the lowest whose fit is within "
                   f"{cfg.sh_tolerance:g} level of RMS error of the highest, chosen at each bake"
                   + (f", and the level field's normal cosine with its powers {list(meta.field.level_cosine_powers)}"

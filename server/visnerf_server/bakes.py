@@ -83,10 +83,6 @@ class BakeStore:
             raise
         return None
 
-    @property
-    def building(self) -> BakeKey | None:
-        return self._building
-
     def _build(self, scene: Scene, key: BakeKey) -> None:
         started = time.perf_counter()
         try:

@@ -258,13 +258,14 @@ def bake_bytes(bake: Bake) -> bytes:
     return struct.pack("<Q", len(header)) + header + b"".join(chunks)
 
 
-def write_bake(bake: Bake, path: str | Path) -> None:
-    """Write atomically: a partial file never replaces a good one."""
+def write_bake(bake: Bake, path: str | Path) -> int:
+    """Write atomically (a partial file never replaces a good one); the bytes written."""
     target = Path(path)
     data = bake_bytes(bake)
     tmp = target.with_name(target.name + ".part")
     tmp.write_bytes(data)
     tmp.replace(target)
+    return len(data)
 
 
 def parse_bake(data: bytes) -> Bake:

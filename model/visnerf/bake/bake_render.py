@@ -22,7 +22,7 @@ from visnerf.bake.baking import colour_basis
 from visnerf.data.cameras import Intrinsics, image_rays
 from visnerf.rendering.aabb import intersect_aabb_torch
 from visnerf.rendering.volume import composite_background, weights_from_optical_depth
-from visnerf.representation.field import TETRAHEDRON
+from visnerf.representation.field import N_PROBES, probe_points
 
 RAYS_A_PASS = 2048
 SHADE_WEIGHT = 1e-6
@@ -114,9 +114,7 @@ def _colours(dense: DenseBake, unit: Float[Tensor, "m 3"], directions: Float[Ten
     probes = None
     if h.shading == "level":
         assert h.normal_step is not None
-        offsets = h.normal_step * torch.tensor(TETRAHEDRON)  # [4, 3]
-        probe_points = (points[:, None, :] + offsets).reshape(-1, 3)
-        probes = dense.sample(dense.raw, dense.to_unit(probe_points))[:, 0].view(-1, 4)
+        probes = dense.sample(dense.raw, dense.to_unit(probe_points(points, h.normal_step)))[:, 0].view(-1, N_PROBES)
     basis = colour_basis(h.shading, h.sh_degree, directions, probes, h.cosine_powers)  # [m, b]
     logits = (coef.view(-1, basis.shape[1], 3) * basis[..., None]).sum(1)
     return torch.sigmoid(logits)

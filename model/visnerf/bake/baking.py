@@ -153,9 +153,9 @@ def _cell_max(values: Float[Tensor, "z1 y1 x1"]) -> Float[Tensor, "z y x"]:
     return out
 
 
-def bake_grid(target: BakeTarget, cfg: BakeConfig) -> tuple[int, int, int]:
+def bake_grid(model_grid: tuple[int, int, int], cfg: BakeConfig) -> tuple[int, int, int]:
     """Vertices along x, y, z: the model's grid times ``grid_scale`` (docs/decisions.md#bake.grid)."""
-    grid = tuple(max(2, round((n - 1) * cfg.grid_scale) + 1) for n in target.model_grid)
+    grid = tuple(max(2, round((n - 1) * cfg.grid_scale) + 1) for n in model_grid)
     if math.prod(grid) > cfg.max_vertices:
         raise BakeError(f"a bake grid of {grid} vertices is larger than {cfg.max_vertices}")
     return grid  # type: ignore[return-value]
@@ -166,7 +166,7 @@ def bake_setting(source: BakeSource, target: BakeTarget, cfg: BakeConfig | None 
     """The bake of one setting (CPU tensors in, numpy arrays out); ``cfg`` None: ``BakeConfig()``."""
     cfg = cfg or BakeConfig()
     t0 = time.perf_counter()
-    grid = bake_grid(target, cfg)
+    grid = bake_grid(target.model_grid, cfg)
     nx, ny, nz = grid
     axes = _vertex_axes(target, grid)
     shift, scale = source.density_activation

@@ -31,6 +31,7 @@ With float32 the result equals ``VisNerfField.density`` / ``color`` up to float 
 bfloat16 it differs by the rounding of the products (both tested).
 """
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import torch
@@ -222,10 +223,23 @@ class FrameField:
 
     def density_at(self, samples: SampleTaps) -> Float[Tensor, " m"]:
         out = torch.empty(len(samples), dtype=samples.points.dtype, device=samples.points.device)
+        return self._by_pass(samples, self._density, out)
+
+    def _by_pass(self, samples: SampleTaps, decode: Callable[[Tensor, VMTaps | None], Tensor],
+                 out: Float[Tensor, " m"]) -> Float[Tensor, " m"]:
+        """``out`` filled with ``decode(coords, taps)`` of ``samples``, ``sub_chunk`` samples a pass."""
         for start in range(0, len(samples), self.sub_chunk):
             sl = slice(start, start + self.sub_chunk)
-            out[sl] = self._density(samples.coords[sl], samples.select(sl).taps)
+            out[sl] = decode(samples.coords[sl], samples.select(sl).taps)
         return out
+
+    def _appearance_rows(self, samples: SampleTaps, out: Tensor) -> None:
+        """The appearance features of ``samples`` written into ``out[:, :3c]`` (compiled pass or tables)."""
+        if self.appearance_kernel is not None:
+            self.appearance_kernel.write_rows(samples.coords, out)
+        else:
+            assert self.appearance_tables is not None and samples.taps is not None
+            self.appearance_tables.features_into(samples.taps, out)
 
     def _density(self, coords: Float[Tensor, "m 3"], taps: VMTaps | None) -> Float[Tensor, " m"]:
         return F.softplus(self._raw_density(coords, taps) + self._density_shift) * self.field.cfg.density_scale
@@ -281,10 +295,7 @@ class FrameField:
             raise ValueError("the field has no level axis: its colour reads no normal")
         probes = self.lookup(probe_points(points, self._level_step))  # N_PROBES rows a point
         raw = torch.empty(len(probes), dtype=points.dtype, device=points.device)
-        for start in range(0, len(probes), self.sub_chunk):
-            sl = slice(start, start + self.sub_chunk)
-            raw[sl] = self._raw_density(probes.coords[sl], probes.select(sl).taps)
-        return raw.view(-1, N_PROBES)
+        return self._by_pass(probes, self._raw_density, raw).view(-1, N_PROBES)
 
     @property
     def level_step(self) -> float | None:
@@ -301,10 +312,7 @@ class FrameField:
         ``g``, float32."""
         samples = self.lookup(points)
         out = torch.empty(len(samples), dtype=torch.float32, device=points.device)
-        for start in range(0, len(samples), self.sub_chunk):
-            sl = slice(start, start + self.sub_chunk)
-            out[sl] = self._raw_density(samples.coords[sl], samples.select(sl).taps).float()
-        return out
+        return self._by_pass(samples, self._raw_density, out)
 
     def view_logits(self, points: Float[Tensor, "m 3"], directions: Float[Tensor, "m v 3"],
                     probes: Float[Tensor, "m 4"] | None = None) -> Float[Tensor, "m v 3"]:
@@ -317,11 +325,7 @@ class FrameField:
         samples = self.lookup(points)
         n_spatial = 3 * self.field.cfg.n_appearance_components
         feats = torch.empty(m, n_spatial, dtype=self.dtype, device=points.device)
-        if self.appearance_kernel is not None:
-            self.appearance_kernel.write_rows(samples.coords, feats)
-        else:
-            assert self.appearance_tables is not None and samples.taps is not None
-            self.appearance_tables.features_into(samples.taps, feats)
+        self._appearance_rows(samples, feats)
         weight, bias = self.color_layer.weight, self.color_layer.bias  # [h, i], [h]
         base = F.linear(feats, weight[:, :n_spatial], bias).float()  # [m, h]
         flat_dirs = directions.reshape(m * v, 3).float()
@@ -342,11 +346,7 @@ class FrameField:
         n_spatial = 3 * self.field.cfg.n_appearance_components
         x = torch.empty(padded_rows(m), self.color_layer.weight.shape[1], dtype=self.dtype, device=ray_terms.device)
         x[m:].zero_()
-        if self.appearance_kernel is not None:
-            self.appearance_kernel.write_rows(samples.coords, x[:m])  # [m, 3c]
-        else:
-            assert self.appearance_tables is not None and samples.taps is not None
-            self.appearance_tables.features_into(samples.taps, x[:m])  # [m, 3c]
+        self._appearance_rows(samples, x[:m])  # [m, 3c]
         if not self._with_directions:
             x[:m, n_spatial:] = ray_terms
         else:

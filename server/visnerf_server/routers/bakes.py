@@ -5,11 +5,11 @@ import gzip
 from typing import Annotated, Any
 
 from fastapi import APIRouter, HTTPException, Query, Request, Response
-from fastapi.exceptions import RequestValidationError
 
 from visnerf_server.dependencies import BakesDep, ClientKeyDep, MetricsDep, RegistryDep, ServerDep, SettingsDep
 from visnerf_server.rate_limit import RateLimited
 from visnerf_server.render_queue import QueueFullError
+from visnerf_server.routers.render import etag_matches, scene_params_from_query
 from visnerf_server.routers.scenes import ERRORS, SceneIdPath, find_scene
 
 router = APIRouter(prefix="/api/scenes/{scene_id}/bake", tags=["bakes"])
@@ -44,17 +44,7 @@ async def get_bake(
     """The bake of the scene at a parameter setting: every query parameter but ``v`` is a scene
     parameter by name, missing ones take their default. 503 with Retry-After while it is built."""
     scene = find_scene(registry, scene_id)
-    params: dict[str, float] = {}
-    for name in {k for k, _ in request.query_params.multi_items()} - {"v"}:
-        given = request.query_params.getlist(name)
-        if len(given) != 1:
-            raise RequestValidationError([{"loc": ("query", name), "msg": f"parameter {name!r} is given "
-                                           f"{len(given)} times", "type": "value_error"}])
-        try:
-            params[name] = float(given[0])
-        except ValueError:
-            raise RequestValidationError([{"loc": ("query", name), "msg": f"parameter {name!r} must be a number, "
-                                           f"got {given[0]!r}", "type": "float_parsing"}]) from None
+    params = scene_params_from_query(request, {"v"})
     try:
         values = scene.renderer.resolve_params(params)
     except ValueError as exc:
@@ -62,8 +52,7 @@ async def get_bake(
     key = bakes.key(scene, values)
     etag = key.etag()
     cache_control = IMMUTABLE if v is not None and v == scene.version[:16] else "no-cache"
-    match = request.headers.get("if-none-match")
-    if match is not None and etag in {t.strip() for t in match.split(",")}:
+    if etag_matches(request.headers.get("if-none-match"), etag):
         return Response(status_code=304, headers={"ETag": etag, "Cache-Control": cache_control})
     retry = {"Retry-After": str(BUILD_RETRY_S)}
 

@@ -48,6 +48,28 @@ RESERVED_QUERY = {
 }
 
 
+def etag_matches(if_none_match: str | None, etag: str) -> bool:
+    """Whether an If-None-Match header names ``etag``."""
+    return if_none_match is not None and etag in {t.strip() for t in if_none_match.split(",")}
+
+
+def scene_params_from_query(request: Request, reserved: set[str]) -> dict[str, float]:
+    """Every query parameter not in ``reserved`` as a scene parameter by its own name; a name
+    given twice or a value that is not a number is a 422 naming it."""
+    params: dict[str, float] = {}
+    for name in {k for k, _ in request.query_params.multi_items()} - reserved:
+        given = request.query_params.getlist(name)
+        if len(given) != 1:
+            raise _query_error(name, f"parameter {name!r} is given {len(given)} times")
+        try:
+            params[name] = float(given[0])
+        except ValueError:
+            raise _query_error(
+                name, f"parameter {name!r} must be a number, got {given[0]!r}", "float_parsing"
+            ) from None
+    return params
+
+
 async def render_response(
     request: Request,
     job: FrameJob,
@@ -59,7 +81,7 @@ async def render_response(
 ) -> Response:
     """Render (or reuse) one frame; map the rate limit to 429 and queue trouble to 503/504."""
     etag = job.etag()
-    if if_none_match is not None and etag in {t.strip() for t in if_none_match.split(",")}:
+    if etag_matches(if_none_match, etag):
         return Response(status_code=304, headers={"ETag": etag, "Cache-Control": cache_control})
     retry = {"Retry-After": str(settings.retry_after_s)}
     try:
@@ -154,17 +176,7 @@ async def render_get(
     """The POST route through query parameters; every other query parameter is a scene parameter
     by its own name (``?azimuth=30&isovalue=0.4``). Orbit values left out take the scene's default."""
     scene = find_scene(registry, scene_id)
-    params: dict[str, float] = {}
-    for name in {k for k, _ in request.query_params.multi_items()} - RESERVED_QUERY:
-        given = request.query_params.getlist(name)
-        if len(given) != 1:
-            raise _query_error(name, f"parameter {name!r} is given {len(given)} times")
-        try:
-            params[name] = float(given[0])
-        except ValueError:
-            raise _query_error(
-                name, f"parameter {name!r} must be a number, got {given[0]!r}", "float_parsing"
-            ) from None
+    params = scene_params_from_query(request, RESERVED_QUERY)
     body: dict[str, Any] = {"fov_deg": fov_deg, "width": width, "height": height, "params": params}
     body.update({k: v for k, v in (("projection", projection), ("view_height", view_height)) if v is not None})
     body.update(quality=quality, format=format)
