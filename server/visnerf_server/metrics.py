@@ -72,6 +72,10 @@ class Metrics:
         )
         self.movie_frames = Counter("visnerf_movie_frames", "Frames rendered for movie jobs", registry=r)
         self.movie_jobs_active = Gauge("visnerf_movie_jobs_active", "Movie jobs queued or running", registry=r)
+        self._add_bake_metrics(r)
+
+    def _add_bake_metrics(self, r: CollectorRegistry) -> None:
+        """The bake store's (``bakes.BakeStore``)."""
         self.bakes_built = Counter("visnerf_bakes_built", "Bakes of a parameter setting built", registry=r)
         self.bake_seconds = Histogram(
             "visnerf_bake_seconds", "Seconds a bake took to build", buckets=(0.25, 0.5, 1, 2, 4, 8, 16, 32, 64),
