@@ -93,11 +93,6 @@ class TrainConfig:
     """Cells of the carved grid by which it is grown before training samples in it (the box stays
     the hull's). ``visnerf train`` grows it by ``config.recipe.SurfaceRecipe.carve_dilation`` cells for
     opaque surfaces, which can otherwise settle on the hull's edge."""
-    random_backgrounds: bool = True
-    """Where the images carry alpha, each ray is trained over a background colour of its own,
-    drawn uniformly per channel, its target the image's colour over it: the opacity of every
-    pixel is then seen, not only its colour over one background, against which a pale translucent
-    shell and a thinner one look the same (docs/decisions.md#train.random_backgrounds)."""
     carve_tolerance: int = 2
     """Largest channel difference (0-255) from the background that still counts as background."""
     carve_min_seen_fraction: float = 0.0

@@ -35,8 +35,6 @@ class SceneData:
     source: str = ""
     depths: Float[Tensor, "n h w"] | None = None
     """Depth along each pixel's ray where the source records it (pycinema ``.h5``), NaN where it hit nothing."""
-    alpha: UInt8[Tensor, "n h w"] | None = None
-    """Each pixel's opacity where the source images have transparency (RGBA), else None."""
 
     @property
     def n_frames(self) -> int:
@@ -63,7 +61,6 @@ class SceneData:
         idx = indices.long()
         return SceneData(
             images=self.images[idx],
-            alpha=None if self.alpha is None else self.alpha[idx],
             c2w=self.c2w[idx],
             intrinsics=self.intrinsics,
             params=self.params[idx],

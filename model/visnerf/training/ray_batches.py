@@ -24,17 +24,6 @@ class RayBatch:
     frame: Int[Tensor, " n"]
     px: Int[Tensor, " n"]
     py: Int[Tensor, " n"]
-    alpha: Float[Tensor, " n"] | None = None
-    """The pixels' opacities in [0, 1] where the images carry alpha."""
-
-
-def over_background(
-    rgb: Float[Tensor, "n 3"], alpha: Float[Tensor, " n"], background: Float[Tensor, "n 3"],
-    new_background: Float[Tensor, "n 3"],
-) -> Float[Tensor, "n 3"]:
-    """Colours composited on ``background`` with opacity ``alpha``, composited instead on
-    ``new_background``: ``c a + b (1 - a)`` becomes ``c a + b' (1 - a)``."""
-    return rgb + (new_background - background) * (1.0 - alpha)[:, None]
 
 
 def silhouette_pixels(
@@ -125,13 +114,6 @@ class RayBatchSampler:
         _, h, w, c = images.shape
         return images.view(-1, c).index_select(0, (frame * h + py) * w + px)
 
-    def _alphas(self, frame: Tensor, px: Tensor, py: Tensor) -> Tensor:
-        """The images' opacities at these pixels, ``[n]`` uint8."""
-        alpha = self.scene.alpha
-        assert alpha is not None
-        _, h, w = alpha.shape
-        return alpha.reshape(-1).index_select(0, (frame * h + py) * w + px)
-
     def _draw_band(self, n: int) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
         assert self.band is not None
         s = self.scene
@@ -161,14 +143,12 @@ class RayBatchSampler:
             frame, px, py = torch.cat([frame, fb]), torch.cat([px, xb]), torch.cat([py, yb])
             rays_o, rays_d = torch.cat([rays_o, ob]), torch.cat([rays_d, db])
         rgb = self._pixels(frame, px, py).float() / 255.0
-        alpha = None if self.scene.alpha is None else self._alphas(frame, px, py).float() / 255.0
         return RayBatch(
             rays_o.to(self.device),
             rays_d.to(self.device),
             rgb.to(self.device),
             self.params_norm.index_select(0, frame).to(self.device),
             frame, px, py,
-            None if alpha is None else alpha.to(self.device),
         )
 
 

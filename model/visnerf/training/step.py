@@ -20,7 +20,7 @@ from visnerf.rendering.training_render import drop_occluded, place_samples, shad
 from visnerf.representation.field import VisNerfField
 from visnerf.runtime import bf16_native
 from visnerf.training.fused_step import Sampling, StepBatch
-from visnerf.training.ray_batches import micro_batches, over_background
+from visnerf.training.ray_batches import micro_batches
 from visnerf.training.regularizers import (
     LevelPriorWeights,
     RegularizerWeights,
@@ -131,11 +131,7 @@ class Stepping:
         rays, n = self.ranks.batch_share(cfg.batch_rays)  # one process: all of them, their count
         batch = self.sampler.sample(rays)
         bg = torch.tensor(self.scene.background, device=self.device).expand_as(batch.rgb)
-        if batch.alpha is None or not cfg.random_backgrounds:
-            return StepBatch(batch.rays_o, batch.rays_d, batch.params, batch.rgb, bg, n)
-        drawn = torch.rand(batch.rgb.shape, generator=self.generator).to(self.device)  # [n, 3]
-        target = over_background(batch.rgb, batch.alpha, bg, drawn)
-        return StepBatch(batch.rays_o, batch.rays_d, batch.params, target, drawn, n)
+        return StepBatch(batch.rays_o, batch.rays_d, batch.params, batch.rgb, bg, n)
 
     def _sampling(self, batch: StepBatch) -> Sampling:
         """Where this step samples its rays (each only its occupied span) and how it shades them."""

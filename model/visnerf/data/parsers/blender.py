@@ -303,15 +303,14 @@ def read_transforms(path: str | Path, max_workers: int = 2) -> ParsedSplit:
         image_paths = _image_paths(root, frames, labels)
         _check_intrinsics_given(meta)
         bbox = _bbox(meta)
-        decoded = load_images(image_paths, labels, background, max_workers)
+        images = load_images(image_paths, labels, background, max_workers)
     except DatasetError as exc:
         raise _in_file(path, exc) from None
     keep, axes = axes_from_values(names, values)
-    height, width = decoded.rgb.shape[1:3]
+    height, width = images.shape[1:3]
     scene = meta.get("scene", {}) if isinstance(meta.get("scene"), dict) else {}
     data = SceneData(
-        images=decoded.rgb,
-        alpha=decoded.alpha,
+        images=images,
         c2w=torch.from_numpy(c2w).float(),
         intrinsics=_intrinsics(meta, width, height),
         params=torch.from_numpy(values[:, keep]).float() if keep else torch.zeros(len(frames), 0),

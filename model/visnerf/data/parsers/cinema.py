@@ -19,7 +19,7 @@ import torch
 
 from visnerf.data.cameras import Intrinsics, frame_c2w
 from visnerf.data.errors import DatasetError
-from visnerf.data.images import DECODE_ERRORS, DecodedImages, composite_keeping_alpha, load_images, load_rgb
+from visnerf.data.images import DECODE_ERRORS, composite, load_images, load_rgb
 from visnerf.data.parsers.blender import ParsedSplit, check_rigid
 from visnerf.data.parsers.cinema_cameras import (
     CAMERA_FILE,
@@ -120,7 +120,7 @@ def _h5_pixels(path: Path, background: np.ndarray, label: str) -> tuple[np.ndarr
         raise DatasetError(f"{label}: channels/rgba has shape {list(rgba.shape)}, expected [h, w, 4]")
     if rgba.dtype != np.uint8:
         rgba = np.clip(np.asarray(rgba, dtype=np.float32) * (255.0 if rgba.max() <= 1.0 else 1.0) + 0.5, 0, 255).astype(np.uint8)
-    rgb = composite_keeping_alpha(rgba, background) if rgba.shape[2] == 4 else rgba  # [h, w, 3 or 4]
+    rgb = composite(rgba, background) if rgba.shape[2] == 4 else rgba
     if depth is not None:
         depth = np.squeeze(depth)
         if depth.shape != rgb.shape[:2]:
@@ -272,9 +272,9 @@ def _cameras(table: CinemaTable, convention: Convention, options: CinemaCamera, 
 
 
 def _decode_images(paths: list[Path], labels: list[str], background: np.ndarray,
-                   max_workers: int) -> tuple[DecodedImages, torch.Tensor | None]:
-    """Images composited on ``background`` with their alpha, and the depths [n, h, w] when every
-    image (pycinema ``.h5``) has a depth channel."""
+                   max_workers: int) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """Images [n, h, w, 3] composited on ``background``, and the depths [n, h, w] when every image
+    (pycinema ``.h5``) has a depth channel."""
     depths: dict[Path, np.ndarray | None] = {}
 
     def decode(p: Path, bg: np.ndarray, label: str) -> np.ndarray:
@@ -310,15 +310,14 @@ def read_cinema(path: str | Path, camera: CinemaCamera | None = None, max_worker
     background = np.asarray(options.background, dtype=np.float32)
     if lens is None:
         options.intrinsics(8, 8, str(table.path))  # the lens is known before any image is decoded
-    decoded, depths = _decode_images(paths, labels, background, max_workers)
-    height, width = decoded.rgb.shape[1:3]
+    images, depths = _decode_images(paths, labels, background, max_workers)
+    height, width = images.shape[1:3]
     intrinsics = _h5_intrinsics(lens, width, height) if lens else options.intrinsics(width, height, str(table.path))
     keep, axes = axes_from_values(names, values)
     notes += [f"column {n!r}: a parameter axis" for j, n in enumerate(names) if j in keep]
     notes += [f"column {n!r}: constant, dropped" for j, n in enumerate(names) if j not in keep]
     scene = SceneData(
-        images=decoded.rgb,
-        alpha=decoded.alpha,
+        images=images,
         c2w=torch.from_numpy(c2w).float(),
         intrinsics=intrinsics,
         params=torch.from_numpy(values[:, keep]).float() if keep else torch.zeros(table.n_rows, 0),
