@@ -3,7 +3,7 @@ score the checkpoint on the views it trained on, on views held out and on the te
 
 Each run appends one row (change, minutes, steps, PSNR on training views, held-out views and the
 test path, CPU, commit) to RESULTS/fit_trials.json and rewrites the table RESULTS/fit_trials.md;
-``--kept`` / ``--not-kept`` mark the row's verdict afterwards. Extra `visnerf train` flags after
+``--verdict kept`` / ``--verdict "not kept"`` gives the row its verdict. Extra `visnerf train` flags after
 ``--`` are the change (none: the recipe as it is).
 
     python bench/fit_trials.py data/shells_static_800 --minutes 5 --holdout-views 3,10,17 --label "recipe"

@@ -88,9 +88,6 @@ class FieldConfig:
     need an optical depth of about 10 within a voxel or two, a density of thousands per world unit,
     which a decoder reaches only after many steps at 1; the recipe sets one over the voxel size for
     surface scenes (``training.recipe``), with ``density_shift`` lowered to keep the same fog."""
-    density_peaks: int = 0
-    """Learnt narrow peaks of the raw density (``representation.density_peaks``): a transfer
-    function of the decoder's output, so thin shells are its level sets. 0: none."""
     init_scale: float = 0.1
     """Standard deviation of the initial VM factors."""
     factor_storage: FactorStorage = "int8"
@@ -111,7 +108,7 @@ class FieldConfig:
             self.n_appearance_components % self.n_param_components
         ):
             raise ValueError("component counts must be multiples of n_param_components")
-        check_at_least(self, 0, "facing_vectors", "density_peaks")
+        check_at_least(self, 0, "facing_vectors")
         # a configuration made before the data are read has no axes yet; the field checks the axis against them
         require(isinstance(self.level_set_axis, int) and self.level_set_axis >= -1
                  and (not self.param_lengths or self.level_set_axis < len(self.param_lengths)),

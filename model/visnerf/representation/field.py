@@ -28,7 +28,6 @@ from visnerf.representation.decoders import (
     positional_encoding_dim,
     sh_dim,
 )
-from visnerf.representation.density_peaks import DensityPeaks
 from visnerf.representation.param_axes import LevelAxis, ParamAxes
 from visnerf.representation.vm import VMGrid
 
@@ -94,8 +93,6 @@ class VisNerfField(nn.Module):
         axis = cfg.level_set_axis
         if axis >= cfg.n_params:
             raise ValueError(f"level_set_axis {axis} names no parameter axis: the field has {cfg.n_params}")
-        if cfg.density_peaks > 0 and axis >= 0:
-            raise ValueError("density peaks and a level axis both shape the density: choose one")
         density_lengths = tuple(n for k, n in enumerate(cfg.param_lengths) if k != axis)
         self.density_params = ParamAxes(density_lengths, cfg.n_param_components)
         self.levels: LevelAxis | None = None if axis < 0 else LevelAxis(cfg.param_lengths[axis])
@@ -110,7 +107,6 @@ class VisNerfField(nn.Module):
             3 * cfg.n_appearance_components + pc + sh_dim(cfg.sh_degree) + cfg.facing_vectors
             + (1 + len(cfg.level_cosine_powers) if self.levels is not None else 0), cfg.hidden_width, 3
         )
-        self.peaks: DensityPeaks | None = DensityPeaks(cfg.density_peaks) if cfg.density_peaks > 0 else None
         self.facing: nn.Linear | None = None
         if cfg.facing_vectors > 0:
             self.facing = nn.Linear(3 * cfg.n_appearance_components, 3 * cfg.facing_vectors, bias=False)
@@ -175,14 +171,7 @@ class VisNerfField(nn.Module):
         raw = self.raw_density(coords, spatial, q)
         if level is not None and self.levels is not None:
             raw = (raw - level) * self.levels.sharpness()
-        return self.activate(raw)
-
-    def activate(self, raw: Float[Tensor, " n"]) -> Float[Tensor, " n"]:
-        """Density from the raw density: ``softplus(raw + shift) * scale``, plus the peaks' sum."""
-        base = F.softplus(raw + self.cfg.density_shift)
-        if self.peaks is not None:
-            base = base + self.peaks(raw)
-        return base * self.cfg.density_scale
+        return F.softplus(raw + self.cfg.density_shift) * self.cfg.density_scale
 
     def density(self, points: Float[Tensor, "n 3"], q_density: Float[Tensor, "n d"]) -> Float[Tensor, " n"]:
         """Non-negative density (per world unit) at world points. Differentiable."""

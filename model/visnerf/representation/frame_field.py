@@ -242,10 +242,7 @@ class FrameField:
             self.appearance_tables.features_into(samples.taps, out)
 
     def _density(self, coords: Float[Tensor, "m 3"], taps: VMTaps | None) -> Float[Tensor, " m"]:
-        raw = self._raw_density(coords, taps)
-        if self.field.peaks is not None:  # no level axis with peaks: the shift is the config's
-            return self.field.activate(raw)
-        return F.softplus(raw + self._density_shift) * self.field.cfg.density_scale
+        return F.softplus(self._raw_density(coords, taps) + self._density_shift) * self.field.cfg.density_scale
 
     def _raw_density(self, coords: Float[Tensor, "m 3"], taps: VMTaps | None) -> Float[Tensor, " m"]:
         """The density decoder's output (a level axis's ``g`` times its sharpness), float32."""
@@ -308,8 +305,6 @@ class FrameField:
     @property
     def density_activation(self) -> tuple[float, float]:
         """(shift, scale): the density is ``softplus(raw_density + shift) * scale``."""
-        if self.field.peaks is not None:
-            raise ValueError("a field with density peaks has no (shift, scale) activation")
         return self._density_shift, self.field.cfg.density_scale
 
     def raw_density(self, points: Float[Tensor, "m 3"]) -> Float[Tensor, " m"]:

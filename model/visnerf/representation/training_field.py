@@ -8,6 +8,7 @@ tables, whose gradients are left as pending taps in ``RowGradients`` (``table_gr
 """
 
 import torch
+import torch.nn.functional as F
 from jaxtyping import Float, Int
 from torch import Tensor
 
@@ -59,7 +60,7 @@ class TrainingField:
         field = self.field
         if level is not None and field.levels is not None:
             raw = (raw - level.index_select(0, ray)) * field.levels.sharpness()
-        return field.activate(raw)
+        return F.softplus(raw + field.cfg.density_shift) * field.cfg.density_scale
 
     def density(
         self, points: Float[Tensor, "m 3"], ray: Int[Tensor, " m"], q_density: Float[Tensor, "n d"]

@@ -42,8 +42,6 @@ def make_optimizer(field_: VisNerfField, cfg: TrainConfig, scale: float,
                *field_.density_params.parameters(), *field_.appearance_params.parameters()]
     if field_.levels is not None:
         factors += list(field_.levels.parameters())
-    if field_.peaks is not None:
-        factors += list(field_.peaks.parameters())
     networks = [*field_.density_decoder.parameters(), *field_.color_decoder.parameters()]
     if field_.facing is not None:
         networks += list(field_.facing.parameters())
