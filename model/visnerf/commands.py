@@ -73,7 +73,8 @@ def _render(args: argparse.Namespace) -> int:
     return 0
 
 
-def _render_bake(path: str, c2w: object, fov: float | None, view_height: float | None, width: int, height: int) -> object:
+def _render_bake(path: str, c2w: object, fov: float | None, view_height: float | None, width: int,
+                 height: int) -> object:
     import math
 
     import torch
@@ -99,14 +100,16 @@ def _bake(args: argparse.Namespace) -> int:
     try:
         scene = load_scene(args.checkpoint, pick_device("cpu"))
         t0 = time.perf_counter()
-        bake = bake_scene(scene, params, config_from_args(BakeConfig, args), content_hash(Path(args.checkpoint).read_bytes()))
+        bake = bake_scene(scene, params, config_from_args(BakeConfig, args),
+                          content_hash(Path(args.checkpoint).read_bytes()))
         seconds = time.perf_counter() - t0
         size = write_bake(bake, args.output)
     except (CheckpointError, BakeError, ValueError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     h = bake.header
-    print(f"wrote {args.output} ({size / 1e6:.2f} MB, {len(bake.bricks)} bricks of {h.brick}^3, grid {'x'.join(map(str, h.grid))}, "
+    grid = "x".join(map(str, h.grid))
+    print(f"wrote {args.output} ({size / 1e6:.2f} MB, {len(bake.bricks)} bricks of {h.brick}^3, grid {grid}, "
           f"{h.shading} shading, {seconds:.2f} s)")
     print(f"colour: {h.source.get('sh_degree', '')}")
     return 0
@@ -174,15 +177,16 @@ def _info(args: argparse.Namespace) -> int:
         return 2
     n = sum(t.numel() for t in tensors.values())
     doc = json.loads(meta.to_json())
-    doc["tensors"] = {"count": len(tensors), "values": n, "file_mb": round(Path(args.checkpoint).stat().st_size / 1e6, 3)}
+    file_mb = round(Path(args.checkpoint).stat().st_size / 1e6, 3)
+    doc["tensors"] = {"count": len(tensors), "values": n, "file_mb": file_mb}
     from visnerf.bake.baking import bake_grid
 
     cfg = BakeConfig()
     doc["bake"] = {
         "grid": list(bake_grid(tuple(meta.field.resolution), cfg)),  # type: ignore[arg-type]
         "grid_rule": "the model's own grid (docs/decisions.md#bake.grid)",
-        "colour": f"spherical harmonics of the view of degree up to {cfg.max_sh_degree}, the lowest whose fit is within "
-                  f"{cfg.sh_tolerance:g} level of RMS error of the highest, chosen at each bake"
+        "colour": f"spherical harmonics of the view of degree up to {cfg.max_sh_degree}, the lowest whose fit is "
+                  f"within {cfg.sh_tolerance:g} level of RMS error of the highest, chosen at each bake"
                   + (f", and the level field's normal cosine with its powers {list(meta.field.level_cosine_powers)}"
                      if meta.field.level_set_axis >= 0 else "") + " (docs/decisions.md#bake.shading)",
     }

@@ -1,8 +1,9 @@
 """Command-line options generated from the typed configuration (``visnerf.config``).
 
 Every field of ``TrainConfig``, ``FieldConfig`` and ``RenderConfig`` is an option of ``visnerf
-train``, and every field of ``FramesConfig`` one of ``visnerf render`` and ``visnerf animate``: ``--field-name``, typed by the field's annotation, its help the field's docstring, so that
-a new setting needs no command-line code. The exceptions are named: ``--time-budget`` (minutes) is
+train``, and every field of ``FramesConfig`` one of ``visnerf render`` and ``visnerf animate``:
+``--field-name``, typed by the field's annotation, its help the field's docstring, so that a new
+setting needs no command-line code. The exceptions are named: ``--time-budget`` (minutes) is
 declared by the command itself (``HAND_WRITTEN``), a few options answer to a shorter name too
 (``ALIASES``), and the fields the data or the end of training decide are no options
 (``NOT_OPTIONS``, with the reason). An option that is not given leaves the configuration's value

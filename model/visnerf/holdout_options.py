@@ -67,4 +67,5 @@ def add_holdout_options(parser: argparse.ArgumentParser, purpose: str) -> None:
         many = name == "axis_values"  # one AXIS=VALUE at a time
         parser.add_argument(option, type=parse, default=[] if many else (), metavar=metavar,
                             action="append" if many else "store",
-                            help=f"{docs[name]} Held out {purpose}" + ("; AXIS: a name or an index; repeatable" if many else ""))
+                            help=f"{docs[name]} Held out {purpose}"
+                            + ("; AXIS: a name or an index; repeatable" if many else ""))

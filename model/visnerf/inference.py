@@ -211,7 +211,8 @@ class SceneRenderer:
         c2w_t = torch.as_tensor(view.c2w, dtype=torch.float32, device=self.device)
         try:
             with torch.inference_mode():
-                rgb = render_image_scaled(self.field, c2w_t, intrinsics, self._params(view), settings, own, cancel)  # [h, w, 3]
+                params = self._params(view)
+                rgb = render_image_scaled(self.field, c2w_t, intrinsics, params, settings, own, cancel)  # [h, w, 3]
                 return (rgb.clamp(0, 1) * 255.0 + 0.5).to(torch.uint8).cpu().numpy()
         finally:  # a frame stopped early allocated as much as a finished one
             if view.width * view.height >= TRIM_AFTER_PIXELS:
@@ -238,7 +239,8 @@ class SceneRenderer:
         return self.draw(frame, own, cancel)
 
 
-def load_scene(path: str | Path, device: torch.device | None = None, frames: FramesConfig | None = None) -> SceneRenderer:
+def load_scene(path: str | Path, device: torch.device | None = None,
+               frames: FramesConfig | None = None) -> SceneRenderer:
     """Load and fully validate a checkpoint; raises CheckpointError naming the problem. ``frames``:
     how this machine renders its frames (default ``FramesConfig()``)."""
     device = device or torch.device("cpu")

@@ -156,7 +156,8 @@ def _check_axis_values(path: str, low: float, high: float, default: float, value
     if low > high:
         raise MetadataError(f"{path}.min {low!r} is above {path}.max {high!r}")
     if len(values) > 1 and not low < high:
-        raise MetadataError(f"{path}.min must be below {path}.max for an axis of {len(values)} values, both are {low!r}")
+        raise MetadataError(f"{path}.min must be below {path}.max for an axis of {len(values)} values, "
+                            f"both are {low!r}")
     _within(f"{path}.default", default, low, high)
     for i, value in enumerate(values):
         _within(f"{path}.values[{i}]", value, low, high)

@@ -136,6 +136,7 @@ def _list(name: str, value: Any) -> list:
 
 def _choice(index: int, value: Any) -> RecipeChoice:
     item = _object(f"choices[{index}]", value)
-    if set(item) != {"name", "value", "reason"} or not isinstance(item["name"], str) or not isinstance(item["reason"], str):
+    if (set(item) != {"name", "value", "reason"} or not isinstance(item["name"], str)
+            or not isinstance(item["reason"], str)):
         raise ProvenanceError(f"provenance: choices[{index}] must have a name, a value and a reason, got {item!r}")
     return RecipeChoice(item["name"], item["value"], item["reason"])

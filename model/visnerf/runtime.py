@@ -62,7 +62,8 @@ def keep_freed_blocks() -> bool:
     libc = _glibc()
     if libc is None:
         return False
-    return bool(libc.mallopt(_M_MMAP_THRESHOLD, KEEP_BLOCKS_BELOW)) and bool(libc.mallopt(_M_TRIM_THRESHOLD, TRIM_ABOVE))
+    return (bool(libc.mallopt(_M_MMAP_THRESHOLD, KEEP_BLOCKS_BELOW))
+            and bool(libc.mallopt(_M_TRIM_THRESHOLD, TRIM_ABOVE)))
 
 
 def default_threads() -> int:

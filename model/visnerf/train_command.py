@@ -247,7 +247,8 @@ def _trainer_from_checkpoint(path: Path, train: "SceneData", val: "SceneData | N
 def register_train(sub: argparse._SubParsersAction) -> None:
     """The ``train`` sub-command: its options from the typed configuration."""
     p = sub.add_parser("train", help="train a ViSNeRF model on a dataset folder")
-    p.add_argument("data", help="dataset folder with transforms_train.json, or a Cinema database (folder with data.csv)")
+    p.add_argument("data",
+                   help="dataset folder with transforms_train.json, or a Cinema database (folder with data.csv)")
     p.add_argument("--out", required=True, help="checkpoint to write (.safetensors)")
     p.add_argument("--time-budget", type=positive_float, default=None, metavar="MINUTES",
                    help="wall-clock training budget; the schedule is given as fractions of it")

@@ -255,7 +255,8 @@ class MovieJobs:
     def _sweep(self) -> None:
         """Forget the jobs finished more than ``keep_s`` ago, and the oldest beyond MAX_JOBS_KEPT."""
         now = self.clock()
-        finished = sorted((job for job in self._jobs.values() if job.finished is not None), key=lambda j: j.finished or 0.0)
+        finished = sorted((job for job in self._jobs.values() if job.finished is not None),
+                          key=lambda j: j.finished or 0.0)
         excess = len(finished) - MAX_JOBS_KEPT
         for i, job in enumerate(finished):
             if i < excess or now - job.finished > self.limits.keep_s:  # type: ignore[operator]
@@ -270,7 +271,8 @@ class MovieJobs:
             return (
                 f"the movie file of {size} bytes exceeds this server's limit of {budget} bytes (movie_max_disk_bytes)"
             )
-        done = sorted((j for j in self._jobs.values() if j.state == "done" and j is not job), key=lambda j: j.finished or 0.0)
+        done = sorted((j for j in self._jobs.values() if j.state == "done" and j is not job),
+                      key=lambda j: j.finished or 0.0)
         total = size + sum(j.file.stat().st_size for j in done if j.file.exists())
         for old in done:
             if total <= budget:

@@ -90,7 +90,8 @@ class ClientRateLimiter:
 
     def __init__(self, rate: float, burst: float, max_clients: int = 10_000, clock: Clock = time.monotonic) -> None:
         if rate <= 0 or burst <= 0 or max_clients < 1:
-            raise ValueError(f"rate and burst must be positive and max_clients >= 1, got {rate}, {burst}, {max_clients}")
+            raise ValueError("rate and burst must be positive and max_clients >= 1, "
+                             f"got {rate}, {burst}, {max_clients}")
         self.rate = rate
         self.burst = float(burst)
         self.max_clients = max_clients

@@ -173,7 +173,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                       help="one turn in azimuth in N frames (the last does not repeat the first)")
     what.add_argument("--sweep", default=None, metavar="AXIS", help="sweep one parameter from its min to its max")
     what.add_argument("--test-path", type=whole_number_at_least(2), nargs="?", const=DEFAULT_TEST_VIEWS, default=None,
-                      metavar="N", help=f"the evaluation protocol's test path in N views (default {DEFAULT_TEST_VIEWS})")
+                      metavar="N",
+                      help=f"the evaluation protocol's test path in N views (default {DEFAULT_TEST_VIEWS})")
     a.add_argument("--frames", type=whole_number_at_least(2), default=DEFAULT_SWEEP_FRAMES,
                    help=f"frames of a --sweep (default {DEFAULT_SWEEP_FRAMES})")
     a.add_argument("--fps", type=_fps, default=30.0, help="frames per second (default 30)")

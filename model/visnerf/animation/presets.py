@@ -28,13 +28,15 @@ def orbit_path(
 ) -> AnimationPath:
     """One full turn in azimuth at a fixed elevation: ``n_frames`` frames at ``fps``, frame i at
     azimuth ``start_azimuth + 360 i / n_frames`` (the last frame does not repeat the first, so the
-    movie loops); ``view_height`` instead of ``fov`` for an orthographic camera. Every frame is a keyframe while there are at most ``MAX_KEYFRAMES`` of them
-    (so the camera keeps its elevation exactly), else every k-th frame and the last."""
+    movie loops); ``view_height`` instead of ``fov`` for an orthographic camera. Every frame is a
+    keyframe while there are at most ``MAX_KEYFRAMES`` of them (so the camera keeps its elevation
+    exactly), else every k-th frame and the last."""
     _check_frames(n_frames, fps, 1)
     step = max(1, math.ceil((n_frames - 1) / (MAX_KEYFRAMES - 1)))
     indices = sorted({*range(0, n_frames, step), n_frames - 1})
     keyframes = tuple(
-        Keyframe(i / fps, CameraKey(start_azimuth + 360.0 * i / n_frames, elevation, distance, fov, view_height), dict(params))
+        Keyframe(i / fps, CameraKey(start_azimuth + 360.0 * i / n_frames, elevation, distance, fov, view_height),
+                 dict(params))
         for i in indices
     )
     return AnimationPath(keyframes, camera_interpolation="linear", param_interpolation="linear")

@@ -83,7 +83,9 @@ def pchip(x: Float[np.ndarray, " n"], y: Float[np.ndarray, " n"], t: float) -> f
     return float(param_axes.interpolate_knots(table, knots, torch.tensor([float(t)], dtype=torch.float64))[0, 0])
 
 
-def turn_between(a: Float[np.ndarray, " 3"], b: Float[np.ndarray, " 3"], v: Float[np.ndarray, " 3"]) -> Float[np.ndarray, " 3"]:
+def turn_between(
+    a: Float[np.ndarray, " 3"], b: Float[np.ndarray, " 3"], v: Float[np.ndarray, " 3"]
+) -> Float[np.ndarray, " 3"]:
     """``v`` turned by the smallest rotation that takes unit ``a`` to unit ``b`` (about a x b).
     Turning a camera's axes this way between successive view directions is parallel transport:
     the camera does not spin about its viewing axis."""

@@ -23,7 +23,8 @@ MAX_HEADER_BYTES = 1 << 20
 DENSITY_FILL = -100.0
 """Raw density of a vertex no occupied cell uses: its activation is 0 in float32 (the raw density
 is the softplus's whole argument, the model's shift and level included)."""
-_DTYPES: dict[str, np.dtype] = {"F16": np.dtype("<f2"), "F32": np.dtype("<f4"), "U8": np.dtype("u1"), "I16": np.dtype("<i2")}
+_DTYPES: dict[str, np.dtype] = {"F16": np.dtype("<f2"), "F32": np.dtype("<f4"), "U8": np.dtype("u1"),
+                                 "I16": np.dtype("<i2")}
 _NAMES = {v: k for k, v in _DTYPES.items()}
 
 

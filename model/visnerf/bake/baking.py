@@ -205,7 +205,8 @@ def bake_setting(source: BakeSource, target: BakeTarget, cfg: BakeConfig | None 
         aabb=target.aabb, density_scale=float(scale), step=target.step,
         normal_step=source.level_step, early_stop_eps=target.early_stop_eps, background=target.background,
         kind=target.kind, title=target.title, params=dict(target.params),
-        source={**target.source, "grid_scale": f"{cfg.grid_scale:g}", "sh_degree": choice, "seconds": f"{time.perf_counter() - t0:.3f}"},
+        source={**target.source, "grid_scale": f"{cfg.grid_scale:g}", "sh_degree": choice,
+                "seconds": f"{time.perf_counter() - t0:.3f}"},
     )
     return _bricks(header, raw, coefficients, coloured, stored, occupied)
 

@@ -11,5 +11,6 @@ from visnerf.config.recipe import RECIPE, RecipeConfig, SurfaceRecipe
 from visnerf.config.render import RenderConfig
 from visnerf.config.train import DEFAULT_ITERATIONS, TrainConfig
 
-__all__ = ["DEFAULT_ITERATIONS", "FACTOR_STORAGE_DTYPES", "FactorStorage", "FieldConfig", "FramesConfig", "HoldoutConfig",
-           "RECIPE", "RecipeConfig", "RenderConfig", "SurfaceRecipe", "TrainConfig", "config_from_dict"]
+__all__ = ["DEFAULT_ITERATIONS", "FACTOR_STORAGE_DTYPES", "FactorStorage", "FieldConfig", "FramesConfig",
+           "HoldoutConfig", "RECIPE", "RecipeConfig", "RenderConfig", "SurfaceRecipe", "TrainConfig",
+           "config_from_dict"]

@@ -117,7 +117,8 @@ class FieldConfig:
         if not 0 <= self.sh_degree <= 3:
             raise ValueError(f"sh_degree must be 0..3, got {self.sh_degree}")
         if self.factor_storage not in FACTOR_STORAGE_DTYPES:
-            raise ValueError(f"factor_storage must be one of {sorted(FACTOR_STORAGE_DTYPES)}, got {self.factor_storage!r}")
+            raise ValueError(f"factor_storage must be one of {sorted(FACTOR_STORAGE_DTYPES)}, "
+                             f"got {self.factor_storage!r}")
         check_at_least(self, 1, "n_density_components", "n_appearance_components", "n_param_components", "hidden_width")
         check_at_least(self, 0, "pos_encoding_freqs")
         check_positive(self, "density_scale", "init_scale", "level_normal_step")

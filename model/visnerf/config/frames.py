@@ -51,7 +51,8 @@ class FramesConfig:
         check_whole_in(self, 0, 1024, "setting_grids")
         check_whole_in(self, 1, 1024, "setting_grid_after")
         check_whole_in(self, 1, 8, "setting_grid_samples")
-        require(self.refine_spacing in (1, 2, 4, 8, 16), f"refine_spacing must be 1, 2, 4, 8 or 16, got {self.refine_spacing}")
+        require(self.refine_spacing in (1, 2, 4, 8, 16),
+                f"refine_spacing must be 1, 2, 4, 8 or 16, got {self.refine_spacing}")
         require(0.0 <= self.refine_spread <= 1.0, f"refine_spread must be within [0, 1], got {self.refine_spread}")
         require(self.first_segment_samples <= self.segment_samples,
                 f"first_segment_samples ({self.first_segment_samples}) must not exceed segment_samples "

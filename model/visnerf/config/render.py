@@ -68,7 +68,8 @@ class RenderConfig:
         check_types(type(self), self.__dict__)
         check_positive(self, "step_ratio", "full_step_ratio", "preview_step_factor")
         check_at_least(self, 1, "max_samples")
-        check_below_one(self, "occupancy_threshold", "weight_threshold", "full_weight_threshold_per_voxel", "early_stop_eps")
+        check_below_one(self, "occupancy_threshold", "weight_threshold", "full_weight_threshold_per_voxel",
+                        "early_stop_eps")
         require(0.0 < self.preview_scale <= 1.0, f"preview_scale must be in (0, 1], got {self.preview_scale!r}")
         check_whole_in(self, 1, MAX_SAMPLES_LIMIT, "max_samples")
         check_number_in(self, *STEP_RATIO_RANGE, "step_ratio", "full_step_ratio", "preview_step_factor")

@@ -200,13 +200,15 @@ class TrainConfig:
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be at least 1, got {getattr(self, name)}")
         if self.time_budget_s is not None and not (math.isfinite(self.time_budget_s) and self.time_budget_s > 0):
-            raise ValueError(f"time_budget_s must be a finite number of seconds above 0 (or None), got {self.time_budget_s}")
+            raise ValueError("time_budget_s must be a finite number of seconds above 0 (or None), "
+                             f"got {self.time_budget_s}")
         if self.occupancy_refine_dilation < 0:
             raise ValueError(f"occupancy_refine_dilation must be >= 0 cells, got {self.occupancy_refine_dilation}")
         if not 0.0 < self.density_grad_keep <= 1.0:
             raise ValueError(f"density_grad_keep must be in (0, 1], got {self.density_grad_keep}")
         if not (math.isfinite(self.weight_average_span) and self.weight_average_span >= 0.0):
-            raise ValueError(f"weight_average_span must be a progress fraction >= 0 (0: off), got {self.weight_average_span}")
+            raise ValueError("weight_average_span must be a progress fraction >= 0 (0: off), "
+                             f"got {self.weight_average_span}")
         if not 0.0 <= self.weight_average_from <= 1.0:
             raise ValueError(f"weight_average_from must be in [0, 1], got {self.weight_average_from}")
         if self.weight_average_every < 1:

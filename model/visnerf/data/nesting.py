@@ -41,7 +41,8 @@ class AxisNesting:
 
     def nested(self, tolerance: float) -> bool:
         """Nested one way within ``tolerance`` for every pair, and the hulls change by more than it."""
-        return self.pairs > 0 and self.change > tolerance and min(self.outside_shrinking, self.outside_growing) <= tolerance
+        return (self.pairs > 0 and self.change > tolerance
+                and min(self.outside_shrinking, self.outside_growing) <= tolerance)
 
     @property
     def shrinking(self) -> bool:
@@ -55,7 +56,8 @@ def setting_hulls(
     """(settings ``[s, k]``, each setting's visual hull flattened over ``resolution^3`` cells of ``box``)."""
     settings, hulls = [], []
     for frames in setting_groups(scene.params):
-        hull = carve_occupancy(scene.subset(frames), box, (resolution,) * 3, tolerance, min_seen_fraction=min_seen_fraction)
+        hull = carve_occupancy(scene.subset(frames), box, (resolution,) * 3, tolerance,
+                               min_seen_fraction=min_seen_fraction)
         settings.append(scene.params[frames[0]].float())
         hulls.append(hull.reshape(-1))
     return torch.stack(settings), hulls

@@ -93,7 +93,8 @@ def axes_from_values(names: list[str], values: np.ndarray) -> tuple[list[int], t
             continue  # a parameter that never varies carries no information
         keep.append(k)
         default = float(distinct[(distinct.size - 1) // 2])
-        axes.append(ParamAxis(name, float(distinct[0]), float(distinct[-1]), tuple(float(v) for v in distinct), default))
+        axes.append(ParamAxis(name, float(distinct[0]), float(distinct[-1]), tuple(float(v) for v in distinct),
+                              default))
     return keep, tuple(axes)
 
 

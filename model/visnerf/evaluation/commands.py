@@ -33,7 +33,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("checkpoint", help="checkpoint (.safetensors)")
     p.add_argument("data", help="dataset folder with transforms_<split>.json, or a Cinema database (every row scored)")
-    p.add_argument("--split", choices=SPLITS, default=None, help="split to evaluate (default test; a Cinema database has none)")
+    p.add_argument("--split", choices=SPLITS, default=None,
+                   help="split to evaluate (default test; a Cinema database has none)")
     p.add_argument("--out", required=True, type=Path, help="report folder (created; files in it are replaced)")
     p.add_argument("--quality", choices=("full", "preview"), default="full", help="render quality (default full)")
     p.add_argument("--max-frames", type=int, default=None, metavar="N",
@@ -80,7 +81,8 @@ def eval_command(args: argparse.Namespace) -> int:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     cfg = EvalConfig(
-        split=args.split, cinema=cinema, quality=args.quality, max_frames=args.max_frames, difference_frames=args.diff_frames,
+        split=args.split, cinema=cinema, quality=args.quality, max_frames=args.max_frames,
+        difference_frames=args.diff_frames,
         difference_scale_max=float(args.diff_scale), lpips=LpipsConfig(args.lpips_weights, args.lpips_net),
         sweep=SweepConfig(enabled=not args.no_sweep, n_frames=args.sweep_frames),
         training_logs=tuple(args.train_log),

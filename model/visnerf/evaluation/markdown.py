@@ -85,7 +85,8 @@ def _render_sweep(s: dict) -> list[str]:
         return [*lines, "The render-settings sweep was not run.", ""]
     lines += [
         f"Each setting renders the same {r['frames']} frame(s); PSNR and SSIM are their means, the time their "
-        f"median. On the Pareto front: no other setting is both as fast and as accurate. Data: [{r['data']}]({r['data']}).",
+        "median. On the Pareto front: no other setting is both as fast and as accurate. "
+        f"Data: [{r['data']}]({r['data']}).",
         "",
         "| setting | step (voxels) | skipping | early stop | scale | PSNR (dB) | SSIM | ms per frame | Pareto |",
         "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",

@@ -43,7 +43,8 @@ def _compiled_serves(rays_o: Tensor, rays_d: Tensor, aabb: Tensor) -> bool:
     """The compiled loop takes CPU rays of one float type (any strides: a batch's origins are often
     one camera's, expanded) with no gradient wanted."""
     return (compiled.serves(rays_o.device) and aabb.device.type == "cpu" and rays_o.dtype in _LOOP_TYPES
-            and rays_d.dtype == rays_o.dtype and rays_o.dim() == 2 and rays_o.shape == rays_d.shape and rays_o.shape[1] == 3
+            and rays_d.dtype == rays_o.dtype and rays_o.dim() == 2 and rays_o.shape == rays_d.shape
+            and rays_o.shape[1] == 3
             and not (torch.is_grad_enabled() and (rays_o.requires_grad or rays_d.requires_grad)))
 
 

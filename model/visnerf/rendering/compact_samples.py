@@ -105,7 +105,8 @@ def _place_source(ft: type):  # the loop numba compiles for float type ``ft``
 
 MIN_RAYS_A_PART = 256
 """Fewest rays worth a thread of their own when a batch's samples are placed."""
-_PLACE_LOOPS = {np.float32: compiled.jit(_place_source(np.float32)), np.float64: compiled.jit(_place_source(np.float64))}
+_PLACE_LOOPS = {np.float32: compiled.jit(_place_source(np.float32)),
+                np.float64: compiled.jit(_place_source(np.float64))}
 
 
 def available(device: torch.device) -> bool:

@@ -178,7 +178,8 @@ def sample_windows(
         raise RuntimeError("numba is not installed: the compiled empty-space walk is unavailable")
     n = first.shape[0]
     out_first, out_last = torch.empty(n, dtype=torch.int64), torch.empty(n, dtype=torch.int64)
-    arrays = [t.detach().contiguous().numpy() for t in (rays_o.float(), rays_d.float(), t_near.float(), first.long(), last.long())]
+    arrays = [t.detach().contiguous().numpy()
+              for t in (rays_o.float(), rays_d.float(), t_near.float(), first.long(), last.long())]
     tables = grid.arrays()
     of, ol = out_first.numpy(), out_last.numpy()
     for start in range(0, n, RAYS_PER_CALL):
@@ -187,7 +188,8 @@ def sample_windows(
 
         def part(a: int, b: int, start: int = start) -> None:
             sl = slice(start + a, start + b)
-            _compiled(*(x[sl] for x in arrays[:3]), step, *(x[sl] for x in arrays[3:]), int(near), *tables, of[sl], ol[sl])
+            _compiled(*(x[sl] for x in arrays[:3]), step, *(x[sl] for x in arrays[3:]), int(near), *tables,
+                      of[sl], ol[sl])
 
         compiled.run_ranges(part, rays, RAYS_PER_PART)
     return out_first.to(first.dtype), out_last.to(last.dtype)

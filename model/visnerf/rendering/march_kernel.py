@@ -132,7 +132,8 @@ def place(
     flat = torch.empty(a * seg, dtype=torch.int64)
     tables = _NO_OCCUPANCY if occupancy is None else occupancy
     arrays = [t.contiguous().numpy() for t in (origins, directions, t_near, t_far, first, last)]
-    m = _place_compiled(*arrays, int(s0), int(seg), float(step), occupancy is not None, *tables, points.numpy(), flat.numpy())
+    m = _place_compiled(*arrays, int(s0), int(seg), float(step), occupancy is not None, *tables, points.numpy(),
+                        flat.numpy())
     return points[:m], flat[:m]
 
 
@@ -149,8 +150,8 @@ def composite(
     m = flat.shape[0]
     weights = torch.empty(m, dtype=torch.float32)
     shade = torch.empty(m, dtype=torch.int64)
-    k = _composite_compiled(flat.numpy(), sigma.contiguous().numpy(), int(seg), float(step), tau.numpy(), float(threshold),
-                            weights.numpy(), shade.numpy())
+    k = _composite_compiled(flat.numpy(), sigma.contiguous().numpy(), int(seg), float(step), tau.numpy(),
+                            float(threshold), weights.numpy(), shade.numpy())
     return weights, shade[:k]
 
 

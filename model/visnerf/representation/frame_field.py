@@ -177,7 +177,8 @@ class FrameField:
         self.density_tables = self.appearance_tables = None
         self.density_kernel = self.appearance_kernel = None
         if self.compiled:
-            self.density_kernel = vm_kernel.KernelTables.of(*field.density_grid.row_tables(), field.density_grid.resolution)
+            self.density_kernel = vm_kernel.KernelTables.of(*field.density_grid.row_tables(),
+                                                            field.density_grid.resolution)
             self.appearance_kernel = vm_kernel.KernelTables.of(*field.appearance_grid.row_tables(),
                                                                field.appearance_grid.resolution)
         else:
@@ -198,10 +199,12 @@ class FrameField:
         self._density_out_f32 = self._color_out_f32 = None
         """The output layers in float32 on bfloat16 activations (``output_kernel``): the compiled path."""
         if dtype == torch.bfloat16 and self.compiled and output_kernel.available(q_density.device):
-            self._density_out_f32 = output_kernel.OutputLayer(dd.weight.detach() * sharpness, dd.bias.detach() * sharpness)
+            self._density_out_f32 = output_kernel.OutputLayer(dd.weight.detach() * sharpness,
+                                                              dd.bias.detach() * sharpness)
             self._color_out_f32 = output_kernel.OutputLayer(cd.weight, cd.bias)
         self._level_step = None if field.levels is None else cfg.level_normal_step * field.voxel_size()
-        self._grid_scale = 2.0 / field.grid_extent(field.aabb.dtype)  # [3], world units to grid coordinates (``to_grid``)
+        # [3], world units to grid coordinates (``to_grid``)
+        self._grid_scale = 2.0 / field.grid_extent(field.aabb.dtype)
         self._grid_offset = -field.aabb[0] * self._grid_scale - 1.0  # [3]
         self._with_directions = self._facing is not None or self._level_step is not None
 
@@ -335,7 +338,8 @@ class FrameField:
             parts.append(facing_cosines(vectors.repeat_interleave(v, dim=0), flat_dirs))
         if self._level_step is not None:
             probes = self.level_probes(points) if probes is None else probes
-            parts.append(level_cosines(probes.repeat_interleave(v, dim=0), flat_dirs, self.field.cfg.level_cosine_powers))
+            parts.append(level_cosines(probes.repeat_interleave(v, dim=0), flat_dirs,
+                                       self.field.cfg.level_cosine_powers))
         rest = torch.cat(parts, dim=1).to(self.dtype)  # [m v, r]
         hidden = F.linear(rest, weight[:, n_spatial:]).float().view(m, v, -1) + base[:, None, :]
         out_w, out_b = self._color_out

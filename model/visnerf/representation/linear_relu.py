@@ -27,7 +27,9 @@ def _fused_op():  # a torch op overload packet
     return torch.ops.mkldnn._linear_pointwise
 
 
-def plain_linear_relu(x: Float[Tensor, "m i"], weight: Float[Tensor, "o i"], bias: Float[Tensor, " o"]) -> Float[Tensor, "m o"]:
+def plain_linear_relu(
+    x: Float[Tensor, "m i"], weight: Float[Tensor, "o i"], bias: Float[Tensor, " o"]
+) -> Float[Tensor, "m o"]:
     """The unfused reference: ``addmm`` then an in-place ReLU."""
     return torch.addmm(bias, x, weight.t()).relu_()
 
@@ -51,7 +53,9 @@ def fused_available(dtype: torch.dtype = torch.float32) -> bool:
     return _fused_ok[dtype]
 
 
-def linear_relu(x: Float[Tensor, "m i"], weight: Float[Tensor, "o i"], bias: Float[Tensor, " o"]) -> Float[Tensor, "m o"]:
+def linear_relu(
+    x: Float[Tensor, "m i"], weight: Float[Tensor, "o i"], bias: Float[Tensor, " o"]
+) -> Float[Tensor, "m o"]:
     """``relu(x @ weight.T + bias)``; all three in one dtype (float32 or bfloat16), no grad."""
     if x.device.type == "cpu" and not torch.is_grad_enabled() and fused_available(x.dtype):
         return _fused_op()(x, weight, bias, "relu", [], "")

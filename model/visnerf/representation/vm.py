@@ -43,8 +43,8 @@ def sample_plane(
 
 
 def factor_tables(planes: list[Tensor], lines: list[Tensor]) -> tuple[Float[Tensor, "p c"], Float[Tensor, "l c"]]:
-    """Planes ``[c, h, w]`` and lines ``[c, r]`` (in ``MODES`` order) stacked as the row tables of ``TapLayout``: plane row
-    ``y * w + x`` holds node ``(x, y)``, line row ``z`` node ``z``."""
+    """Planes ``[c, h, w]`` and lines ``[c, r]`` (in ``MODES`` order) stacked as the row tables of
+    ``TapLayout``: plane row ``y * w + x`` holds node ``(x, y)``, line row ``z`` node ``z``."""
     plane_table = torch.cat([p.permute(1, 2, 0).reshape(-1, p.shape[0]) for p in planes])
     return plane_table, torch.cat([line.t() for line in lines]).contiguous()
 

@@ -204,7 +204,9 @@ def _compiled(n_components: int):  # a numba dispatcher
     return compiled.jit(_kernel_source(n_components))
 
 
-def table_layout(resolution: tuple[int, int, int], plane_rows: int, line_rows: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def table_layout(
+    resolution: tuple[int, int, int], plane_rows: int, line_rows: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(resolution, first plane row of each mode, first line row of each mode) as the compiled
     loops read them (int64); ``ValueError`` where tables of ``plane_rows`` and ``line_rows`` rows
     do not hold a grid of ``resolution``."""

@@ -42,7 +42,8 @@ class VMTaps:
     def select(self, index: Int[Tensor, " k"] | slice) -> "VMTaps":
         """Taps of samples ``index`` (a slice, or indices: ``index_select``, several times faster
         on the CPU than advanced indexing)."""
-        return VMTaps(*(take_rows(t, index) for t in (self.plane_rows, self.plane_weights, self.line_rows, self.line_weights)))
+        tables = (self.plane_rows, self.plane_weights, self.line_rows, self.line_weights)
+        return VMTaps(*(take_rows(t, index) for t in tables))
 
 
 @dataclass(frozen=True)

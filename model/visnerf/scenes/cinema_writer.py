@@ -78,7 +78,8 @@ def cinema_view(spec: SceneSpec, frame: Frame, convention: Convention, resolutio
     if convention == "pycinema":
         intr = Intrinsics.from_view_height(resolution, resolution, view_height(spec))
         return CinemaView(orbit, intr, frame.azimuth, frame.elevation)
-    return CinemaView(orbit, Intrinsics.from_fov(resolution, resolution, spec.fov_x_rad), frame.azimuth, frame.elevation)
+    intrinsics = Intrinsics.from_fov(resolution, resolution, spec.fov_x_rad)
+    return CinemaView(orbit, intrinsics, frame.azimuth, frame.elevation)
 
 
 def _render(spec: SceneSpec, frame: Frame, view: CinemaView) -> RayOutput:

@@ -161,7 +161,8 @@ CELLS = 64
 def _cell_tables(centres, inv_r2, height, wave, phase, disp, lipschitz, needed, count, blobs):
     cells = count.shape[0]
     size = 1.0 / cells
-    slack = lipschitz * 0.5 * math.sqrt(3.0) * size  # how far a warped point can lie from the cell moved by its centre's warp
+    # how far a warped point can lie from the cell moved by its centre's warp
+    slack = lipschitz * 0.5 * math.sqrt(3.0) * size
     for ix in range(cells):
         for iy in range(cells):
             for iz in range(cells):
@@ -190,8 +191,9 @@ def cell_tables(
     """Per cell, how many blobs may reach it and which (their indices first). The warp moves a
     point of a cell at most its Lipschitz bound (the sum of the waves' displacement times wave
     number) times the point's distance from the centre away from the cell moved by the centre's
-    warp; a blob reaches the cell when its exponent in that region is below ``FAR_EXPONENT``. A cell where even the sum of every blob's largest
-    value there stays below the blobs' sum at ``lowest`` has no visible value: a count of 0."""
+    warp; a blob reaches the cell when its exponent in that region is below ``FAR_EXPONENT``. A cell
+    where even the sum of every blob's largest value there stays below the blobs' sum at ``lowest``
+    has no visible value: a count of 0."""
     cpu = torch.device("cpu")
     centres, inv_r2, height = (a.numpy() for a in field.blobs(torch.float64, cpu))
     wave, phase, displacement = (a.numpy() for a in field.waves(torch.float64, cpu))

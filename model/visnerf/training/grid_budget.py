@@ -52,6 +52,6 @@ class GridBudget:
         return lo
 
     def describe(self, final: float, rays_per_voxel: float) -> str:
-        return (f"{self.rays_per_second:,.0f} rays a second at {self.now:.0f} voxels a side and {self.seconds_left:.0f} s "
-                f"left: about {self.rays_at(final) / 1e6:.1f} M rays in the run, so at most {final:.0f} voxels a side at "
-                f"{rays_per_voxel:g} rays a voxel")
+        return (f"{self.rays_per_second:,.0f} rays a second at {self.now:.0f} voxels a side and "
+                f"{self.seconds_left:.0f} s left: about {self.rays_at(final) / 1e6:.1f} M rays in the run, "
+                f"so at most {final:.0f} voxels a side at {rays_per_voxel:g} rays a voxel")

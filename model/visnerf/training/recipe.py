@@ -148,9 +148,9 @@ class _Rule:
 def _carve_seen(ctx: _Context) -> tuple[object, str]:
     scene, traits = ctx.scene, ctx.traits
     if traits.framed:
-        return RECIPE.carve_framed_fraction, (f"every one of the {scene.n_frames} training images shows its content clear "
-                                       "of the border, so content is in every view's frame: cells that a quarter of "
-                                       "their setting's views do not frame are carved")
+        return RECIPE.carve_framed_fraction, (f"every one of the {scene.n_frames} training images shows its "
+                                       "content clear of the border, so content is in every view's frame: cells "
+                                       "that a quarter of their setting's views do not frame are carved")
     return 0.0, (f"{traits.border_frames} of {scene.n_frames} training images have content on their border: a "
                  "cell only a few views frame may still be content")
 
@@ -210,9 +210,9 @@ def _density(ctx: _Context) -> tuple[object | None, str]:
     scale, shift = surface_density(voxel, fog)
     ctx.field["density_shift"] = shift
     return scale, (f"{100 * traits.faint_fraction:.1f} % of the foreground pixels are faint (under "
-                   f"{100 * RECIPE.surface_max_faint:g} %): opaque surfaces, whose density must reach an optical depth of "
-                   f"about 10 within a voxel or two; scaled by one over the voxel size, the starting fog kept at "
-                   f"{fog:.3f} per world unit (density_shift {shift:.3f})")
+                   f"{100 * RECIPE.surface_max_faint:g} %): opaque surfaces, whose density must reach an "
+                   "optical depth of about 10 within a voxel or two; scaled by one over the voxel size, the "
+                   f"starting fog kept at {fog:.3f} per world unit (density_shift {shift:.3f})")
 
 
 def _stop_eps(ctx: _Context) -> Decision:
@@ -275,7 +275,8 @@ def _level_axis(ctx: _Context) -> Decision:
     if axis >= 0:
         return axis, (f"opaque surfaces whose visual hulls are nested along {scene.param_axes[axis].name!r} (an "
                       f"isovalue sweep): its surfaces are level sets of one field ({measured})")
-    return axis, f"opaque surfaces, but no axis's visual hulls are nested within {100 * RECIPE.nest_tolerance:g} % ({measured})"
+    return axis, (f"opaque surfaces, but no axis's visual hulls are nested within "
+                  f"{100 * RECIPE.nest_tolerance:g} % ({measured})")
 
 
 def _silhouettes(ctx: _Context) -> Decision:
@@ -350,7 +351,9 @@ def choose_recipe(scene: SceneData, base: TrainConfig, base_field: FieldConfig,
             value, reason = decision
             if value is not None:
                 (ctx.field if rule.in_field else ctx.train)[rule.name] = value
-            shown = round(value, 3) if rule.name == "density_scale" and isinstance(value, float) else ctx.value(rule.name)
+            shown = ctx.value(rule.name)
+            if rule.name == "density_scale" and isinstance(value, float):
+                shown = round(value, 3)
             choices.append(Choice(rule.name, shown, reason))
         if rule.name == "carve_min_seen_fraction":
             ctx.carve()

@@ -42,7 +42,8 @@ def validate(
         psnrs.append(psnr(pred, gt))
         ssims.append(ssim(pred, gt))
     field_.train()
-    return {"val_psnr": float(np.mean(psnrs)), "val_ssim": float(np.mean(ssims)), "val_ms_per_frame": float(np.median(ms))}
+    return {"val_psnr": float(np.mean(psnrs)), "val_ssim": float(np.mean(ssims)),
+            "val_ms_per_frame": float(np.median(ms))}
 
 
 def write_log(rows: list[dict], path: Path) -> None:

@@ -241,7 +241,8 @@ def backward_level_priors(field: VisNerfField, params: Float[Tensor, "n k"], w: 
         return terms
     if w.curvature > 0:
         pick = torch.randint(0, params.shape[0], (w.curvature_points,), generator=generator)
-        curvature = w.curvature * level_curvature(field, params[pick.to(params.device)], generator, raw_density=raw_density)
+        picked = params[pick.to(params.device)]
+        curvature = w.curvature * level_curvature(field, picked, generator, raw_density=raw_density)
         curvature.backward()
         terms["level_curvature"] = float(curvature.detach())
     if w.spacing > 0:

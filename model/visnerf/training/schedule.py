@@ -86,7 +86,8 @@ class Schedule:
         for choice in self.recipe_choices:
             if choice.get("name") == "rays_per_voxel":
                 reason = str(choice.get("reason", "")).split(" [at the last upsampling: ")[0]
-                choice["reason"] = f"{reason} [at the last upsampling: {budget.describe(final, self.cfg.rays_per_voxel)}]"
+                described = budget.describe(final, self.cfg.rays_per_voxel)
+                choice["reason"] = f"{reason} [at the last upsampling: {described}]"
 
     def _milestones(self) -> None:
         done = (self.state.upsamples_done, self.state.occupancy_done, self.state.refines_done)
@@ -97,7 +98,8 @@ class Schedule:
 
     def _schedule_milestones(self) -> None:
         p = self.progress()
-        while self.state.upsamples_done < len(self.cfg.upsample_at) and p >= self.cfg.upsample_at[self.state.upsamples_done]:
+        at = self.cfg.upsample_at
+        while self.state.upsamples_done < len(at) and p >= at[self.state.upsamples_done]:
             now = math.prod(self.field.resolution) ** (1.0 / 3.0)
             if self.cfg.rays_per_voxel > 0 and self.cfg.time_budget_s is not None:
                 self._budget_final_grid(now)

@@ -82,7 +82,8 @@ class Stepping:
     """The trainer's step (a part of ``Trainer``)."""
 
     def _weights(self) -> RegularizerWeights:
-        l1 = self.cfg.l1_weight_initial if self.state.iteration < self.cfg.l1_switch_iteration else self.cfg.l1_weight_rest
+        early = self.state.iteration < self.cfg.l1_switch_iteration
+        l1 = self.cfg.l1_weight_initial if early else self.cfg.l1_weight_rest
         return RegularizerWeights(l1, self.cfg.param_l1_weight, self.cfg.tv_weight_density,
                                   self.cfg.tv_weight_appearance, self.cfg.tv_weight_params)
 

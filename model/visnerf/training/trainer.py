@@ -77,7 +77,8 @@ class Trainer(Schedule, OccupancyPolicy, Stepping, Resumable, Recording):
         set_mixed_precision(self.field, cfg.mixed_precision)
         if self.carved is not None:
             self.field.set_occupancy(self._carved_on(self._occupancy_resolution()))
-        self.state = start or TrainState(train_seconds=self.setup_seconds, mark_seconds=self.setup_seconds)  # carving counts as training
+        # carving counts as training
+        self.state = start or TrainState(train_seconds=self.setup_seconds, mark_seconds=self.setup_seconds)
         self.sampler = self._make_sampler()
         self.fused: FusedStep | None = None
         """The fused step where it serves (``fused_step_serves``; ``fused=False`` takes the torch path)."""

@@ -238,7 +238,9 @@ def _time_column(frames: list[dict[str, Any]], values: np.ndarray) -> int | None
     return same[0] if same else None
 
 
-def _param_names(meta: dict[str, Any], frames: list[dict[str, Any]], values: np.ndarray) -> tuple[list[str], np.ndarray]:
+def _param_names(
+    meta: dict[str, Any], frames: list[dict[str, Any]], values: np.ndarray
+) -> tuple[list[str], np.ndarray]:
     """Names of the parameter columns and the columns kept: ``param_names`` for ``params`` (``p0``,
     ``p1``... without it) and ``time`` for a D-NeRF time; a time that repeats a ``params`` column
     names that column instead of adding one. ``param_names`` may also name the time column."""

@@ -85,7 +85,8 @@ def _h5_camera(meta: dict[str, np.ndarray], label: str) -> tuple[np.ndarray, tup
     if missing:
         raise DatasetError(f"{label}: the image's metadata lacks {missing}")
     try:
-        pos, direction, up = (np.asarray(meta[k], dtype=np.float64).reshape(3) for k in ("CameraPos", "CameraDir", "CameraUp"))
+        pos, direction, up = (np.asarray(meta[k], dtype=np.float64).reshape(3)
+                              for k in ("CameraPos", "CameraDir", "CameraUp"))
         c2w = frame_c2w(pos, direction, up, label)
     except ValueError as exc:  # frame_c2w's message names the row
         raise DatasetError(str(exc)) from None
@@ -97,7 +98,8 @@ def _h5_camera(meta: dict[str, np.ndarray], label: str) -> tuple[np.ndarray, tup
         raise DatasetError(f"{label}: the image's metadata has neither CameraHeight (orthographic) nor "
                            "CameraAngle (perspective)")
     if not (math.isfinite(value) and value > 0 and (kind == "view_height" or value < 180)):
-        raise DatasetError(f"{label}: {'CameraHeight' if kind == 'view_height' else 'CameraAngle'} {value} is not usable")
+        key = "CameraHeight" if kind == "view_height" else "CameraAngle"
+        raise DatasetError(f"{label}: {key} {value} is not usable")
     return c2w, (kind, value)
 
 
@@ -119,7 +121,8 @@ def _h5_pixels(path: Path, background: np.ndarray, label: str) -> tuple[np.ndarr
     if rgba.ndim != 3 or rgba.shape[2] not in (3, 4):
         raise DatasetError(f"{label}: channels/rgba has shape {list(rgba.shape)}, expected [h, w, 4]")
     if rgba.dtype != np.uint8:
-        rgba = np.clip(np.asarray(rgba, dtype=np.float32) * (255.0 if rgba.max() <= 1.0 else 1.0) + 0.5, 0, 255).astype(np.uint8)
+        levels = 255.0 if rgba.max() <= 1.0 else 1.0
+        rgba = np.clip(np.asarray(rgba, dtype=np.float32) * levels + 0.5, 0, 255).astype(np.uint8)
     rgb = composite(rgba, background) if rgba.shape[2] == 4 else rgba
     if depth is not None:
         depth = np.squeeze(depth)
@@ -245,7 +248,8 @@ def _convention(table: CinemaTable, folder: Path, paths: list[Path], labels: lis
     convention = options.convention or detected
     if convention is None:
         raise DatasetError(f"{table.path}: the database does not say how its cameras were placed; name the "
-                           f"convention (pycinema, paraview or ascent) as 'convention' in {CAMERA_FILE} or as an option")
+                           "convention (pycinema, paraview or ascent) as 'convention' in "
+                           f"{CAMERA_FILE} or as an option")
     h5 = [p.suffix.lower() == ".h5" for p in paths]
     if convention == "pycinema" and not all(h5):
         raise DatasetError(f"{labels[h5.index(False)]}: the pycinema convention reads cameras from .h5 images")
