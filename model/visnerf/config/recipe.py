@@ -65,8 +65,8 @@ class RecipeConfig:
     sparse_view_tv: float = 0.1
     """``TrainConfig.tv_weight_density`` and ``tv_weight_appearance`` for such a scene with parameter
     axes: few views fit its density and colours with speckle between them, which the images do not
-    pin down. A scene of one setting gets none: it smears nested thin shells into fog
-    (docs/decisions.md#recipe.sparse_view_tv)."""
+    pin down. A scene of one setting gets it on the appearance factors alone: on the density it
+    smears nested thin shells into fog (docs/decisions.md#recipe.sparse_view_tv)."""
     sparse_view_sh_degree: int = 1
     """``FieldConfig.sh_degree`` for such a scene: the 16 view terms of degree 3 fit each of its few
     views' colours and miss the views between them; a 20-view series gained at degree 2 and more

@@ -232,15 +232,20 @@ def _opaque_only(value: object, opaque_reason: str, translucent_reason: str) -> 
 
 def _total_variation(opaque_value: float, opaque_reason: str, what: str) -> Callable[[_Context], Decision]:
     """Total variation on the ``what`` factors: ``opaque_value`` for opaque surfaces, and for
-    translucent content seen by few views a setting (``RECIPE.sparse_views``)."""
+    translucent content seen by few views a setting (``RECIPE.sparse_views``); of one setting, on
+    the appearance factors alone."""
     def decide(ctx: _Context) -> Decision:
         views = ctx.traits.views_per_setting
         if ctx.traits.opaque:
             return opaque_value, opaque_reason
-        if views < RECIPE.sparse_views and ctx.traits.n_params == 0:
+        if views < RECIPE.sparse_views and ctx.traits.n_params == 0 and what == "density":
             return None, (f"translucent content of one setting seen by {views:g} views: total variation would "
                           "smear its thin shells into fog, and no setting between training values needs it "
                           "(docs/decisions.md#recipe.sparse_view_tv)")
+        if views < RECIPE.sparse_views and ctx.traits.n_params == 0:
+            return RECIPE.sparse_view_tv, (f"translucent content of one setting seen by {views:g} views: smooth "
+                                           f"{what} factors leave the thin shells' rims to the density, which "
+                                           "the views pin down (docs/decisions.md#recipe.sparse_view_tv)")
         if views < RECIPE.sparse_views:
             return RECIPE.sparse_view_tv, (f"translucent content seen by {views:g} views a setting (under "
                                            f"{RECIPE.sparse_views}): so few views fit its {what} with speckle "
