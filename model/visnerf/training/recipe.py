@@ -14,7 +14,7 @@ from the images and cameras alone, each choice with the reason ``visnerf info`` 
   occluded samples dropped, light samples coloured at random, facing cosines, total variation,
   and, where the settings' hulls nest along an axis, a level-set axis with rays on its silhouettes;
 - for translucent content seen by fewer than ``RECIPE.sparse_views`` images a setting: view terms
-  of ``RECIPE.sparse_view_sh_degree``, and total variation only where it has parameter axes.
+  of ``RECIPE.sparse_view_sh_degree`` and total variation, for K = 0 on the appearance factors alone.
 
 The rule and figure behind each choice are under its ``recipe.*`` id in docs/decisions.md
 (docs/decisions.md#recipe.sparse_view_tv, say).
@@ -230,15 +230,16 @@ def _opaque_only(value: object, opaque_reason: str, translucent_reason: str) -> 
     return decide
 
 
-def _total_variation(opaque_value: float, opaque_reason: str, what: str) -> Callable[[_Context], Decision]:
+def _total_variation(opaque_value: float, opaque_reason: str, what: str,
+                     one_setting: bool) -> Callable[[_Context], Decision]:
     """Total variation on the ``what`` factors: ``opaque_value`` for opaque surfaces, and for
-    translucent content seen by few views a setting (``RECIPE.sparse_views``); of one setting, on
-    the appearance factors alone."""
+    translucent content seen by few views a setting (``RECIPE.sparse_views``), of one setting too
+    where ``one_setting``."""
     def decide(ctx: _Context) -> Decision:
         views = ctx.traits.views_per_setting
         if ctx.traits.opaque:
             return opaque_value, opaque_reason
-        if views < RECIPE.sparse_views and ctx.traits.n_params == 0 and what == "density":
+        if views < RECIPE.sparse_views and ctx.traits.n_params == 0 and not one_setting:
             return None, (f"translucent content of one setting seen by {views:g} views: total variation would "
                           "smear its thin shells into fog, and no setting between training values needs it "
                           "(docs/decisions.md#recipe.sparse_view_tv)")
@@ -318,13 +319,11 @@ RULES: tuple[_Rule, ...] = (
         RECIPE.surface.tv_density,
         "opaque surfaces: the images pin the density only where a surface is seen, and a few views fit it with a "
         "rough surface (and, with a level axis, leave the surfaces between training values free); total "
-        "variation keeps it smooth",
-        "density")),
+        "variation keeps it smooth", "density", one_setting=False)),
     _Rule("tv_weight_appearance", _total_variation(
         RECIPE.surface.tv_appearance,
         "opaque surfaces: each surface point is seen by a few views, whose fit total variation on the appearance "
-        "factors carries over to its neighbours",
-        "appearance")),
+        "factors carries over to its neighbours", "appearance", one_setting=True)),
     _Rule("carve_dilation", _opaque_only(
         RECIPE.surface.carve_dilation,
         "opaque surfaces: a density that fills the carved hull renders the training silhouettes exactly; grown, "
@@ -332,8 +331,7 @@ RULES: tuple[_Rule, ...] = (
         "translucent content: a filled hull does not fit its images")),
     _Rule("occupancy_refine_dilation", _opaque_only(
         RECIPE.surface.refine_dilation,
-        "opaque surfaces: refined grids keep a ring of empty cells, so the grid's edge never cuts a surface that "
-        "grows",
+        "opaque surfaces: refined grids keep a ring of empty cells, so the grid's edge never cuts a surface that grows",
         "translucent content: refined grids hold only the cells with content (fewer samples a step)")),
     _Rule("level_set_axis", _level_axis, in_field=True),
     _Rule("silhouette_ray_fraction", _silhouettes),
@@ -356,9 +354,8 @@ def choose_recipe(scene: SceneData, base: TrainConfig, base_field: FieldConfig,
             value, reason = decision
             if value is not None:
                 (ctx.field if rule.in_field else ctx.train)[rule.name] = value
-            shown = ctx.value(rule.name)
-            if rule.name == "density_scale" and isinstance(value, float):
-                shown = round(value, 3)
+            shown = (round(value, 3) if rule.name == "density_scale" and isinstance(value, float)
+                     else ctx.value(rule.name))
             choices.append(Choice(rule.name, shown, reason))
         if rule.name == "carve_min_seen_fraction":
             ctx.carve()
